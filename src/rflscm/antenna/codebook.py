@@ -1,0 +1,127 @@
+"""Beam codebooks: SSB wide beams and 3GPP Type I DFT (CSI-RS) beams.
+
+A codebook turns into beam weights ``W[num_beams, num_h, num_v]`` (complex,
+unit power per beam) for an array at a carrier.  Gain convention: the beam
+power towards ω is |Σ_e a_e(ω) W_e|², so a beam steered to ω₀ has
+W_e ∝ exp(−j 2π/λ ⟨r_e, ω₀⟩).  Electrical tilt is a common vertical phase
+taper that steers every beam down by ``elec_tilt_deg``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from rflscm.antenna.array import ArrayGeometry
+from rflscm.config import from_dict
+from rflscm.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class SSBCodebook:
+    """Wide SSB beams: a grid of steering directions formed by a centred sub-array.
+
+    Beam order: tilt-major (for each tilt, every azimuth).  Angles are in the
+    antenna frame: azimuth positive to the boresight's left (CCW seen from
+    above), tilt positive down.  A smaller sub-array gives wider beams.
+    """
+
+    type: Literal["ssb"] = "ssb"
+    azimuths_deg: tuple[float, ...] = (-45.0, -15.0, 15.0, 45.0)
+    tilts_deg: tuple[float, ...] = (0.0, 10.0)
+    active_h: int = 4
+    active_v: int = 2
+
+    def __post_init__(self) -> None:
+        if not self.azimuths_deg or not self.tilts_deg:
+            raise ConfigError("an SSB codebook needs at least one azimuth and one tilt.")
+        if self.active_h < 1 or self.active_v < 1:
+            raise ConfigError(f"SSB sub-array must be at least 1 × 1 (got {self.active_h} × {self.active_v}).")
+
+    @property
+    def num_beams(self) -> int:
+        return len(self.azimuths_deg) * len(self.tilts_deg)
+
+    def weights(self, array: ArrayGeometry, wavelength_m: float) -> torch.Tensor:
+        if self.active_h > array.num_h or self.active_v > array.num_v:
+            raise ConfigError(
+                f"SSB sub-array {self.active_h} × {self.active_v} does not fit the {array.num_h} × {array.num_v} array."
+            )
+        tilt, az = np.meshgrid(np.deg2rad(self.tilts_deg), np.deg2rad(self.azimuths_deg), indexing="ij")
+        el = -tilt.ravel()
+        d0 = np.stack((np.cos(el) * np.cos(az.ravel()), np.cos(el) * np.sin(az.ravel()), np.sin(el)), axis=-1)
+        pos = array.element_positions()  # [h, v, 3]
+        phase = -(2 * np.pi / wavelength_m) * np.einsum("hvk,bk->bhv", pos, d0)
+        h0 = (array.num_h - self.active_h) // 2
+        v0 = (array.num_v - self.active_v) // 2
+        mask = np.zeros((array.num_h, array.num_v))
+        mask[h0 : h0 + self.active_h, v0 : v0 + self.active_v] = 1.0
+        w = mask * np.exp(1j * phase) / np.sqrt(self.active_h * self.active_v)
+        return torch.as_tensor(w, dtype=torch.complex128)
+
+
+@dataclass(frozen=True)
+class DFTCodebook:
+    """3GPP TS 38.214 Type I single-panel DFT beams (one port per element).
+
+    Beam (l, m) has weights exp(−j2π l h/(O1 N1)) · exp(+j2π m v/(O2 N2)) / √(N1 N2):
+    ``l`` steers to the boresight's left for l > 0, ``m`` steers down for m > 0.
+    ``beams_h`` × ``beams_v`` select the beams (vertical-major order).  The
+    default 8 × 4 = 32 beams spread ±61° in azimuth and 0…32° down at 0.5 λ /
+    0.7 λ spacing.
+    """
+
+    type: Literal["dft"] = "dft"
+    n1: int = 8
+    n2: int = 4
+    o1: int = 2
+    o2: int = 2
+    beams_h: tuple[int, ...] = (-7, -5, -3, -1, 1, 3, 5, 7)
+    beams_v: tuple[int, ...] = (0, 1, 2, 3)
+
+    def __post_init__(self) -> None:
+        if min(self.n1, self.n2, self.o1, self.o2) < 1:
+            raise ConfigError(f"DFT codebook needs N1, N2, O1, O2 >= 1 (got {self.n1}, {self.n2}, {self.o1}, {self.o2}).")
+        if not self.beams_h or not self.beams_v:
+            raise ConfigError("a DFT codebook needs at least one horizontal and one vertical beam index.")
+
+    @property
+    def num_beams(self) -> int:
+        return len(self.beams_h) * len(self.beams_v)
+
+    def weights(self, array: ArrayGeometry, wavelength_m: float) -> torch.Tensor:
+        if (array.num_h, array.num_v) != (self.n1, self.n2):
+            raise ConfigError(
+                f"DFT codebook N1 × N2 = {self.n1} × {self.n2} does not match the {array.num_h} × {array.num_v} array."
+            )
+        h = np.arange(self.n1)
+        v = np.arange(self.n2)
+        m, l = np.meshgrid(np.asarray(self.beams_v), np.asarray(self.beams_h), indexing="ij")
+        ph = np.exp(-2j * np.pi * np.outer(l.ravel(), h) / (self.o1 * self.n1))  # [beams, h]
+        pv = np.exp(2j * np.pi * np.outer(m.ravel(), v) / (self.o2 * self.n2))  # [beams, v]
+        w = ph[:, :, None] * pv[:, None, :] / np.sqrt(self.n1 * self.n2)
+        return torch.as_tensor(w, dtype=torch.complex128)
+
+
+Codebook = SSBCodebook | DFTCodebook
+_CODEBOOKS: dict[str, type] = {"ssb": SSBCodebook, "dft": DFTCodebook}
+
+
+def codebook_from_dict(spec: dict[str, Any], where: str = "codebook") -> Codebook:
+    """Build a codebook from a YAML mapping with a ``type`` key (``ssb`` or ``dft``)."""
+    if not isinstance(spec, dict) or "type" not in spec:
+        raise ConfigError(f"`{where}` must be a mapping with `type: ssb` or `type: dft`.")
+    kind = spec["type"]
+    if kind not in _CODEBOOKS:
+        raise ConfigError(f"`{where}.type` must be one of {', '.join(sorted(_CODEBOOKS))} (got {kind!r}).")
+    return from_dict(_CODEBOOKS[kind], spec, prefix=where)
+
+
+def electrical_tilt_taper(array: ArrayGeometry, wavelength_m: float, elec_tilt_deg: float) -> torch.Tensor:
+    """Vertical phase taper ``[num_h, num_v]`` steering the pattern down by ``elec_tilt_deg``."""
+    z = array.element_positions()[..., 2]
+    phase = (2 * np.pi / wavelength_m) * z * np.sin(np.deg2rad(elec_tilt_deg))
+    return torch.as_tensor(np.exp(1j * phase), dtype=torch.complex128)

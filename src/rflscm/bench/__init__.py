@@ -1,0 +1,41 @@
+"""Benchmarks behind ``rflscm bench NAME``: each returns a JSON-able dict and prints a table.
+
+Speed and accuracy targets live here and in BENCHMARKS.md, never in timed unit tests.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+
+@dataclass(frozen=True)
+class BenchContext:
+    """What every benchmark receives from the CLI."""
+
+    size: str  # "quick" (2 CPU cores, minutes) or "full" (GPU)
+    seeds: int
+    out_dir: Path
+    device: str
+    scenario: str | None  # scenario directory; None = the shipped default
+
+
+BenchFn = Callable[[BenchContext], dict[str, Any]]
+BENCHMARKS: dict[str, tuple[str, BenchFn]] = {}
+
+
+def register_bench(name: str, summary: str) -> Callable[[BenchFn], BenchFn]:
+    """Decorator adding a benchmark to :data:`BENCHMARKS`."""
+
+    def wrap(fn: BenchFn) -> BenchFn:
+        BENCHMARKS[name] = (summary, fn)
+        return fn
+
+    return wrap
+
+
+def load_all() -> None:
+    """Import the benchmark modules so that they register themselves."""
+    from rflscm.bench import sensing  # noqa: F401

@@ -1,0 +1,64 @@
+"""The ``rflscm`` command line: a thin Typer app over the library.
+
+Each command lives in its own module and registers itself on :data:`app`.
+User mistakes surface as :class:`rflscm.errors.RflscmError`; :func:`main`
+catches them once, prints one line to stderr and exits with code 2.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from rflscm import __version__
+from rflscm.errors import RflscmError
+
+app = typer.Typer(
+    name="rflscm",
+    help="Learn localized statistical channel models (RF-LSCM) from multi-beam RSRP and predict coverage "
+    "after antenna changes.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"rflscm {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+) -> None:
+    """rflscm: radiance-field channel models from multi-beam RSRP."""
+
+
+def _register_commands() -> None:
+    # Imported for their side effect of adding commands to `app`.
+    from rflscm.cli import bench, check  # noqa: F401
+
+
+def main() -> None:
+    """Console-script entry point."""
+    _register_commands()
+    try:
+        app(standalone_mode=False)
+    except RflscmError as exc:
+        print(f"{type(exc).__name__}: {exc}", file=sys.stderr)
+        sys.exit(2)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except typer.Abort:
+        print("Aborted.", file=sys.stderr)
+        sys.exit(1)
+    except Exception as exc:  # click usage errors carry their own exit code
+        import click
+
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            sys.exit(exc.exit_code)
+        raise
