@@ -1,0 +1,72 @@
+"""``rflscm check SCENARIO``: validate a scenario folder and print what it holds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from rflscm.cli import app
+from rflscm.data import ASPRS_CLASSES, Scenario, load_scenario
+from rflscm.data.summary import cells_per_carrier, measurement_stats, notes
+
+
+@app.command()
+def check(
+    scenario: Path = typer.Argument(..., help="Scenario folder (with scenario.yaml) or its YAML file."),
+) -> None:
+    """Validate a scenario (every file, row and column) and print a short summary.
+
+    Exits 0 when valid; otherwise prints one line naming the file, row and column, and exits 2.
+    """
+    loaded = load_scenario(scenario)
+    _print_summary(loaded, Console())
+
+
+def _ghz(freq_hz: float) -> str:
+    return f"{freq_hz / 1e9:g} GHz"
+
+
+def _print_summary(sc: Scenario, console: Console) -> None:
+    meta = sc.meta
+    console.print(f"[bold]{meta.name}[/bold]  ({sc.root})" + (f"\n  {meta.description}" if meta.description else ""))
+    origin = "none (x/y/z in metres)" if meta.origin is None else f"{meta.origin.lat}, {meta.origin.lon}"
+    console.print(f"  origin: {origin}   threshold: {meta.rsrp_threshold_dbm:g} dBm   rounds: {sc.rounds()}")
+    per_carrier = ", ".join(f"{_ghz(f)}: {n}" for f, n in cells_per_carrier(sc).items())
+    sites = sc.cells[1]["site_id"].nunique()
+    console.print(f"  cells: {len(sc.cell_ids())} on {sites} site(s) ({per_carrier})")
+    console.print(f"  grids: {len(sc.grid_ids())}")
+    books = ", ".join(f"{name} ({cb.type}, {cb.num_beams} beams)" for name, cb in meta.codebooks.items())
+    console.print(f"  codebooks: {books}")
+    _print_measurements(sc, console)
+    _print_point_cloud(sc, console)
+    for note in notes(sc):
+        console.print(f"  [yellow]note:[/yellow] {note}")
+    console.print(f"[green]OK[/green] fingerprint {sc.fingerprint()[:16]}")
+
+
+def _print_measurements(sc: Scenario, console: Console) -> None:
+    stats = measurement_stats(sc)
+    if stats.empty:
+        console.print("  measurements: none")
+        return
+    table = Table(title=f"measurements ({len(sc.measurements):,} rows)", title_justify="left")
+    for column in ("round", "beam", "rows", "cell–grid pairs", "cells", "grids", "missing"):
+        table.add_column(column, justify="right")
+    for row in stats.itertuples():
+        counts = (f"{row.rows:,}", f"{row.pairs:,}", str(row.cells), str(row.grids))
+        table.add_row(str(row.round), row.beam_type, *counts, f"{100 * row.missing:.1f} %")
+    console.print(table)
+
+
+def _print_point_cloud(sc: Scenario, console: Console) -> None:
+    pc = sc.point_cloud
+    if pc is None:
+        console.print("  point cloud: none")
+        return
+    classes = ", ".join(
+        f"{ASPRS_CLASSES.get(c, f'class {c}')} {100 * n / pc.num_points:.0f} %" for c, n in pc.class_counts().items()
+    )
+    console.print(f"  point cloud: {pc.num_points:,} points ({classes})")

@@ -1,0 +1,183 @@
+"""Loading and saving scenario folders (``scenario.yaml`` + tables + point cloud).
+
+:func:`load_scenario` validates everything and raises one-line
+:class:`~rflscm.errors.DataError` / :class:`~rflscm.errors.ConfigError`
+messages; :func:`save_scenario` writes normalised tables, so that
+``load_scenario(save_scenario(s, dir)) == s``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from rflscm.config import load_yaml
+from rflscm.data.cells import DEFAULT_ELEMENT, normalise_cells
+from rflscm.data.columns import TableRef
+from rflscm.data.io import read_table, table_kind, write_table
+from rflscm.data.measurements import empty_measurements, normalise_measurements
+from rflscm.data.meta import ScenarioMeta, meta_from_dict
+from rflscm.data.pointcloud import read_point_cloud, write_point_cloud
+from rflscm.data.positions import normalise_grids
+from rflscm.data.scenario import Scenario
+from rflscm.errors import ConfigError, DataError
+
+SCENARIO_FILE = "scenario.yaml"
+TABLE_FORMATS = {"parquet": ".parquet", "csv": ".csv"}
+
+
+def locate_scenario(path: str | Path) -> tuple[Path, Path]:
+    """``(folder, yaml file)`` of a scenario given as its folder or its YAML file."""
+    path = Path(path).expanduser()
+    if path.is_dir():
+        yaml_path = path / SCENARIO_FILE
+        if not yaml_path.is_file():
+            raise DataError(
+                f"{path}: no {SCENARIO_FILE} in this folder; a scenario is a folder with {SCENARIO_FILE} "
+                "(name, frequencies_hz, codebooks, rounds, grids, measurements) next to its tables."
+            )
+        return path.resolve(), yaml_path
+    if path.is_file():
+        if path.suffix.lower() not in (".yaml", ".yml"):
+            raise DataError(f"{path}: not a scenario; give the scenario folder or its {SCENARIO_FILE}.")
+        return path.parent.resolve(), path
+    raise DataError(f"{path}: no such scenario folder or file.")
+
+
+def load_meta(yaml_path: Path) -> ScenarioMeta:
+    """Read and validate ``scenario.yaml``."""
+    try:
+        data = load_yaml(yaml_path)
+    except ConfigError as exc:  # YAML syntax errors span several lines: keep the CLI's one line
+        raise ConfigError(" ".join(str(exc).split())) from None
+    if not data:
+        raise ConfigError(f"{yaml_path.name} is empty; it needs name, frequencies_hz, codebooks, rounds and grids.")
+    return meta_from_dict(data, where=yaml_path.name)
+
+
+def _referenced(root: Path, name: str, key: str, yaml_name: str) -> Path:
+    path = root / name
+    if not path.exists():
+        raise DataError(
+            f"{yaml_name}: `{key}` = {name!r}: not found ({path}); file names are relative to the scenario folder."
+        )
+    return path
+
+
+def _read(root: Path, name: str, key: str, yaml_name: str) -> tuple[pd.DataFrame, TableRef]:
+    path = _referenced(root, name, key, yaml_name)
+    return read_table(path), TableRef(name, csv=table_kind(path) == "csv")
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Load and validate a scenario folder (or its YAML file).
+
+    Raises:
+        ConfigError: scenario.yaml is malformed (unknown or missing keys, bad values).
+        DataError: a referenced file is missing or a table / point cloud is invalid; the message
+            names the file, the row and the column.
+    """
+    root, yaml_path = locate_scenario(path)
+    meta = load_meta(yaml_path)
+    yaml_name = yaml_path.name
+    cells, elements = {}, {}
+    for rnd, name in meta.rounds.items():
+        df, ref = _read(root, name, f"rounds.{rnd}.cells", yaml_name)
+        round1 = None if rnd == 1 else (cells[1], meta.rounds[1])
+        cells[rnd], found = normalise_cells(df, ref, meta, root, round1)
+        elements.update(found)
+    df, ref = _read(root, meta.grids, "grids", yaml_name)
+    grids = normalise_grids(df, ref, meta.origin)
+    if meta.measurements is None:
+        measurements = empty_measurements()
+    else:
+        df, ref = _read(root, meta.measurements, "measurements", yaml_name)
+        measurements = normalise_measurements(df, ref, meta, cells, grids["grid_id"].to_numpy(), meta.grids)
+    point_cloud = None
+    if meta.point_cloud is not None:
+        point_cloud = read_point_cloud(_referenced(root, meta.point_cloud, "point_cloud", yaml_name))
+    if meta.truth is not None:
+        _referenced(root, meta.truth, "truth", yaml_name)
+    scenario = Scenario(root, meta, cells, grids, measurements, point_cloud)
+    scenario._elements.update(elements)
+    return scenario
+
+
+def save_scenario(scenario: Scenario, root: str | Path, table_format: str = "parquet") -> Path:
+    """Write ``scenario`` to folder ``root`` (created if needed) and return the folder.
+
+    Tables are written as ``cells_round<R>``, ``grids`` and ``measurements`` with the extension of
+    ``table_format`` (``parquet`` or ``csv``); the point cloud keeps its format (PLY by default);
+    element pattern files and the truth folder are copied when ``root`` is a new place.
+    """
+    if table_format not in TABLE_FORMATS:
+        raise ConfigError(f"table format must be one of {', '.join(TABLE_FORMATS)} (got {table_format!r}).")
+    ext = TABLE_FORMATS[table_format]
+    root = Path(root).expanduser()
+    root.mkdir(parents=True, exist_ok=True)
+    meta = scenario.meta
+    rounds = {r: f"cells_round{r}{ext}" for r in scenario.cells}
+    for r, name in rounds.items():
+        write_table(scenario.cells[r], root / name)
+    grids_name = f"grids{ext}"
+    write_table(scenario.grids, root / grids_name)
+    measurements_name = None
+    if meta.measurements is not None or len(scenario.measurements):
+        measurements_name = f"measurements{ext}"
+        write_table(scenario.measurements, root / measurements_name)
+    pc_name = None
+    if scenario.point_cloud is not None:
+        pc_name = meta.point_cloud or "point_cloud.ply"
+        write_point_cloud(scenario.point_cloud, root / pc_name)
+    _copy_elements(scenario, root)
+    truth = _copy_truth(scenario, root)
+    new_meta = dataclasses.replace(
+        meta, rounds=rounds, grids=grids_name, measurements=measurements_name, point_cloud=pc_name, truth=truth
+    )
+    text = yaml.safe_dump(_plain(new_meta.to_dict()), sort_keys=False, allow_unicode=True, default_flow_style=None)
+    (root / SCENARIO_FILE).write_text(text)
+    return root
+
+
+def _copy_elements(scenario: Scenario, root: Path) -> None:
+    """Copy MSI element files referenced by the cells tables into ``root`` (same relative paths)."""
+    tables = [t for t in scenario.cells.values() if "element" in t.columns]
+    names = {str(n) for table in tables for n in table["element"].dropna().unique()} - {DEFAULT_ELEMENT, ""}
+    for name in sorted(names):
+        source, target = scenario.root / name, root / name
+        if Path(name).is_absolute() or ".." in Path(name).parts or not source.is_file():
+            continue  # left as a reference; loading the copy reports it if it is not reachable
+        if not target.exists() or not target.samefile(source):
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, target)
+
+
+def _copy_truth(scenario: Scenario, root: Path) -> str | None:
+    name = scenario.meta.truth
+    if name is None:
+        return None
+    source, target = scenario.root / name, root / name
+    if source.is_dir() and not (target.exists() and target.resolve() == source.resolve()):
+        shutil.copytree(source, target, dirs_exist_ok=True)
+    return name if target.is_dir() else None  # never reference a folder that is not there
+
+
+def _plain(value: Any) -> Any:
+    """YAML-safe Python values (tuples → lists, numpy scalars/arrays → Python)."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    return value

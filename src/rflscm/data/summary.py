@@ -1,0 +1,72 @@
+"""Facts about a scenario for ``rflscm check`` and reports (no printing here)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from rflscm.data.measurements import BEAM_TYPES
+from rflscm.data.scenario import Scenario
+
+
+def cells_per_carrier(scenario: Scenario) -> dict[float, int]:
+    """Number of cells per carrier [Hz] (round 1), ascending carrier."""
+    counts = scenario.cells[1]["freq_hz"].value_counts()
+    return {float(f): int(counts[f]) for f in sorted(counts.index)}
+
+
+def measurement_stats(scenario: Scenario) -> pd.DataFrame:
+    """One row per (round, beam_type) present.
+
+    Columns: ``round``, ``beam_type``, ``rows``, ``pairs`` ((cell, grid) pairs), ``cells``, ``grids``,
+    ``missing`` (fraction of rows with NaN RSRP), ``below_threshold`` (reported values under r_th).
+    """
+    m = scenario.measurements
+    columns = ["round", "beam_type", "rows", "pairs", "cells", "grids", "missing", "below_threshold"]
+    if len(m) == 0:
+        return pd.DataFrame(columns=columns)
+    rsrp = m["rsrp_dbm"].to_numpy()
+    frame = pd.DataFrame(
+        {
+            "round": m["round"].to_numpy(),
+            "beam_type": pd.Categorical(m["beam_type"].to_numpy(), categories=list(BEAM_TYPES)),
+            "cell_id": m["cell_id"].to_numpy(),
+            "grid_id": m["grid_id"].to_numpy(),
+            "pair": m["cell_id"].to_numpy() * (int(m["grid_id"].max()) + 1) + m["grid_id"].to_numpy(),
+            "missing": np.isnan(rsrp),
+            "below": rsrp < scenario.meta.rsrp_threshold_dbm,
+        }
+    )
+    stats = frame.groupby(["round", "beam_type"], sort=True, observed=True).agg(
+        rows=("pair", "size"),
+        pairs=("pair", "nunique"),
+        cells=("cell_id", "nunique"),
+        grids=("grid_id", "nunique"),
+        missing=("missing", "mean"),
+        below_threshold=("below", "sum"),
+    )
+    stats = stats.reset_index()
+    stats["beam_type"] = stats["beam_type"].astype(str)
+    return stats[columns]
+
+
+def notes(scenario: Scenario) -> list[str]:
+    """Things worth knowing that are not errors (cells or grids without data, values under r_th)."""
+    out = []
+    m = scenario.measurements
+    if len(m) == 0:
+        return ["no measurements: usable for predictions only"]
+    round1 = m[(m["round"] == 1).to_numpy()]
+    silent = np.setdiff1d(scenario.cell_ids(), round1["cell_id"].unique())
+    if silent.size:
+        out.append(f"{silent.size} cell(s) have no round-1 measurements: {', '.join(map(str, silent[:10]))}")
+    empty_grids = np.setdiff1d(scenario.grid_ids(), m["grid_id"].unique())
+    if empty_grids.size:
+        out.append(f"{empty_grids.size} grid(s) have no measurements (predictions only)")
+    below = int((m["rsrp_dbm"] < scenario.meta.rsrp_threshold_dbm).sum())
+    if below:
+        out.append(
+            f"{below} reported value(s) lie below rsrp_threshold_dbm = {scenario.meta.rsrp_threshold_dbm:g} dBm; "
+            "is the threshold right?"
+        )
+    return out

@@ -1,0 +1,53 @@
+"""Tables: CSV / Parquet round trips and unreadable files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from rflscm.data import read_table, write_table
+from rflscm.errors import DataError
+
+
+def _table() -> pd.DataFrame:
+    rng = np.random.default_rng(1)
+    return pd.DataFrame(
+        {
+            "cell_id": np.array([3, 1, 2], dtype=np.int64),
+            "value": rng.normal(size=3) * 1e9 + np.array([0.1, 1 / 3, np.pi]),  # needs all 17 digits
+            "rsrp_dbm": [-80.0, np.nan, -101.5],
+            "name": ["a", "b c", "ssb8"],
+        }
+    )
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_round_trip_is_exact(tmp_path: Path, suffix: str) -> None:
+    df = _table()
+    write_table(df, tmp_path / f"t{suffix}")
+    back = read_table(tmp_path / f"t{suffix}")
+    assert list(back.columns) == list(df.columns)
+    np.testing.assert_array_equal(back["cell_id"].to_numpy(), df["cell_id"].to_numpy())
+    assert back["value"].to_numpy().tobytes() == df["value"].to_numpy().tobytes()  # bit-exact floats
+    assert np.isnan(back["rsrp_dbm"][1]) and back["rsrp_dbm"][2] == -101.5
+    assert back["name"].tolist() == ["a", "b c", "ssb8"]
+
+
+def test_unsupported_extension(tmp_path: Path) -> None:
+    (tmp_path / "t.xlsx").write_text("x")
+    with pytest.raises(DataError, match=r"t\.xlsx: unsupported table format '\.xlsx'; use \.csv or \.parquet"):
+        read_table(tmp_path / "t.xlsx")
+
+
+def test_missing_and_broken_files(tmp_path: Path) -> None:
+    with pytest.raises(DataError, match="file not found"):
+        read_table(tmp_path / "none.csv")
+    (tmp_path / "empty.csv").write_text("")
+    with pytest.raises(DataError, match=r"empty\.csv is empty"):
+        read_table(tmp_path / "empty.csv")
+    (tmp_path / "broken.parquet").write_bytes(b"not parquet at all")
+    with pytest.raises(DataError, match=r"broken\.parquet: not a readable parquet file"):
+        read_table(tmp_path / "broken.parquet")
