@@ -1,0 +1,63 @@
+"""``rflscm evaluate CHECKPOINT SCENARIO``: metrics of SPEC §5 as a table, JSON and a report."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from rflscm.cli import app
+from rflscm.cli.common import DeviceOption, SeedOption, resolve_device, seed_everything
+from rflscm.errors import ConfigError
+
+
+@app.command()
+def evaluate(
+    checkpoint: Path = typer.Argument(..., help="Model checkpoint written by `rflscm train`."),
+    scenario: Path = typer.Argument(..., help="The scenario folder the model was trained on."),
+    protocol: str | None = typer.Option(
+        None, "--protocol", help="adjust | unseen | multifreq; default: the one the checkpoint was trained for."
+    ),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the metrics as JSON to this file."),
+    report: Path | None = typer.Option(None, "--report", help="Write report.md and PNG figures into this folder."),
+    oracle: bool = typer.Option(True, "--oracle/--no-oracle", help="Compute the oracle floor where ground truth exists."),
+    device: str = DeviceOption,
+    seed: int = SeedOption,
+) -> None:
+    """Compare a trained model's predictions with measurements: MAE per beam type, changed cells, per cell,
+    beside the oracle floor and the trivial baseline; APS recovery where ground truth exists."""
+    from rflscm.data import load_scenario
+    from rflscm.eval import PROTOCOLS, resolve_protocol, run_evaluation
+    from rflscm.eval.report import metric_rows, write_report
+    from rflscm.models import load_model
+
+    if protocol is not None and protocol not in PROTOCOLS:
+        raise ConfigError(f"--protocol {protocol!r} is unknown; choose one of: {', '.join(PROTOCOLS)}.")
+    seed_everything(seed)
+    dev = resolve_device(device)
+    sc = load_scenario(scenario)
+    model = load_model(checkpoint, sc, device=dev)
+    chosen = resolve_protocol(model, protocol)
+    console = Console()
+    with console.status(f"evaluating {model.name} ({chosen.name} protocol)…"):
+        evaluation = run_evaluation(model, sc, chosen, oracle="auto" if oracle else None)
+    metrics = evaluation.metrics
+    table = Table(title=f"{model.name} on {sc.meta.name} — {chosen.name} protocol, round {metrics['test_round']}")
+    for column, justify in (("metric", "left"), ("model", "right"), ("oracle", "right"), ("trivial", "right")):
+        table.add_column(column, justify=justify)
+    for row in metric_rows(metrics):
+        table.add_row(*(escape(cell) for cell in row))
+    console.print(table)
+    if metrics["unsupported"]:
+        console.print(f"[yellow]note:[/yellow] {escape(metrics['unsupported'])}")
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(metrics, indent=2))
+        console.print(f"wrote {json_out}")
+    if report is not None:
+        path = write_report(evaluation, sc, model, report)
+        console.print(f"wrote {path}")

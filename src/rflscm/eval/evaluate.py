@@ -1,0 +1,404 @@
+"""``evaluate(model, scenario, protocol) -> dict``: the numbers of SPEC §5 with stable keys.
+
+The result is a nested dict (JSON-ready); the documented names are dotted paths into it, e.g.
+``mae_db.ssb.all`` is ``result["mae_db"]["ssb"]["all"]``.  A value is ``null`` (``None``) where it
+does not apply (no changed cells in the test round, no ground truth, a model that cannot answer).
+
+=====================================  ===========================================================================
+key                                    meaning
+=====================================  ===========================================================================
+``mae_db.{ssb,csi}.all``               MAE [dB] of the model over every reported test beam it was scored on
+``mae_db.{ssb,csi}.changed``           the same over the cells whose antenna changed between round 1 and the
+                                       test round (``null`` when none changed, e.g. round-1 tests)
+``oracle_mae_db.{ssb,csi}.{all,...}``  the same for the oracle (true APS through A′): the floor left by angular
+                                       binning and measurement noise; ``null`` without ground truth
+``trivial_mae_db.{ssb,csi}.{all,...}`` the same for the trivial baseline (each pair's mean round-1 RSRP of
+                                       that beam type for every beam; the cell's mean for unseen pairs)
+``per_cell[<cell_id>]``                ``changed`` (bool), ``ssb``, ``csi`` (model MAE [dB]), ``oracle.{ssb,csi}``,
+                                       ``trivial.{ssb,csi}``, ``counts.{ssb,csi}`` (scored beams)
+``aps.nmse_db``                        mean over test pairs of the per-pair NMSE 10·log10(‖x̂ − x‖²/‖x‖²) [dB]
+                                       against the true APS (``aps.nmse_db_median``: its median)
+``aps.angle_error_deg``                power-weighted great-circle error [deg] between the strongest
+                                       ``aps.top_k`` bins of x̂ and x (symmetric; mean over pairs)
+``aps.top_k``, ``aps.pairs``           settings / number of pairs of the APS metrics
+``unseen.mae_db.{ssb,csi}``            model MAE over test pairs whose (cell, grid) had no training data,
+                                       ``null`` when there are none or the model has no notion of unseen grids
+``unseen.{oracle,trivial}_mae_db.*``   oracle / trivial MAE over those pairs
+``unseen.pairs.{ssb,csi}``             number of such pairs
+``counts.{ssb,csi}.test_pairs``        (cell, grid) pairs with a reported beam in the test set
+``counts.{ssb,csi}.scored_pairs``      pairs the model answered (MAEs are over these)
+``counts.{ssb,csi}.beams``             reported beams scored; ``changed_beams`` those of changed cells
+``counts.cells``, ``changed_cells``    cells in the test set; ids of the changed cells
+``model``                              ``name``, ``supports_unseen_grids``, ``fingerprint``, ``fit`` (summary)
+``protocol``                           the protocol spec (``name`` + settings), as stored at training
+``test_round``, ``scenario``           the round tested; scenario ``name`` and ``root``
+``unsupported``                        why the model could not answer (``null`` when it could)
+``timing_s.{predict,oracle,aps}``      wall time of the evaluation steps [s]
+=====================================  ===========================================================================
+
+Oracle and trivial MAEs are computed over the same (cell, grid, beam) triples as the model, so the
+three columns compare like for like; when the model answers nothing (WNOMP on unseen grids) they are
+computed over the whole test set instead and ``counts.*.scored_pairs`` is 0.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from rflscm.errors import ConfigError, DataError
+from rflscm.eval import metrics as M
+from rflscm.geometry import AngleGrid
+from rflscm.eval.protocols import AdjustProtocol, Protocol, protocol_from_dict, protocol_to_dict
+from rflscm.models.base import LSCMModel, UnsupportedError
+
+BEAM_TYPES = ("ssb", "csi")
+MAX_APS_PAIRS = 2000
+
+
+@dataclass
+class BeamResult:
+    """Aligned arrays of one beam type: ``[num_pairs]`` masks and ``[num_pairs, max_beams]`` RSRP [dBm]."""
+
+    pairs: pd.DataFrame
+    measured: np.ndarray
+    model: np.ndarray
+    trivial: np.ndarray
+    oracle: np.ndarray | None
+    seen: np.ndarray
+    scored: np.ndarray
+    changed: np.ndarray
+
+    def rows(self) -> np.ndarray:
+        """Rows the three MAEs are computed over (all test rows when the model answered none)."""
+        return self.scored if self.scored.any() else np.ones(len(self.pairs), dtype=bool)
+
+
+@dataclass
+class Evaluation:
+    """Everything :func:`run_evaluation` computed: the metrics and the arrays the report plots."""
+
+    metrics: dict[str, Any]
+    test_round: int
+    beams: dict[str, BeamResult]
+    aps_pairs: pd.DataFrame | None = None
+    aps_est: np.ndarray | None = None  # [num_aps_pairs, num_bins]
+    aps_true: np.ndarray | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def resolve_protocol(model: LSCMModel, protocol: Protocol | str | None) -> Protocol:
+    """The protocol to evaluate with: the one stored at training (``model.run_info["protocol"]``).
+
+    ``protocol`` may name it (``"unseen"``) or give it in full; it must agree with the stored one, since
+    evaluating with another split would test on training data.  A checkpoint without a stored protocol
+    can only be evaluated with ``adjust`` (all round-1 data is the contract's training set).
+    """
+    stored = model.run_info.get("protocol")
+    name = protocol if isinstance(protocol, str) or protocol is None else protocol.name
+    if stored is not None:
+        trained = protocol_from_dict(stored)
+        if name is not None and name != trained.name:
+            raise ConfigError(
+                f"this model was trained for the {trained.name!r} protocol; evaluating it with {name!r} would test on "
+                f"data it was trained on (or skip data it never saw); retrain with that protocol or drop --protocol."
+            )
+        if not isinstance(protocol, (str, type(None))) and protocol_to_dict(protocol) != stored:
+            raise ConfigError(f"protocol settings {protocol_to_dict(protocol)} differ from the training split {stored}.")
+        return trained
+    if name not in (None, "adjust"):
+        raise ConfigError(
+            f"the checkpoint does not record its training split, so the {name!r} protocol cannot be checked; train with "
+            f"that protocol (it is stored in the checkpoint) or evaluate with --protocol adjust."
+        )
+    return protocol if isinstance(protocol, AdjustProtocol) else AdjustProtocol()
+
+
+def evaluate(model: LSCMModel, scenario: Any, protocol: Protocol | None = None, **options: Any) -> dict[str, Any]:
+    """Evaluate ``model`` on ``scenario`` under ``protocol`` (default: the one stored at training, else
+    ``adjust``); returns the nested metrics dict documented in the module docstring.  ``options`` go to
+    :func:`run_evaluation`."""
+    return run_evaluation(model, scenario, protocol, **options).metrics
+
+
+def run_evaluation(
+    model: LSCMModel,
+    scenario: Any,
+    protocol: Protocol | None = None,
+    oracle: LSCMModel | str | None = "auto",
+    top_k: int = 5,
+    max_aps_pairs: int = MAX_APS_PAIRS,
+) -> Evaluation:
+    """Like :func:`evaluate`, keeping the predictions for the report.
+
+    Args:
+        oracle: ``"auto"`` (fit :class:`~rflscm.sim.truth.OracleModel` when the scenario has ground
+            truth), an already fitted model, or ``None`` (no oracle, no APS metrics).
+        top_k: bins per APS compared by the angular error.
+        max_aps_pairs: APS metrics use at most this many test pairs (seeded subsample).
+    """
+    protocol = resolve_protocol(model, protocol)
+    timing: dict[str, float] = {}
+    train = protocol.training_scenario(scenario)
+    test = protocol.test_set(scenario)
+    t0 = time.perf_counter()
+    oracle_model = _oracle(scenario, model, oracle)
+    timing["oracle"] = time.perf_counter() - t0
+    seen_index = _trained_pairs(train)
+    changed = M.changed_cells(scenario, 1, test.round)
+    beams: dict[str, BeamResult] = {}
+    unsupported: str | None = None
+    t0 = time.perf_counter()
+    for beam_type in BEAM_TYPES:
+        pairs, measured = test.tables[beam_type]
+        res, why = _predict_beam_type(model, oracle_model, scenario, train, test.round, beam_type, pairs, measured, seen_index)
+        res.changed = res.pairs["cell_id"].isin(changed).to_numpy()
+        beams[beam_type] = res
+        unsupported = unsupported or why
+    skipped = {bt: int((~res.scored).sum()) for bt, res in beams.items()}
+    if unsupported is None and any(skipped.values()):
+        unsupported = (
+            f"{model.name} has no notion of unseen grids: {skipped['ssb']} SSB and {skipped['csi']} CSI-RS test pairs "
+            f"without training data were not scored."
+        )
+    timing["predict"] = time.perf_counter() - t0
+    evaluation = Evaluation({}, test.round, beams)
+    t0 = time.perf_counter()
+    aps = _aps_metrics(model, oracle_model, beams, evaluation, top_k, max_aps_pairs)
+    timing["aps"] = time.perf_counter() - t0
+    evaluation.metrics = _assemble(model, scenario, protocol, test.round, beams, changed, aps, unsupported, timing)
+    return evaluation
+
+
+def _oracle(scenario: Any, model: LSCMModel, oracle: LSCMModel | str | None) -> LSCMModel | None:
+    if oracle is None or isinstance(oracle, LSCMModel):
+        return oracle
+    if oracle != "auto":
+        raise ConfigError(f"oracle must be 'auto', a fitted model or None (got {oracle!r}).")
+    if scenario.meta.truth is None:
+        return None
+    try:
+        from rflscm.sim.truth import OracleModel
+    except ImportError:  # pragma: no cover - the simulator is part of the package
+        return None
+    try:
+        fitted = OracleModel(model.angle_grid, model.device)
+        fitted.fit(scenario, progress=False)
+    except (DataError, UnsupportedError):
+        return None
+    return fitted
+
+
+def _trained_pairs(train: Any) -> pd.MultiIndex:
+    """(cell_id, grid_id) pairs with at least one reported round-1 beam in the training data."""
+    m = train.measurements
+    rows = m[((m["round"] == 1) & m["rsrp_dbm"].notna()).to_numpy()]
+    return pd.MultiIndex.from_frame(rows[["cell_id", "grid_id"]].drop_duplicates())
+
+
+def _predict(model: LSCMModel, scenario: Any, round: int, beam_type: str, pairs: pd.DataFrame, width: int) -> np.ndarray:
+    out = np.full((len(pairs), width), np.nan)
+    if len(pairs):
+        pred = model.predict_rsrp(scenario, round, beam_type, pairs.reset_index(drop=True))
+        out[:, : pred.shape[1]] = pred[:, :width]
+    return out
+
+
+class _SensingCache:
+    """A scenario view that keeps the last few sensing matrices on an :class:`AngleGrid`, so that the
+    model and the oracle, predicting one cell after the other, share them."""
+
+    def __init__(self, scenario: Any, size: int = 4) -> None:
+        self._scenario = scenario
+        self._size = size
+        self._cache: dict[tuple, torch.Tensor] = {}
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._scenario, name)
+
+    def sensing(self, cell_id: int, beam_type: str, directions: Any, round: int = 1, dtype: torch.dtype = torch.float32,
+                device: Any = None) -> torch.Tensor:  # fmt: skip
+        if not isinstance(directions, AngleGrid):
+            return self._scenario.sensing(cell_id, beam_type, directions, round=round, dtype=dtype, device=device)
+        key = (int(cell_id), beam_type, directions, round, dtype, str(device))
+        if key not in self._cache:
+            if len(self._cache) >= self._size:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[key] = self._scenario.sensing(cell_id, beam_type, directions, round=round, dtype=dtype, device=device)
+        return self._cache[key]
+
+
+def _predict_where_possible(
+    model: LSCMModel, scenario: Any, round: int, beam_type: str, pairs: pd.DataFrame, width: int, ask: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """Predictions of the ``ask`` rows of one cell's pairs; :class:`UnsupportedError` leaves them NaN.
+
+    Returns ``(pred [num_pairs, width], answered [num_pairs], the refusal message or None)``.
+    """
+    pred = np.full((len(pairs), width), np.nan)
+    try:
+        pred[ask] = _predict(model, scenario, round, beam_type, pairs[ask], width)
+    except UnsupportedError as exc:
+        return pred, np.zeros(len(pairs), dtype=bool), str(exc)
+    return pred, ask.copy(), None
+
+
+def _predict_beam_type(
+    model: LSCMModel, oracle: LSCMModel | None, scenario: Any, train: Any, round: int, beam_type: str,
+    pairs: pd.DataFrame, measured: np.ndarray, seen_index: pd.MultiIndex,
+) -> tuple[BeamResult, str | None]:
+    """Model, oracle and trivial predictions of one beam type's test pairs."""
+    width = measured.shape[1]
+    keys = pd.MultiIndex.from_frame(pairs[["cell_id", "grid_id"]])
+    seen = np.asarray(keys.isin(seen_index), dtype=bool) if len(pairs) else np.zeros(0, dtype=bool)
+    ask = np.ones(len(pairs), dtype=bool) if model.supports_unseen_grids else seen.copy()
+    pred, answered = np.full((len(pairs), width), np.nan), np.zeros(len(pairs), dtype=bool)
+    oracle_pred = None if oracle is None else np.full((len(pairs), width), np.nan)
+    why = None
+    cells = pairs["cell_id"].to_numpy()
+    view = _SensingCache(scenario)
+    for cell in np.unique(cells):  # cell by cell: model and oracle share the sensing matrices
+        rows = np.flatnonzero(cells == cell)
+        sub = pairs.iloc[rows].reset_index(drop=True)
+        p, ok, refusal = _predict_where_possible(model, view, round, beam_type, sub, width, ask[rows])
+        pred[rows], answered[rows], why = p, ok, why or refusal
+        if oracle_pred is not None:
+            oracle_pred[rows] = _predict_where_possible(oracle, view, round, beam_type, sub, width, np.ones(len(rows), bool))[0]
+    trivial = M.trivial_prediction(train, beam_type, pairs, width) if len(pairs) else np.zeros((0, width))
+    res = BeamResult(pairs, measured, pred, trivial, oracle_pred, seen, answered, np.zeros(len(pairs), dtype=bool))
+    return res, why
+
+
+def _mae_triplet(res: BeamResult, rows: np.ndarray) -> dict[str, float | None]:
+    """Model, oracle and trivial MAE over ``rows`` (rows with no finite model prediction drop out of the model's)."""
+    return {
+        "model": M.mae_db(M.abs_error_db(res.model, res.measured), rows),
+        "oracle": None if res.oracle is None else M.mae_db(M.abs_error_db(res.oracle, res.measured), rows),
+        "trivial": M.mae_db(M.abs_error_db(res.trivial, res.measured), rows),
+    }
+
+
+def _mae_blocks(beams: dict[str, BeamResult], any_changed: bool) -> dict[str, dict[str, dict[str, float | None]]]:
+    """``{model|oracle|trivial: {ssb|csi: {all, changed}}}``."""
+    out: dict[str, dict[str, dict[str, float | None]]] = {k: {} for k in ("model", "oracle", "trivial")}
+    for beam_type, res in beams.items():
+        rows = res.rows()
+        every = _mae_triplet(res, rows)
+        changed = _mae_triplet(res, rows & res.changed) if any_changed else dict.fromkeys(every)
+        for k in out:
+            out[k][beam_type] = {"all": every[k], "changed": changed[k]}
+    return out
+
+
+def _per_cell(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, Any]:
+    cells = sorted({int(c) for res in beams.values() for c in res.pairs["cell_id"].to_numpy()})
+    out: dict[str, Any] = {}
+    for cell in cells:
+        entry: dict[str, Any] = {"changed": bool(cell in set(changed.tolist())), "oracle": {}, "trivial": {}, "counts": {}}
+        for beam_type, res in beams.items():
+            rows = res.rows() & (res.pairs["cell_id"].to_numpy() == cell)
+            trip = _mae_triplet(res, rows)
+            entry[beam_type] = trip["model"]
+            entry["oracle"][beam_type] = trip["oracle"]
+            entry["trivial"][beam_type] = trip["trivial"]
+            entry["counts"][beam_type] = M.count_finite(M.abs_error_db(res.model, res.measured), rows)
+        out[str(cell)] = entry
+    return out
+
+
+def _unseen_block(model: LSCMModel, beams: dict[str, BeamResult]) -> dict[str, Any]:
+    block: dict[str, Any] = {"mae_db": {}, "oracle_mae_db": {}, "trivial_mae_db": {}, "pairs": {}}
+    for beam_type, res in beams.items():
+        rows = ~res.seen
+        trip = _mae_triplet(res, rows) if rows.any() else dict.fromkeys(("model", "oracle", "trivial"))
+        block["mae_db"][beam_type] = trip["model"] if model.supports_unseen_grids else None
+        block["oracle_mae_db"][beam_type] = trip["oracle"]
+        block["trivial_mae_db"][beam_type] = trip["trivial"]
+        block["pairs"][beam_type] = int(rows.sum())
+    return block
+
+
+def _aps_metrics(
+    model: LSCMModel, oracle: LSCMModel | None, beams: dict[str, BeamResult], evaluation: Evaluation, top_k: int, max_pairs: int
+) -> dict[str, Any]:
+    """APS recovery against the oracle's (true) APS over a seeded subsample of the scored test pairs."""
+    out: dict[str, Any] = {"nmse_db": None, "nmse_db_median": None, "angle_error_deg": None, "top_k": top_k, "pairs": 0}
+    if oracle is None:
+        return out
+    frames = [res.pairs[res.scored] for res in beams.values()]
+    pairs = pd.concat(frames).drop_duplicates().sort_values(["cell_id", "grid_id"], ignore_index=True) if frames else None
+    if pairs is None or not len(pairs):
+        return out
+    if len(pairs) > max_pairs:
+        pick = np.sort(np.random.default_rng(0).choice(len(pairs), max_pairs, replace=False))
+        pairs = pairs.iloc[pick].reset_index(drop=True)
+    cells, grids = pairs["cell_id"].to_numpy(), pairs["grid_id"].to_numpy()
+    try:
+        est = np.concatenate([_aps_chunk(model, cells[s : s + 256], grids[s : s + 256]) for s in range(0, len(pairs), 256)])
+        true = np.concatenate([_aps_chunk(oracle, cells[s : s + 256], grids[s : s + 256]) for s in range(0, len(pairs), 256)])
+    except UnsupportedError:
+        return out
+    nmse_db = M.aps_nmse_db(est, true)
+    angle = M.aps_angle_error_deg(est, true, model.angle_grid, top_k)
+    finite = nmse_db[np.isfinite(nmse_db)]
+    out.update(
+        nmse_db=M.nanmean_or_none(nmse_db),
+        nmse_db_median=float(np.median(finite)) if len(finite) else None,
+        angle_error_deg=M.nanmean_or_none(angle),
+        pairs=int(len(pairs)),
+    )
+    evaluation.aps_pairs, evaluation.aps_est, evaluation.aps_true = pairs, est.astype(np.float32), true.astype(np.float32)
+    return out
+
+
+def _aps_chunk(model: LSCMModel, cells: np.ndarray, grids: np.ndarray) -> np.ndarray:
+    with torch.no_grad():
+        return model.aps(cells, grids).detach().float().cpu().numpy()
+
+
+def _counts(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, Any]:
+    counts: dict[str, Any] = {}
+    for beam_type, res in beams.items():
+        err = M.abs_error_db(res.model, res.measured)
+        counts[beam_type] = {
+            "test_pairs": int(len(res.pairs)),
+            "scored_pairs": int(res.scored.sum()),
+            "beams": M.count_finite(err, res.scored),
+            "changed_beams": M.count_finite(err, res.scored & res.changed),
+        }
+    cells = {int(c) for res in beams.values() for c in res.pairs["cell_id"].to_numpy()}
+    counts["cells"] = len(cells)
+    counts["changed_cells"] = [int(c) for c in changed]
+    return counts
+
+
+def _assemble(
+    model: LSCMModel, scenario: Any, protocol: Protocol, test_round: int, beams: dict[str, BeamResult],
+    changed: np.ndarray, aps: dict[str, Any], unsupported: str | None, timing: dict[str, float],
+) -> dict[str, Any]:
+    maes = _mae_blocks(beams, any_changed=len(changed) > 0)
+    return {
+        "mae_db": maes["model"],
+        "oracle_mae_db": maes["oracle"],
+        "trivial_mae_db": maes["trivial"],
+        "per_cell": _per_cell(beams, changed),
+        "aps": aps,
+        "unseen": _unseen_block(model, beams),
+        "counts": _counts(beams, changed),
+        "model": {
+            "name": model.name,
+            "supports_unseen_grids": bool(model.supports_unseen_grids),
+            "fingerprint": model.fingerprint,
+            "fit": model.run_info.get("fit"),
+        },
+        "protocol": protocol_to_dict(protocol),
+        "test_round": int(test_round),
+        "scenario": {"name": scenario.meta.name, "root": str(scenario.root)},
+        "unsupported": unsupported,
+        "timing_s": {k: round(v, 3) for k, v in timing.items()},
+    }

@@ -1,0 +1,114 @@
+"""evaluate(): stable keys, numbers recomputed independently, the oracle floor and the trivial baseline."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from eval_helpers import GRID, on_grid_truth_scenario, simulate
+from rflscm.data import load_scenario
+from rflscm.eval import AdjustProtocol, UnseenProtocol, evaluate, fit_with_protocol, run_evaluation
+from rflscm.eval.metrics import changed_cells
+from rflscm.models import MODEL_REGISTRY
+
+DOCUMENTED_KEYS = [
+    "mae_db.ssb.all", "mae_db.ssb.changed", "mae_db.csi.all", "mae_db.csi.changed",
+    "oracle_mae_db.ssb.all", "oracle_mae_db.ssb.changed", "oracle_mae_db.csi.all", "oracle_mae_db.csi.changed",
+    "trivial_mae_db.ssb.all", "trivial_mae_db.ssb.changed", "trivial_mae_db.csi.all", "trivial_mae_db.csi.changed",
+    "aps.nmse_db", "aps.nmse_db_median", "aps.angle_error_deg", "aps.top_k", "aps.pairs",
+    "unseen.mae_db.ssb", "unseen.mae_db.csi", "unseen.oracle_mae_db.ssb", "unseen.trivial_mae_db.csi",
+    "unseen.pairs.ssb", "counts.ssb.test_pairs", "counts.ssb.scored_pairs", "counts.ssb.beams",
+    "counts.ssb.changed_beams", "counts.csi.beams", "counts.cells", "counts.changed_cells",
+    "model.name", "model.supports_unseen_grids", "model.fingerprint", "model.fit", "protocol.name",
+    "test_round", "scenario.name", "unsupported", "timing_s.predict",
+]  # fmt: skip
+
+
+def get(tree: dict, dotted: str):
+    for key in dotted.split("."):
+        tree = tree[key]
+    return tree
+
+
+def _wnomp(scenario, protocol=None):
+    model = MODEL_REGISTRY["wnomp"].build(None, GRID, "cpu")
+    fit_with_protocol(model, scenario, protocol, progress=False)
+    return model
+
+
+@pytest.fixture(scope="module")
+def adjust_run(sim_scenario):
+    model = _wnomp(sim_scenario)
+    return model, run_evaluation(model, sim_scenario)
+
+
+def test_documented_keys_are_present_and_json_ready(adjust_run, sim_scenario) -> None:
+    model, evaluation = adjust_run
+    metrics = evaluation.metrics
+    for key in DOCUMENTED_KEYS:
+        get(metrics, key)  # KeyError names the missing one
+    assert json.loads(json.dumps(metrics)) == metrics
+    assert metrics["protocol"] == {"name": "adjust", "test_round": 2}
+    assert metrics["counts"]["changed_cells"] == changed_cells(sim_scenario).tolist() != []
+    for cell, entry in metrics["per_cell"].items():
+        assert entry["changed"] == (int(cell) in metrics["counts"]["changed_cells"])
+        assert set(entry) == {"changed", "ssb", "csi", "oracle", "trivial", "counts"}
+
+
+def test_mae_recomputed_independently_and_wnomp_beats_trivial(adjust_run, sim_scenario) -> None:
+    model, evaluation = adjust_run
+    metrics = evaluation.metrics
+    for beam_type in ("ssb", "csi"):
+        pairs, measured = sim_scenario.rsrp_table(2, beam_type)
+        seen = set(zip(model.cell_ids, model.grid_ids))
+        keep = np.array([(c, g) in seen for c, g in zip(pairs["cell_id"], pairs["grid_id"])]) & np.isfinite(measured).any(1)
+        predicted = model.predict_rsrp(sim_scenario, 2, beam_type, pairs[keep].reset_index(drop=True))
+        err = np.abs(predicted - measured[keep][:, : predicted.shape[1]])
+        assert metrics["mae_db"][beam_type]["all"] == pytest.approx(np.nanmean(err))
+        assert metrics["counts"][beam_type]["beams"] == np.isfinite(err).sum()
+        assert metrics["mae_db"][beam_type]["all"] < metrics["trivial_mae_db"][beam_type]["all"]
+        changed = np.isin(pairs[keep]["cell_id"], metrics["counts"]["changed_cells"])
+        assert metrics["mae_db"][beam_type]["changed"] == pytest.approx(np.nanmean(err[changed]))
+    assert metrics["aps"]["pairs"] > 0 and metrics["aps"]["angle_error_deg"] > 0
+
+
+def test_oracle_is_exact_without_noise_and_not_with_it(tmp_path) -> None:
+    for noise_db, check in ((0.0, lambda v: v < 1e-3), (2.0, lambda v: v > 0.5)):
+        scenario = load_scenario(on_grid_truth_scenario(tmp_path / f"noise{noise_db}", noise_db))
+        metrics = evaluate(_wnomp(scenario), scenario)
+        for beam_type in ("ssb", "csi"):
+            value = metrics["oracle_mae_db"][beam_type]["all"]
+            assert check(value), (noise_db, beam_type, value)
+            assert check(metrics["oracle_mae_db"][beam_type]["changed"])  # cell 12 tilted in round 2: A′ is exact too
+
+
+def test_procedural_oracle_floor_is_binning_only_without_noise(tmp_path, sim_scenario) -> None:
+    quiet = load_scenario(simulate(tmp_path / "quiet", noise_sigma_db=0.0, quantization_db=0.0))
+    floor = evaluate(_wnomp(quiet), quiet)["oracle_mae_db"]
+    noisy = evaluate(_wnomp(sim_scenario), sim_scenario)["oracle_mae_db"]
+    assert floor["ssb"]["all"] < 1.5  # only angular binning (6° × 10° bins; narrow CSI-RS beams suffer more)
+    for beam_type in ("ssb", "csi"):
+        assert noisy[beam_type]["all"] > floor[beam_type]["all"] + 0.3
+
+
+def test_unseen_protocol_with_wnomp_says_it_cannot_answer(sim_scenario) -> None:
+    protocol = UnseenProtocol(fraction=0.2, seed=1)
+    model = _wnomp(sim_scenario, protocol)
+    metrics = evaluate(model, sim_scenario)
+    assert metrics["protocol"]["name"] == "unseen" and metrics["test_round"] == 1
+    assert metrics["mae_db"]["ssb"]["all"] is None and metrics["unseen"]["mae_db"]["ssb"] is None
+    assert "no notion of unseen grids" in metrics["unsupported"]
+    assert metrics["counts"]["ssb"]["scored_pairs"] == 0 < metrics["counts"]["ssb"]["test_pairs"]
+    assert metrics["unseen"]["pairs"]["ssb"] == metrics["counts"]["ssb"]["test_pairs"]
+    assert metrics["trivial_mae_db"]["ssb"]["all"] > 0 and metrics["oracle_mae_db"]["ssb"]["all"] > 0
+    assert metrics["mae_db"]["ssb"]["changed"] is None  # round 1: nothing changed
+    assert metrics["aps"]["pairs"] == 0
+
+
+def test_no_oracle_without_truth(sim_scenario) -> None:
+    model = _wnomp(sim_scenario)
+    metrics = evaluate(model, sim_scenario, AdjustProtocol(), oracle=None)
+    assert metrics["oracle_mae_db"]["ssb"]["all"] is None and metrics["aps"]["nmse_db"] is None
+    assert metrics["mae_db"]["ssb"]["all"] is not None
