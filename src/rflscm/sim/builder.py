@@ -1,0 +1,408 @@
+"""Build a complete scenario with ground truth from a scene backend (SPEC §6, `rflscm simulate`).
+
+Flow: choose sites on rooftops → cells (sites × sectors × carriers) → outdoor
+10 m grids with jittered receiver points → one trace per (site, carrier) →
+``truth/`` (paths, true APS, noiseless RSRP) → round-2 antenna changes →
+noisy, quantised, thresholded measurements → a scenario folder that
+:func:`rflscm.data.load_scenario` accepts.  Every random choice draws from one
+seeded generator, so the same config and seed give identical files (with a
+deterministic backend such as :class:`~rflscm.sim.procedural.ProceduralCity`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+
+from rflscm.antenna import DFTCodebook, SSBCodebook, wavelength_of
+from rflscm.config import to_dict
+from rflscm.data import PointCloud, Scenario, ScenarioMeta, empty_measurements, load_scenario, save_scenario
+from rflscm.errors import ConfigError
+from rflscm.geometry import AngleGrid
+from rflscm.sim.backend import SceneBackend
+from rflscm.sim.noise import MeasurementModel
+from rflscm.sim.paths import write_truth
+
+CODEBOOKS = {
+    "ssb8": SSBCodebook(),
+    "csi32": DFTCodebook(),
+    "ssb8_b": SSBCodebook(azimuths_deg=(-50.0, -20.0, 10.0, 40.0), tilts_deg=(3.0, 12.0), active_h=4, active_v=4),
+    "csi32_b": DFTCodebook(beams_v=(1, 2, 3, 4)),
+}
+"""Codebooks of every simulated scenario: round 1 uses ``ssb8``/``csi32``; method (a) switches a cell
+to ``ssb8_b`` (beams turned and tilted, narrower vertically) and ``csi32_b`` (beams one step further down)."""
+ROUND1_CODEBOOKS = ("ssb8", "csi32")
+ROUND2_CODEBOOKS = ("ssb8_b", "csi32_b")
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """Everything `rflscm simulate` decides (YAML keys = field names; unknown keys are rejected)."""
+
+    name: str = "simulated"
+    description: str = ""
+    seed: int = 0
+    # --- sites and cells ---
+    num_sites: int = 7
+    sites: tuple[tuple[float, ...], ...] = ()
+    """Explicit antenna positions ``[[x, y, z], …]`` [m] (z above the scene's zero); overrides ``num_sites``."""
+    area_center_xy: tuple[float, ...] = ()
+    """Centre of the measured area [m]; default: centre of the scene."""
+    site_radius_m: float = 300.0
+    """Sites are picked among rooftops within this distance of the area centre [m]."""
+    site_placement: Literal["edge", "center"] = "edge"
+    """``edge``: move each site from its roof centre towards the area centre, to the roof edge."""
+    roof_setback_m: float = 1.5
+    site_height_above_roof_m: float = 3.0
+    sector_azimuths_deg: tuple[float, ...] = (0.0, 120.0, 240.0)
+    azimuth_jitter_deg: float = 10.0
+    """Each sector's azimuth is drawn uniformly within ± this of its nominal value [deg]."""
+    mech_tilt_deg: float = 3.0
+    elec_tilt_deg: float = 3.0
+    tx_power_dbm: float = 15.0
+    carriers_hz: tuple[float, ...] = (3.5e9, 2.1e9)
+    """Carriers [Hz]; the first is the primary. Every carrier gets an 8 × 4 array designed at it."""
+    # --- grids ---
+    grid_size_m: float = 10.0
+    points_per_grid: int = 4
+    ue_height_m: float = 1.5
+    max_grids: int = 800
+    grid_radius_m: float | None = None
+    """Keep only grids within this distance of the area centre [m] (the nearest ``max_grids`` anyway)."""
+    # --- measurement model ---
+    noise_sigma_db: float = 2.0
+    quantization_db: float = 1.0
+    rsrp_threshold_dbm: float = -120.0
+    # --- round 2 (SPEC §5) ---
+    round2_change_fraction: float = 1.0 / 3.0
+    """Fraction of each carrier's cells changed in round 2."""
+    round2_codebook_fraction: float = 0.75
+    """Share of the changed cells that get method (a), another codebook; the rest get method (b), a rotation."""
+    rotation_azimuth_deg: tuple[float, ...] = (-15.0, -10.0, -7.0, 7.0, 10.0, 15.0)
+    rotation_tilt_deg: tuple[float, ...] = (0.0, 2.0, 4.0)
+    # --- point cloud ---
+    point_cloud_points_per_m2: float = 0.25
+    point_cloud_noise_m: float = 0.05
+    point_cloud_margin_m: float = 50.0
+    """The cloud is cropped to the box around sites and grids grown by this margin [m]."""
+    # --- truth ---
+    angle_grid: AngleGrid = field(default_factory=AngleGrid)
+    truth_floor_db: float | None = 60.0
+    """Paths more than this below the strongest path of their receiver are dropped [dB]."""
+    truth_rsrp_margin_db: float | None = 10.0
+    """``truth/rsrp_noiseless`` leaves out (round, cell, grid) pairs whose strongest beam is more than this
+    below the reporting threshold (never reportable); ``null`` keeps every pair."""
+    backend_options: dict[str, Any] = field(default_factory=dict)
+    """Keyword arguments of the backend (e.g. ``max_depth`` for Sionna, ``num_buildings`` for procedural)."""
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.seed >= 0, "`seed` must be >= 0"),
+            (self.num_sites >= 1 or bool(self.sites), "`num_sites` must be >= 1"),
+            (all(len(s) == 3 for s in self.sites), "`sites` rows must be [x, y, z]"),
+            (len(self.area_center_xy) in (0, 2), "`area_center_xy` must be [x, y] or empty"),
+            (1 <= len(self.sector_azimuths_deg) <= 10, "`sector_azimuths_deg` needs 1…10 sectors"),
+            (1 <= len(self.carriers_hz) <= 10, "`carriers_hz` needs 1…10 carriers"),
+            (self.grid_size_m > 0 and self.points_per_grid >= 1, "`grid_size_m` > 0 and `points_per_grid` >= 1"),
+            (self.max_grids >= 1, "`max_grids` must be >= 1"),
+            (0.0 <= self.round2_change_fraction <= 1.0, "`round2_change_fraction` must be in 0…1"),
+            (0.0 <= self.round2_codebook_fraction <= 1.0, "`round2_codebook_fraction` must be in 0…1"),
+            (bool(self.rotation_azimuth_deg) and bool(self.rotation_tilt_deg), "rotation lists must not be empty"),
+            (self.point_cloud_points_per_m2 > 0, "`point_cloud_points_per_m2` must be > 0"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ConfigError(f"simulation config: {message}.")
+        for i, freq in enumerate(self.carriers_hz):
+            if freq < 1e8:
+                raise ConfigError(
+                    f"simulation config: `carriers_hz[{i}]` = {freq:g} looks like MHz or GHz; give carriers in Hz, "
+                    f"e.g. 3.5e9 for 3.5 GHz."
+                )
+        if len(set(self.carriers_hz)) != len(self.carriers_hz):
+            raise ConfigError(f"simulation config: `carriers_hz` lists a carrier twice ({self.carriers_hz}).")
+        MeasurementModel(self.noise_sigma_db, self.quantization_db, self.rsrp_threshold_dbm)
+
+    @property
+    def measurement_model(self) -> MeasurementModel:
+        return MeasurementModel(self.noise_sigma_db, self.quantization_db, self.rsrp_threshold_dbm)
+
+
+# ---- layout: sites, cells, grids ---------------------------------------------------------------------
+def area_center(backend: SceneBackend, config: SimulationConfig) -> np.ndarray:
+    if config.area_center_xy:
+        return np.asarray(config.area_center_xy, dtype=np.float64)
+    lo, hi = backend.bounds()
+    return 0.5 * (np.asarray(lo[:2]) + np.asarray(hi[:2]))
+
+
+def choose_sites(backend: SceneBackend, config: SimulationConfig, rng: np.random.Generator) -> np.ndarray:
+    """Antenna positions ``[num_sites, 3]`` [m]: explicit, or rooftops spread by farthest-point sampling."""
+    if config.sites:
+        return np.asarray(config.sites, dtype=np.float64)
+    centre = area_center(backend, config)
+    roofs = np.asarray(backend.rooftops(), dtype=np.float64).reshape(-1, 3)
+    dist = np.linalg.norm(roofs[:, :2] - centre, axis=1)
+    pool = roofs[dist <= config.site_radius_m]
+    if len(pool) < config.num_sites:
+        pool = roofs[np.argsort(dist)[: config.num_sites]]
+    if len(pool) < config.num_sites:
+        raise ConfigError(
+            f"the scene has only {len(roofs)} rooftop candidates for {config.num_sites} sites; "
+            f"ask for fewer sites (--sites) or give `sites` in the config."
+        )
+    chosen = [int(rng.integers(len(pool)))]
+    gap = np.linalg.norm(pool[:, :2] - pool[chosen[0], :2], axis=1)
+    for _ in range(config.num_sites - 1):
+        chosen.append(int(np.argmax(gap)))
+        gap = np.minimum(gap, np.linalg.norm(pool[:, :2] - pool[chosen[-1], :2], axis=1))
+    sites = pool[chosen].copy()
+    if config.site_placement == "edge":
+        sites[:, :2] = _towards_roof_edge(backend, sites[:, :2], centre, config.roof_setback_m)
+    sites[:, 2] += config.site_height_above_roof_m
+    return sites
+
+
+def _towards_roof_edge(backend: SceneBackend, xy: np.ndarray, centre: np.ndarray, setback_m: float) -> np.ndarray:
+    """Move roof points ``[n, 2]`` towards ``centre`` until ``setback_m`` before their roof's edge."""
+    heading = centre - xy
+    norm = np.linalg.norm(heading, axis=1, keepdims=True)
+    heading = np.where(norm > 1e-6, heading / np.maximum(norm, 1e-6), np.array([1.0, 0.0]))
+    steps = np.arange(0.0, 80.0, 0.5)  # [num_steps] m
+    probe = xy[:, None, :] + steps[None, :, None] * heading[:, None, :]  # [n, num_steps, 2]
+    outdoor = backend.is_outdoor(probe.reshape(-1, 2)).reshape(len(xy), len(steps))
+    first_out = np.where(outdoor.any(axis=1), outdoor.argmax(axis=1), 0)
+    travel = np.maximum(steps[first_out] - setback_m, 0.0)
+    return xy + travel[:, None] * heading
+
+
+def make_cells(sites: np.ndarray, config: SimulationConfig, rng: np.random.Generator) -> pd.DataFrame:
+    """Round-1 cells table: ``cell_id = 100·site_id + 10·carrier_index + sector`` (site ids from 1)."""
+    n_sec = len(config.sector_azimuths_deg)
+    jitter = rng.uniform(-config.azimuth_jitter_deg, config.azimuth_jitter_deg, (len(sites), n_sec))
+    rows = []
+    for s, pos in enumerate(sites):
+        for c, freq in enumerate(config.carriers_hz):
+            wl = wavelength_of(freq)
+            for k, az in enumerate(config.sector_azimuths_deg):
+                rows.append({
+                    "cell_id": 100 * (s + 1) + 10 * c + k, "site_id": s + 1,
+                    "x": pos[0], "y": pos[1], "z": pos[2],
+                    "azimuth_deg": float(np.round((az + jitter[s, k]) % 360.0, 1)),
+                    "mech_tilt_deg": config.mech_tilt_deg, "elec_tilt_deg": config.elec_tilt_deg,
+                    "freq_hz": float(freq), "tx_power_dbm": config.tx_power_dbm,
+                    "array_nh": 8, "array_nv": 4, "spacing_h_m": 0.5 * wl, "spacing_v_m": 0.7 * wl,
+                    "ssb_codebook": ROUND1_CODEBOOKS[0], "csi_codebook": ROUND1_CODEBOOKS[1], "element": "tr38901",
+                })  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def make_round2(
+    cells: pd.DataFrame, config: SimulationConfig, rng: np.random.Generator
+) -> tuple[pd.DataFrame, list[dict]]:
+    """Round-2 cells and the change log: per carrier, a fraction of cells gets method (a) or (b)."""
+    round2 = cells.copy()
+    changes: list[dict] = []
+    for freq in config.carriers_hz:
+        ids = cells.loc[cells["freq_hz"] == freq, "cell_id"].to_numpy()
+        num = int(round(config.round2_change_fraction * len(ids)))
+        picked = np.sort(rng.choice(ids, size=num, replace=False)) if num else np.zeros(0, dtype=int)
+        num_a = int(round(config.round2_codebook_fraction * num))
+        methods = np.array(["a"] * num_a + ["b"] * (num - num_a))
+        rng.shuffle(methods)
+        for cell_id, method in zip(picked, methods, strict=True):
+            row = round2.index[round2["cell_id"] == cell_id][0]
+            change: dict[str, Any] = {"cell_id": int(cell_id), "method": str(method)}
+            if method == "a":
+                round2.loc[row, ["ssb_codebook", "csi_codebook"]] = list(ROUND2_CODEBOOKS)
+                change.update(ssb_codebook=ROUND2_CODEBOOKS[0], csi_codebook=ROUND2_CODEBOOKS[1])
+            else:
+                d_az = float(rng.choice(config.rotation_azimuth_deg))
+                d_tilt = float(rng.choice(config.rotation_tilt_deg))
+                round2.loc[row, "azimuth_deg"] = float((cells.loc[row, "azimuth_deg"] + d_az) % 360.0)
+                round2.loc[row, "mech_tilt_deg"] = float(np.clip(cells.loc[row, "mech_tilt_deg"] + d_tilt, -90, 90))
+                change.update(d_azimuth_deg=d_az, d_mech_tilt_deg=d_tilt)
+            changes.append(change)
+    return round2, changes
+
+
+def make_grids(backend: SceneBackend, config: SimulationConfig, centre: np.ndarray) -> pd.DataFrame:
+    """Outdoor grid cells nearest ``centre``: ``grid_id`` (lattice index), ``x``, ``y``, ``z`` (UE height) [m]."""
+    g = config.grid_size_m
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in backend.bounds())
+    reach = config.grid_radius_m or 3.0 * g * np.sqrt(config.max_grids)
+    i0, i1 = np.floor((max(lo[0], centre[0] - reach)) / g), np.ceil((min(hi[0], centre[0] + reach)) / g)
+    j0, j1 = np.floor((max(lo[1], centre[1] - reach)) / g), np.ceil((min(hi[1], centre[1] + reach)) / g)
+    ii, jj = np.meshgrid(np.arange(i0, i1), np.arange(j0, j1), indexing="xy")
+    xy = np.column_stack([(ii.ravel() + 0.5) * g, (jj.ravel() + 0.5) * g])
+    inside = (xy >= lo[:2] + g / 2).all(axis=1) & (xy <= hi[:2] - g / 2).all(axis=1)
+    dist = np.linalg.norm(xy - centre, axis=1)
+    ok = inside & backend.is_outdoor(xy) & (dist <= reach)
+    keep = np.flatnonzero(ok)[np.argsort(dist[ok], kind="stable")[: config.max_grids]]
+    if len(keep) == 0:
+        raise ConfigError("no outdoor grid lies in the scene near the area centre; check `area_center_xy`.")
+    cols = np.round(xy[keep, 0] / g - 0.5).astype(np.int64)
+    rows = np.round(xy[keep, 1] / g - 0.5).astype(np.int64)
+    grid_id = (rows - rows.min()) * (cols.max() - cols.min() + 1) + (cols - cols.min())
+    z = backend.ground_height(xy[keep]) + config.ue_height_m
+    return pd.DataFrame({"grid_id": grid_id, "x": xy[keep, 0], "y": xy[keep, 1], "z": z}).sort_values(
+        "grid_id", ignore_index=True
+    )
+
+
+def receiver_points(backend: SceneBackend, grids: pd.DataFrame, config: SimulationConfig, rng) -> np.ndarray:
+    """Receivers ``[num_grids * K, 3]`` (grid-major): K outdoor points jittered inside each grid at UE height."""
+    k, g = config.points_per_grid, config.grid_size_m
+    centre = np.repeat(grids[["x", "y"]].to_numpy(), k, axis=0)
+    xy = centre + rng.uniform(-g / 2, g / 2, centre.shape)
+    for _ in range(20):  # resample points that fell inside a building
+        bad = ~backend.is_outdoor(xy)
+        if not bad.any():
+            break
+        xy[bad] = centre[bad] + rng.uniform(-g / 2, g / 2, (int(bad.sum()), 2))
+    bad = ~backend.is_outdoor(xy)
+    xy[bad] = centre[bad]
+    return np.column_stack([xy, backend.ground_height(xy) + config.ue_height_m])
+
+
+# ---- tracing ---------------------------------------------------------------------------------------------
+def trace_all(
+    backend: SceneBackend, sites: np.ndarray, rx: np.ndarray, grid_ids: np.ndarray, config: SimulationConfig,
+    progress: bool = True,
+) -> tuple[pd.DataFrame, dict[str, float]]:
+    """One trace per (site, carrier) → the paths table of ``truth/paths.parquet`` and timing facts."""
+    from tqdm.auto import tqdm
+
+    from rflscm.sim.paths import trim_paths
+
+    k = config.points_per_grid
+    jobs = [(s, c, f) for s in range(len(sites)) for c, f in enumerate(config.carriers_hz)]
+    takes_progress = "progress" in inspect.signature(backend.trace).parameters
+    tables, seconds = [], 0.0
+    with tqdm(jobs, desc=f"tracing {backend.name}", unit="trace", disable=not progress, leave=True) as bar:
+        for s, c, freq in bar:
+            bar.set_postfix_str(f"site {s + 1}, {freq / 1e9:g} GHz")
+            kwargs = {}
+            if takes_progress and progress:
+                label = f"site {s + 1}, {freq / 1e9:g} GHz"
+                kwargs["progress"] = lambda done, total, label=label: bar.set_postfix_str(f"{label}, rx {done}/{total}")
+            start = time.perf_counter()
+            table = backend.trace(sites[s], rx, freq, seed=int(config.seed * 1000 + 10 * s + c), **kwargs)
+            seconds += time.perf_counter() - start
+            rx_index = table["rx_index"].to_numpy()
+            table = table.drop(columns="rx_index").assign(
+                site_id=np.int32(s + 1), freq_hz=float(freq), grid_id=grid_ids[rx_index // k],
+                point_id=(rx_index % k).astype(np.int16),
+            )  # fmt: skip
+            tables.append(trim_paths(table, config.truth_floor_db))
+    paths = pd.concat(tables, ignore_index=True)
+    paths = paths[["site_id", "freq_hz", "grid_id", "point_id", "power_lin", "aod_el_rad", "aod_az_rad",
+                   "delay_s", "interactions"]]  # fmt: skip
+    stats = {
+        "trace_seconds": seconds,
+        "seconds_per_1000_rx_per_carrier": 1000.0 * seconds / max(len(jobs) * len(rx), 1),
+        "paths_per_grid": len(paths) / max(len(jobs) * len(grid_ids), 1),
+    }
+    return paths, stats
+
+
+# ---- the whole build ---------------------------------------------------------------------------------------
+def build_scenario(
+    backend: SceneBackend, config: SimulationConfig, out_dir: str | Path, progress: bool = True,
+    scene: str | None = None, stats: dict[str, float] | None = None,
+) -> Path:
+    """Simulate a scenario with ground truth into ``out_dir`` (created; must be empty or absent).
+
+    Returns the folder.  Writes scenario.yaml (with a ``simulation:`` block), cells of rounds 1 and
+    2, grids, measurements (both rounds), a PLY point cloud and ``truth/`` (paths, APS, noiseless
+    RSRP); the result is validated with :func:`rflscm.data.load_scenario`.  ``stats``, when given,
+    receives timings and counts (kept out of the files so that they are reproducible).
+    """
+    from rflscm.sim.noise import measure
+    from rflscm.sim.paths import noiseless_rsrp
+
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()):
+        raise ConfigError(f"{out}: folder exists and is not empty; choose another --out or pass --force.")
+    rng = np.random.default_rng(config.seed)
+    centre = area_center(backend, config)
+    sites = choose_sites(backend, config, rng)
+    cells1 = make_cells(sites, config, rng)
+    cells2, changes = make_round2(cells1, config, rng)
+    grids = make_grids(backend, config, centre)
+    rx = receiver_points(backend, grids, config, rng)
+    paths, trace_stats = trace_all(backend, sites, rx, grids["grid_id"].to_numpy(), config, progress)
+    cloud = _point_cloud(backend, config, sites, grids)
+
+    meta = ScenarioMeta(
+        name=config.name, description=config.description or f"simulated with rflscm ({backend.name})",
+        frequencies_hz=tuple(float(f) for f in config.carriers_hz), codebooks=dict(CODEBOOKS),
+        rounds={1: "cells_round1.parquet", 2: "cells_round2.parquet"}, grids="grids.parquet",
+        measurements="measurements.parquet", rsrp_threshold_dbm=config.rsrp_threshold_dbm,
+        point_cloud="point_cloud.ply", truth="truth",
+        simulation=_provenance(backend, config, scene, changes),
+    )  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)
+    scenario = Scenario(out.resolve(), meta, {1: cells1, 2: cells2}, grids, empty_measurements(), cloud)
+    scenario = _normalised(scenario)
+    points_per_grid = pd.Series(config.points_per_grid, index=grids["grid_id"].to_numpy())
+    noiseless = noiseless_rsrp(scenario, paths, points_per_grid)
+    measurements = measure(noiseless, config.measurement_model, rng)
+    floor = None if config.truth_rsrp_margin_db is None else config.rsrp_threshold_dbm - config.truth_rsrp_margin_db
+    write_truth(out / "truth", scenario, paths, noiseless, points_per_grid, config.angle_grid, floor)
+    scenario = dataclasses.replace(scenario, measurements=measurements)
+    save_scenario(scenario, out, table_format="parquet")
+    if stats is not None:
+        stats.update(trace_stats)
+        stats.update(_summary(scenario, paths))
+    return load_scenario(out).root
+
+
+def _summary(scenario: Scenario, paths: pd.DataFrame) -> dict[str, float]:
+    m = scenario.measurements
+    return {
+        "num_cells": float(len(scenario.cells[1])), "num_grids": float(len(scenario.grids)),
+        "num_paths": float(len(paths)), "measurement_rows": float(len(m)),
+        "fraction_missing": float(m["rsrp_dbm"].isna().mean()) if len(m) else float("nan"),
+        "reported_pairs_round1": float(len(m[m["round"] == 1].groupby(["cell_id", "grid_id"]))),
+    }  # fmt: skip
+
+
+def _normalised(scenario: Scenario) -> Scenario:
+    """Cells tables in the loader's normal form (sorted, 0…n−1 index), so accessors work in memory."""
+    cells = {r: t.sort_values("cell_id", ignore_index=True) for r, t in scenario.cells.items()}
+    return dataclasses.replace(scenario, cells=cells)
+
+
+def _point_cloud(backend: SceneBackend, config: SimulationConfig, sites: np.ndarray, grids: pd.DataFrame) -> PointCloud:
+    xyz, cls = backend.sample_point_cloud(config.point_cloud_points_per_m2, config.point_cloud_noise_m, config.seed)
+    corners = np.vstack([sites[:, :2], grids[["x", "y"]].to_numpy()])
+    lo, hi = corners.min(axis=0) - config.point_cloud_margin_m, corners.max(axis=0) + config.point_cloud_margin_m
+    keep = ((xyz[:, :2] >= lo) & (xyz[:, :2] <= hi)).all(axis=1)
+    return PointCloud(xyz[keep], cls[keep])
+
+
+def _provenance(backend, config: SimulationConfig, scene, changes) -> dict[str, Any]:
+    from rflscm import __version__
+
+    grid = config.angle_grid
+    return {
+        "generator": f"rflscm {__version__} simulate",
+        "backend": backend.name,
+        "scene": scene or backend.name,
+        "seed": config.seed,
+        "angle_grid": {"num_el": grid.num_el, "num_az": grid.num_az, "el_min_deg": grid.el_min_deg,
+                       "el_step_deg": grid.el_step_deg},  # fmt: skip
+        "noise": {"sigma_db": config.noise_sigma_db, "quantization_db": config.quantization_db,
+                  "threshold_dbm": config.rsrp_threshold_dbm},  # fmt: skip
+        "points_per_grid": config.points_per_grid,
+        "round2_changes": changes,
+        "config": to_dict(config),
+    }

@@ -1,0 +1,209 @@
+"""The simulator's ``truth/`` folder: writing it, reading the true APS, and the oracle model.
+
+``truth/`` holds (SPEC §6):
+
+* ``paths.parquet`` — every traced path: ``site_id``, ``freq_hz``, ``grid_id``, ``point_id``,
+  ``power_lin`` (isotropic path gain), ``aod_el_rad``, ``aod_az_rad``, ``delay_s``, ``interactions``;
+* ``aps.parquet`` — the true APS, sparse long form: ``cell_id``, ``grid_id``, ``bin`` (flat index on
+  the angle grid of ``scenario.yaml``'s ``simulation.angle_grid``), ``power_lin`` (nonzero bins only);
+* ``rsrp_noiseless.parquet`` — ``round``, ``cell_id``, ``grid_id``, ``beam_type``, ``beam_id``,
+  ``rsrp_dbm`` before noise, quantisation and threshold, rounded to 0.01 dB (−inf: no path); pairs
+  whose strongest beam lies more than ``truth_rsrp_margin_db`` (10 dB) below the reporting
+  threshold are left out, as they can never be reported.
+
+Models never read ``truth/``; only evaluation does, and the :class:`OracleModel` — the evaluation
+floor — which answers with the true APS.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from rflscm.data.io import read_table
+from rflscm.errors import CheckpointError, ConfigError, DataError
+from rflscm.geometry import AngleGrid
+from rflscm.models.base import LSCMModel, UnsupportedError, register_model
+from rflscm.sim.paths import APS_FILE, PATHS_FILE, RSRP_FILE, true_aps_table, write_truth  # noqa: F401
+
+class TrueAPS:
+    """The true APS of (cell, grid) pairs, dense on request.
+
+    Args:
+        table: ``cell_id``, ``grid_id``, ``bin``, ``power_lin`` (nonzero bins).
+        angle_grid: the grid the bins index.
+        cell_ids, grid_ids: the cells and grids the truth covers; a covered pair with no rows
+            has a zero APS (no path reached the grid).
+    """
+
+    def __init__(self, table: pd.DataFrame, angle_grid: AngleGrid, cell_ids: np.ndarray, grid_ids: np.ndarray) -> None:
+        self.angle_grid = angle_grid
+        self.cell_ids = np.unique(np.asarray(cell_ids, dtype=np.int64))
+        self.grid_ids = np.unique(np.asarray(grid_ids, dtype=np.int64))
+        c = np.searchsorted(self.cell_ids, table["cell_id"].to_numpy(np.int64))
+        g = np.searchsorted(self.grid_ids, table["grid_id"].to_numpy(np.int64))
+        key = c.astype(np.int64) * len(self.grid_ids) + g
+        order = np.argsort(key, kind="stable")
+        self._keys, self._start, self._count = np.unique(key[order], return_index=True, return_counts=True)
+        self._bins = table["bin"].to_numpy(np.int64)[order]
+        self._power = table["power_lin"].to_numpy(np.float64)[order]
+        if len(self._bins) and self._bins.max() >= angle_grid.num_bins:
+            raise DataError(
+                f"true APS bin {int(self._bins.max())} is outside the {angle_grid.num_bins}-bin angle grid."
+            )
+
+    def _positions(self, ids: np.ndarray, known: np.ndarray, what: str) -> np.ndarray:
+        pos = np.clip(np.searchsorted(known, ids), 0, max(len(known) - 1, 0))
+        bad = (known[pos] != ids) if len(known) else np.ones(len(ids), dtype=bool)
+        if bad.any():
+            missing = ", ".join(str(v) for v in np.unique(ids[bad])[:5])
+            raise UnsupportedError(f"no true APS for {what} {missing} (the simulation did not trace it).")
+        return pos
+
+    def aps(
+        self, cell_ids: np.ndarray, grid_ids: np.ndarray, dtype: torch.dtype = torch.float32,
+        device: torch.device | str | None = None,
+    ) -> torch.Tensor:
+        """Dense APS ``[num_pairs, num_bins]`` (linear path gain) of pairs ``cell_ids[i]``, ``grid_ids[i]``."""
+        cell_ids = np.asarray(cell_ids, dtype=np.int64).reshape(-1)
+        grid_ids = np.asarray(grid_ids, dtype=np.int64).reshape(-1)
+        key = self._positions(cell_ids, self.cell_ids, "cell") * len(self.grid_ids)
+        key = key + self._positions(grid_ids, self.grid_ids, "grid")
+        out = np.zeros((len(key), self.angle_grid.num_bins), dtype=np.float32 if dtype == torch.float32 else np.float64)
+        idx = np.clip(np.searchsorted(self._keys, key), 0, max(len(self._keys) - 1, 0))
+        has = (self._keys[idx] == key) if len(self._keys) else np.zeros(len(key), dtype=bool)
+        counts = np.where(has, self._count[idx] if len(self._keys) else 0, 0)
+        pair = np.repeat(np.arange(len(key)), counts)
+        rows = np.repeat(self._start[idx] if len(self._keys) else np.zeros(len(key), int), counts)
+        rows += np.arange(len(rows)) - np.repeat(np.cumsum(counts) - counts, counts)
+        out[pair, self._bins[rows]] = self._power[rows]
+        return torch.as_tensor(out, dtype=dtype, device=device)
+
+
+def truth_folder(scenario) -> Path:
+    """The scenario's ``truth/`` folder, or a :class:`DataError` saying that it has none."""
+    if scenario.meta.truth is None or not (scenario.root / scenario.meta.truth).is_dir():
+        raise DataError(
+            f"scenario {scenario.meta.name!r} ({scenario.root}) has no truth folder; only scenarios made by "
+            "`rflscm simulate` carry ground truth."
+        )
+    return scenario.root / scenario.meta.truth
+
+
+def simulation_angle_grid(simulation: dict[str, Any]) -> AngleGrid:
+    """The angle grid ``truth/aps.parquet`` is binned on (``scenario.yaml`` ``simulation.angle_grid``)."""
+    spec = simulation.get("angle_grid")
+    if not isinstance(spec, dict):
+        raise DataError("scenario.yaml `simulation.angle_grid` is missing; the truth folder cannot be read.")
+    return AngleGrid(int(spec["num_el"]), int(spec["num_az"]), float(spec["el_min_deg"]), float(spec["el_step_deg"]))
+
+
+def load_true_aps(scenario, angle_grid: AngleGrid | None = None) -> TrueAPS:
+    """The true APS of ``scenario`` (from ``truth/``), on its simulation grid or re-binned onto ``angle_grid``."""
+    simulation = scenario.meta.simulation
+    return read_true_aps(
+        truth_folder(scenario), scenario.cells[1], scenario.grid_ids(), simulation_angle_grid(simulation),
+        simulation.get("points_per_grid"), angle_grid,
+    )
+
+
+def read_true_aps(
+    folder: Path, cells: pd.DataFrame, grid_ids: np.ndarray, native: AngleGrid, points_per_grid: int | None,
+    angle_grid: AngleGrid | None = None,
+) -> TrueAPS:
+    """Read ``folder/aps.parquet`` (binned on ``native``), or re-bin ``folder/paths.parquet`` onto
+    another ``angle_grid`` (needs the cells' ``site_id``/``freq_hz`` and the points per grid)."""
+    if angle_grid is None or angle_grid == native:
+        return TrueAPS(read_table(folder / APS_FILE), native, cells["cell_id"].to_numpy(), grid_ids)
+    if points_per_grid is None:
+        raise DataError("scenario.yaml `simulation.points_per_grid` is missing; the APS cannot be re-binned.")
+    paths = read_table(folder / PATHS_FILE)
+    paths = paths.astype({"power_lin": "float64", "aod_el_rad": "float64", "aod_az_rad": "float64"})
+    table = true_aps_table(paths, cells, angle_grid, int(points_per_grid))
+    return TrueAPS(table, angle_grid, cells["cell_id"].to_numpy(), grid_ids)
+
+
+@register_model
+class OracleModel(LSCMModel):
+    """The evaluation floor: answers with the true APS of a simulated scenario.
+
+    ``fit`` only reads the scenario's ``truth/`` folder — the one model allowed to — so that
+    evaluation computes the oracle MAE with the shared :meth:`predict_rsrp`: what remains is
+    angular binning and measurement noise.  Pairs the simulation did not trace raise
+    :class:`UnsupportedError`.  The checkpoint stores the truth folder's path, not the APS.
+    """
+
+    name = "oracle"
+
+    def __init__(self, angle_grid: AngleGrid, device: torch.device | str = "cpu") -> None:
+        super().__init__(angle_grid, device)
+        self.truth_dir: Path | None = None
+        self._truth: TrueAPS | None = None
+        self._scenario_fingerprint: str | None = None
+        self._state: dict[str, Any] = {}
+
+    @classmethod
+    def build(
+        cls, config: str | Path | dict[str, Any] | None, angle_grid: AngleGrid, device: torch.device | str
+    ) -> OracleModel:
+        if config not in (None, "quick", "full") and config != {}:
+            raise ConfigError(f"the oracle model has no settings; use no --config (got {config!r}).")
+        return cls(angle_grid, device)
+
+    def fit(
+        self, scenario, progress: bool = True, callback: Callable[[dict[str, float]], None] | None = None,
+        checkpoint_path: str | Path | None = None, resume: bool = False,
+    ) -> dict[str, float]:
+        start = time.perf_counter()
+        self._truth = load_true_aps(scenario, self.angle_grid)
+        self.truth_dir = truth_folder(scenario).resolve()
+        self._scenario_fingerprint = scenario.fingerprint()
+        if self.fingerprint is None:
+            self.fingerprint = self._scenario_fingerprint
+        self._state = {
+            "cells": scenario.cells[1][["cell_id", "site_id", "freq_hz"]].to_dict(orient="list"),
+            "grid_ids": scenario.grid_ids().tolist(),
+            "points_per_grid": scenario.meta.simulation.get("points_per_grid"),
+            "native_angle_grid": dict(scenario.meta.simulation["angle_grid"]),
+        }
+        if checkpoint_path is not None:
+            self.save(checkpoint_path)
+        return {"train_time_s": time.perf_counter() - start}
+
+    def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
+        if self._truth is None:
+            raise UnsupportedError("the oracle model has not been fitted; call fit(scenario) first.")
+        return self._truth.aps(cell_ids, grid_ids, dtype=torch.float32, device=self.device)
+
+    def state_dict_for_checkpoint(self) -> dict[str, Any]:
+        if self._truth is None:
+            raise UnsupportedError("the oracle model has not been fitted; nothing to save.")
+        g = self.angle_grid
+        return {
+            "truth_dir": str(self.truth_dir), "scenario_fingerprint": self._scenario_fingerprint,
+            "angle_grid": [g.num_el, g.num_az, g.el_min_deg, g.el_step_deg], **self._state,
+        }  # fmt: skip
+
+    @classmethod
+    def from_checkpoint(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> OracleModel:
+        num_el, num_az, el_min, el_step = state["angle_grid"]
+        model = cls(AngleGrid(int(num_el), int(num_az), float(el_min), float(el_step)), device)
+        folder = Path(state["truth_dir"])
+        if not (folder / APS_FILE).is_file():
+            raise CheckpointError(
+                f"oracle checkpoint: its truth folder {folder} is gone; refit the oracle on the simulated scenario."
+            )
+        model._truth = read_true_aps(
+            folder, pd.DataFrame(state["cells"]), np.asarray(state["grid_ids"], dtype=np.int64),
+            simulation_angle_grid({"angle_grid": state["native_angle_grid"]}), state["points_per_grid"],
+            model.angle_grid,
+        )
+        model.truth_dir, model._scenario_fingerprint = folder, state["scenario_fingerprint"]
+        model._state = {k: state[k] for k in ("cells", "grid_ids", "points_per_grid", "native_angle_grid")}
+        return model

@@ -1,0 +1,106 @@
+"""The true APS reader and the oracle model (the evaluation floor)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from rflscm.data import load_scenario
+from rflscm.errors import ConfigError, DataError
+from rflscm.geometry import AngleGrid
+from rflscm.models.base import MODEL_REGISTRY, UnsupportedError, load_model
+from rflscm.sim import ProceduralCity, SimulationConfig, build_scenario
+from rflscm.sim.truth import OracleModel, load_true_aps
+
+GRID = AngleGrid(num_el=31, num_az=36, el_min_deg=-90.0, el_step_deg=6.0)
+CONFIG = SimulationConfig(num_sites=2, max_grids=40, seed=4, site_radius_m=120.0, angle_grid=GRID,
+                          point_cloud_points_per_m2=0.05)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def scenario(tmp_path_factory):
+    out = tmp_path_factory.mktemp("truth") / "sc"
+    build_scenario(ProceduralCity(seed=3, size_m=240.0, num_buildings=12), CONFIG, out, progress=False)
+    return load_scenario(out)
+
+
+def test_true_aps_dense_matches_the_sparse_table(scenario) -> None:
+    truth = load_true_aps(scenario)
+    assert truth.angle_grid == GRID
+    table = pd.read_parquet(scenario.root / "truth" / "aps.parquet")
+    cells, grids = scenario.cell_ids()[[0, 3, 3]], scenario.grid_ids()[[5, 5, 17]]
+    dense = truth.aps(cells, grids)
+    assert dense.shape == (3, GRID.num_bins) and dense.dtype == torch.float32
+    for i, (c, g) in enumerate(zip(cells, grids, strict=True)):
+        rows = table[(table["cell_id"] == c) & (table["grid_id"] == g)]
+        expected = np.zeros(GRID.num_bins)
+        expected[rows["bin"].to_numpy()] = rows["power_lin"].to_numpy()
+        np.testing.assert_allclose(dense[i].double().numpy(), expected, rtol=1e-6)
+    assert dense.sum() > 0
+
+
+def test_rebinning_onto_another_grid_keeps_the_total_power(scenario) -> None:
+    native = load_true_aps(scenario)
+    coarse = load_true_aps(scenario, AngleGrid(num_el=10, num_az=12, el_min_deg=-90.0, el_step_deg=20.0))
+    cells = np.repeat(scenario.cell_ids(), 3)
+    grids = np.tile(scenario.grid_ids()[:3], len(scenario.cell_ids()))
+    a, b = native.aps(cells, grids, dtype=torch.float64), coarse.aps(cells, grids, dtype=torch.float64)
+    assert b.shape[1] == 120
+    np.testing.assert_allclose(a.sum(1).numpy(), b.sum(1).numpy(), rtol=1e-5)  # float32 paths on disk
+
+
+def test_unknown_pairs_raise_unsupported(scenario) -> None:
+    truth = load_true_aps(scenario)
+    with pytest.raises(UnsupportedError, match="cell 999999"):
+        truth.aps(np.array([999999]), scenario.grid_ids()[:1])
+    with pytest.raises(UnsupportedError, match="grid"):
+        truth.aps(scenario.cell_ids()[:1], np.array([-5]))
+
+
+def test_scenario_without_truth_is_a_data_error(scenario) -> None:
+    no_truth = dataclasses.replace(scenario, meta=dataclasses.replace(scenario.meta, truth=None))
+    with pytest.raises(DataError, match="no truth folder"):
+        load_true_aps(no_truth)
+
+
+def test_oracle_is_registered_and_predicts_the_noiseless_rsrp_up_to_binning(scenario, tmp_path: Path) -> None:
+    assert MODEL_REGISTRY["oracle"] is OracleModel
+    model = OracleModel.build(None, GRID, "cpu")
+    summary = model.fit(scenario, progress=False)
+    assert summary["train_time_s"] >= 0 and model.fingerprint == scenario.fingerprint()
+    pairs, _ = scenario.rsrp_table(1, "ssb")
+    predicted = model.predict_rsrp(scenario, 1, "ssb", pairs)
+    truth = pd.read_parquet(scenario.root / "truth" / "rsrp_noiseless.parquet")
+    truth = truth[(truth["round"] == 1) & (truth["beam_type"] == "ssb")]
+    wide = truth.pivot_table(index=["cell_id", "grid_id"], columns="beam_id", values="rsrp_dbm")
+    exact = wide.loc[list(zip(pairs["cell_id"], pairs["grid_id"], strict=True))].to_numpy()
+    ok = exact >= -120
+    err = np.abs(predicted[ok] - exact[ok])
+    assert np.median(err) < 1.0  # a coarse 6° × 10° grid here; the default grid is finer
+
+    path = model.save(tmp_path / "oracle.ckpt")
+    loaded = load_model(path, scenario)
+    assert isinstance(loaded, OracleModel)
+    np.testing.assert_array_equal(loaded.predict_rsrp(scenario, 1, "ssb", pairs), predicted)
+
+
+def test_oracle_on_a_finer_grid_rebins_paths_and_survives_a_checkpoint(scenario, tmp_path: Path) -> None:
+    fine = AngleGrid(num_el=61, num_az=72, el_min_deg=-90.0, el_step_deg=3.0)
+    model = OracleModel.build({}, fine, "cpu")
+    model.fit(scenario, progress=False)
+    pair = (scenario.cell_ids()[:1], scenario.grid_ids()[:1])
+    assert model.aps(*pair).shape == (1, fine.num_bins)
+    loaded = load_model(model.save(tmp_path / "fine.ckpt"))
+    torch.testing.assert_close(loaded.aps(*pair), model.aps(*pair))
+
+
+def test_oracle_errors() -> None:
+    with pytest.raises(ConfigError, match="no settings"):
+        OracleModel.build({"lr": 1.0}, GRID, "cpu")
+    with pytest.raises(UnsupportedError, match="fit"):
+        OracleModel(GRID).aps(np.array([1]), np.array([1]))
