@@ -1,0 +1,123 @@
+"""``rflscm predict``: RSRP under any antenna configuration, APS export, attenuation map."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import typer
+from rich.console import Console
+
+from rflscm.cli import app
+from rflscm.cli.common import DeviceOption, SeedOption, resolve_device, seed_everything
+from rflscm.errors import ConfigError
+
+
+def _id_list(text: str | None, option: str) -> np.ndarray | None:
+    if text is None:
+        return None
+    try:
+        return np.array([int(v) for v in text.split(",") if v.strip()], dtype=np.int64)
+    except ValueError:
+        raise ConfigError(f"{option} takes comma-separated integer ids (got {text!r}).") from None
+
+
+def prediction_pairs(scenario, model, which: str) -> pd.DataFrame:
+    """(cell_id, grid_id) pairs to predict: ``measured`` (any round) or ``all`` (every cell × grid)."""
+    if which == "all":
+        if not model.supports_unseen_grids:
+            raise ConfigError(f"{model.name} has no notion of unseen grids; use --pairs measured.")
+        cells, grids = np.meshgrid(scenario.cell_ids(), scenario.grid_ids(), indexing="ij")
+        return pd.DataFrame({"cell_id": cells.ravel(), "grid_id": grids.ravel()})
+    if which != "measured":
+        raise ConfigError(f"--pairs must be measured or all (got {which!r}).")
+    m = scenario.measurements
+    if not model.supports_unseen_grids:  # only the pairs the model was fitted on
+        m = m[m["round"] == 1]
+    return m[["cell_id", "grid_id"]].drop_duplicates().sort_values(["cell_id", "grid_id"]).reset_index(drop=True)
+
+
+def long_form(round: int, beam_type: str, pairs: pd.DataFrame, rsrp_dbm: np.ndarray, scenario) -> pd.DataFrame:
+    """Long-form prediction rows (the measurement table's layout) for one beam type."""
+    num_beams = np.array([scenario.num_beams(c, beam_type, round) for c in pairs["cell_id"]])
+    beam = np.arange(rsrp_dbm.shape[1])
+    keep = beam[None, :] < num_beams[:, None]
+    rows, beams = np.nonzero(keep)
+    return pd.DataFrame(
+        {
+            "round": round,
+            "cell_id": pairs["cell_id"].to_numpy()[rows],
+            "grid_id": pairs["grid_id"].to_numpy()[rows],
+            "beam_type": beam_type,
+            "beam_id": beams,
+            "rsrp_dbm": rsrp_dbm[rows, beams],
+        }
+    )
+
+
+def _export_aps(model, scenario, cells: np.ndarray, grids: np.ndarray, path: Path) -> int:
+    cell_ids, grid_ids = (a.ravel() for a in np.meshgrid(cells, grids, indexing="ij"))
+    xyz = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
+    aps = model.aps(cell_ids, grid_ids, xyz).detach().cpu().double().numpy()
+    pair, bins = np.nonzero(aps > 0)
+    el, az = model.angle_grid.bin_angles()
+    table = pd.DataFrame(
+        {
+            "cell_id": cell_ids[pair],
+            "grid_id": grid_ids[pair],
+            "bin": bins.astype(np.int32),
+            "elevation_deg": np.rad2deg(el[bins]),
+            "azimuth_ccw_east_deg": np.rad2deg(az[bins]),
+            "power_lin": aps[pair, bins],
+        }
+    )
+    from rflscm.data import write_table
+
+    write_table(table, path)
+    return len(table)
+
+
+@app.command()
+def predict(
+    checkpoint: Path = typer.Argument(..., help="Model checkpoint written by `rflscm train`."),
+    scenario: Path = typer.Argument(..., help="The scenario the model was trained on; its rounds are the antenna configurations."),
+    round: int = typer.Option(2, "--round", help="Antenna configuration (round) to predict; add a round to scenario.yaml for a what-if."),
+    out: Path = typer.Option(Path("prediction.parquet"), "--out", help="Predicted RSRP table (.parquet or .csv)."),
+    pairs: str = typer.Option("measured", "--pairs", help="measured: pairs with measurements; all: every cell × grid."),
+    aps_cells: str | None = typer.Option(None, "--aps-cells", help="Comma-separated cell ids whose APS to export."),
+    aps_grids: str | None = typer.Option(None, "--aps-grids", help="Comma-separated grid ids whose APS to export."),
+    aps_out: Path = typer.Option(Path("aps.parquet"), "--aps-out", help="Where the exported APS goes."),
+    attenuation_map: Path | None = typer.Option(None, "--attenuation-map", help="PNG of −log|δ| seen from above (field models)."),
+    device: str = DeviceOption,
+    seed: int = SeedOption,
+) -> None:
+    """Predict RSRP of every beam for a round's antenna configuration (also for grids without measurements)."""
+    from rflscm.data import load_scenario, write_table
+    from rflscm.models import load_model
+
+    seed_everything(seed)
+    dev = resolve_device(device)
+    console = Console(stderr=True)
+    scen = load_scenario(scenario)
+    if round not in scen.cells:
+        raise ConfigError(f"--round {round}: scenario {scen.meta.name!r} has rounds {', '.join(map(str, scen.rounds()))}.")
+    model = load_model(checkpoint, scen, device=dev)
+    selected = prediction_pairs(scen, model, pairs)
+    with console.status(f"predicting {len(selected)} (cell, grid) pairs with {model.name}…"):
+        tables = [long_form(round, bt, selected, model.predict_rsrp(scen, round, bt, selected), scen) for bt in ("ssb", "csi")]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_table(pd.concat(tables, ignore_index=True), out)
+    console.print(f"wrote {out} ({sum(len(t) for t in tables)} beams)")
+    cells, grids = _id_list(aps_cells, "--aps-cells"), _id_list(aps_grids, "--aps-grids")
+    if (cells is None) != (grids is None):
+        raise ConfigError("--aps-cells and --aps-grids go together.")
+    if cells is not None:
+        n = _export_aps(model, scen, cells, grids, aps_out)
+        console.print(f"wrote {aps_out} ({n} non-zero bins)")
+    if attenuation_map is not None:
+        draw = getattr(model, "plot_attenuation_map", None)
+        if draw is None:
+            raise ConfigError(f"{model.name} has no attenuation field; --attenuation-map needs rflscm or nerf2.")
+        draw(attenuation_map)
+        console.print(f"wrote {attenuation_map}")
