@@ -1,0 +1,94 @@
+"""Point-cloud prior Φ (paper §III-D, eqs. (14)–(17)).
+
+D(p) = #{a ∈ cloud : ‖a − p‖ ≤ Δr} is counted once on a voxel grid with a KD-tree and looked
+up by trilinear interpolation; Φ = 1 where D > D_th, else β·D; then R̃ = R·Φ and
+δ̃ = δ^Φ = exp(Φ log δ).  Φ = 0 (no point within reach) makes a sample inert, which the
+model uses to skip it entirely (empty-space skipping).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy import ndimage
+from scipy.spatial import cKDTree
+from torch import nn
+
+
+def density_grid(
+    points: np.ndarray, box_lo: np.ndarray, box_hi: np.ndarray, voxel_m: float, radius_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Point counts within ``radius_m`` of every voxel-grid point of the box.
+
+    Returns ``(density [nx, ny, nz] float32, lo [3], hi [3])``; grid point (i, j, k) sits at
+    ``lo + (i, j, k)·voxel_m`` and ``hi = lo + (shape − 1)·voxel_m`` covers the box.  Only grid points
+    near an occupied voxel are queried (the rest are 0 by construction).
+    """
+    lo = np.asarray(box_lo, np.float64)
+    shape = np.maximum(np.ceil((np.asarray(box_hi, np.float64) - lo) / voxel_m).astype(int) + 1, 2)
+    hi = lo + (shape - 1) * voxel_m
+    density = np.zeros(tuple(shape), np.float32)
+    pts = np.asarray(points, np.float64)
+    if len(pts) == 0:
+        return density, lo, hi
+    idx = np.rint((pts - lo) / voxel_m).astype(np.int64)
+    inside = np.all((idx >= 0) & (idx < shape), axis=1)
+    occupied = np.zeros(tuple(shape), bool)
+    occupied[tuple(idx[inside].T)] = True
+    reach = int(math.ceil(radius_m / voxel_m)) + 1
+    near = ndimage.binary_dilation(occupied, structure=np.ones((2 * reach + 1,) * 3, bool))
+    cells = np.argwhere(near)
+    counts = cKDTree(pts).query_ball_point(lo + cells * voxel_m, r=radius_m, return_length=True, workers=-1)
+    density[tuple(cells.T)] = counts
+    return density, lo, hi
+
+
+class PointPrior(nn.Module):
+    """Φ(p) from a precomputed density grid (buffers only, no parameters).
+
+    Args:
+        density: point counts ``[nx, ny, nz]`` on the grid spanning ``box_lo`` … ``box_hi``.
+        threshold: D_th; Φ = 1 where the interpolated density exceeds it.
+        beta: β ≪ 1; Φ = β·D below the threshold.
+    """
+
+    def __init__(self, density: torch.Tensor, box_lo: torch.Tensor, box_hi: torch.Tensor, threshold: float, beta: float) -> None:
+        super().__init__()
+        grid = torch.as_tensor(density, dtype=torch.float32).permute(2, 1, 0)  # [nz, ny, nx] for grid_sample
+        self.register_buffer("density_grid", grid[None, None].contiguous())
+        self.register_buffer("box_lo", torch.as_tensor(box_lo, dtype=torch.float32))
+        self.register_buffer("box_hi", torch.as_tensor(box_hi, dtype=torch.float32))
+        self.threshold = float(threshold)
+        self.beta = float(beta)
+
+    @classmethod
+    def from_points(
+        cls, points: np.ndarray, box_lo: np.ndarray, box_hi: np.ndarray, voxel_m: float, radius_m: float,
+        threshold: float, beta: float,
+    ) -> PointPrior:  # fmt: skip
+        """Count the cloud once on a ``voxel_m`` grid over the box (:func:`density_grid`)."""
+        density, lo, hi = density_grid(points, box_lo, box_hi, voxel_m, radius_m)
+        return cls(torch.from_numpy(density), torch.from_numpy(lo), torch.from_numpy(hi), threshold, beta)
+
+    def density(self, points: torch.Tensor) -> torch.Tensor:
+        """Interpolated D ``[S]`` at world points ``[S, 3]`` [m]; 0 outside the grid."""
+        u = 2.0 * (points.to(self.box_lo.dtype) - self.box_lo) / (self.box_hi - self.box_lo) - 1.0
+        out = F.grid_sample(self.density_grid, u.view(1, -1, 1, 1, 3), mode="bilinear", padding_mode="zeros", align_corners=True)
+        return out.view(-1)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        """Φ ``[S]`` at world points ``[S, 3]`` (paper eq. (15))."""
+        return phi_of_density(self.density(points), self.threshold, self.beta)
+
+
+def phi_of_density(density: torch.Tensor, threshold: float, beta: float) -> torch.Tensor:
+    """Φ = 1 if D > D_th else β·D  (paper eq. (15))."""
+    return torch.where(density > threshold, torch.ones_like(density), beta * density)
+
+
+def modulate(phi: torch.Tensor, radiance: torch.Tensor, log_delta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """R̃ = R·Φ and log δ̃ = Φ·log δ, i.e. δ̃ = δ^Φ (paper eqs. (16)–(17)); all ``[...]``."""
+    return radiance * phi, log_delta * phi

@@ -1,0 +1,242 @@
+"""NeRF²-LSCM: the RF-LSCM renderer, loss and HiTAM with NeRF²'s MLP fields (SPEC §4, paper §V-B).
+
+NeRF² (Zhao et al., "NeRF²: Neural Radio-Frequency Radiance Fields", MobiCom 2023) represents the
+scene with two networks:
+
+* an **attenuation network**: γ(p) (10-frequency positional encoding of the position) → 8 ReLU
+  layers of 256 with γ(p) re-injected after layer 4 → the attenuation (here the raw δ channels of
+  :class:`~rflscm.fields.PassiveMedium`, so FDAM and its physics are exactly RF-LSCM's) and,
+  through a linear *feature layer* 256 → 256, the features of the sample;
+* a **radiance head**: [features, conditioning] → 256 → 128 → complex R (2 outputs).  The
+  conditioning (ray direction, grid position / offset, carrier) is RF-LSCM's decoder's
+  (:class:`~rflscm.models.radiance.RadianceDecoder`), so only the widths differ.
+
+Everything else — ray sampling, the point-cloud prior, FDAM, the render integral, the loss,
+HiTAM, training, checkpoints — is inherited from :class:`~rflscm.models.rflscm.RFLSCM`.  Presets:
+``rflscm/configs/nerf2_{quick,full}.yaml`` (``full`` = the paper's sizes; ``quick`` shrinks the
+widths for 2 CPU cores).
+
+The attenuation and the features come from one trunk, evaluated once per stored sample: the
+renderer asks the δ field for every stored sample and then the feature field for the live subset
+(Φ > 0), so the feature view looks the live samples up in the trunk's last output instead of
+running the 8 × 256 trunk twice (exact: a point not found there is evaluated afresh).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+from torch import nn
+
+from rflscm.errors import ConfigError
+from rflscm.fields import MLP, encoded_dim, positional_encoding
+from rflscm.models.base import register_model
+from rflscm.models.radiance import SceneFrame
+from rflscm.models.rflscm import RFLSCM
+from rflscm.models.rflscm_config import DecoderConfig, HiTAMConfig, LossConfig, PriorConfig, RenderConfig, TrainConfig
+
+# odd 64-bit multipliers for hashing float32 bit patterns of positions (exactness is re-checked)
+_HASH = (0x9E3779B97F4A7C15 - 2**64, 0xC2B2AE3D27D4EB4F - 2**64, 0x165667B19E3779F9)
+
+
+@dataclass(frozen=True)
+class NeRF2FieldConfig:
+    """NeRF²'s attenuation network (replaces RF-LSCM's VM tensors 𝒢_δ and 𝒢_R)."""
+
+    hidden: int = 256
+    """Width of the attenuation trunk (NeRF²: 256)."""
+    layers: int = 8
+    """ReLU layers of the trunk (NeRF²: 8)."""
+    skip_at: int | None = 4
+    """γ(p) is concatenated to the input of this layer (NeRF²: after layer 4); null: no skip."""
+    pos_freqs: int = 10
+    """Frequencies of the positional encoding of the position (NeRF²: 10)."""
+    feature_dim: int = 256
+    """Width of the feature layer feeding the radiance head (NeRF²: 256)."""
+    delta_init_scale: float = 0.1
+    """Scale of the δ head's initial weights: raw δ ≈ 0 (free space, as RF-LSCM's tensors start)."""
+    learn_mu: bool = True
+    """Learn Re μ ≥ 1; false fixes μ = 1 (as RF-LSCM's ``field.learn_mu``)."""
+    init_loss_db: float = 0.01
+    """Per-voxel loss at the reference carrier at raw δ = 0 [dB] (as RF-LSCM's ``field.init_loss_db``)."""
+    building_loss_db: float | None = 10.0
+    """Initial per-voxel loss [dB] where the scan's building points are dense, fitted before training
+    exactly as RF-LSCM does (its ``field.building_loss_db``); null starts from free space."""
+
+    def __post_init__(self) -> None:
+        if self.hidden < 1 or self.layers < 1 or self.feature_dim < 1:
+            raise ConfigError(
+                f"`model.field` needs hidden, layers and feature_dim >= 1 (got {self.hidden}, {self.layers}, {self.feature_dim})."
+            )
+        if self.skip_at is not None and not 0 < self.skip_at < self.layers:
+            raise ConfigError(f"`model.field.skip_at` must lie in 1…{self.layers - 1} or be null (got {self.skip_at}).")
+        if self.pos_freqs < 0:
+            raise ConfigError(f"`model.field.pos_freqs` must be >= 0 (got {self.pos_freqs}).")
+        if self.delta_init_scale < 0 or self.init_loss_db <= 0:
+            raise ConfigError("`model.field.delta_init_scale` must be >= 0 and `init_loss_db` > 0.")
+        if self.building_loss_db is not None and self.building_loss_db <= 0:
+            raise ConfigError(f"`model.field.building_loss_db` must be > 0 or null (got {self.building_loss_db}).")
+
+    @property
+    def upsample_at(self) -> tuple[int, ...]:
+        """MLP fields have no resolution schedule (read by :meth:`RFLSCM.on_step_begin`)."""
+        return ()
+
+
+@dataclass(frozen=True)
+class NeRF2DecoderConfig(DecoderConfig):
+    """RF-LSCM's decoder conditioning with NeRF²'s radiance-head widths: in → ``hidden`` → ``head_hidden`` → 2."""
+
+    hidden: int = 256
+    layers: int = 2
+    head_hidden: int = 128
+    """Width of the head's layers after the first (NeRF²: W/2 = 128)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.head_hidden < 1:
+            raise ConfigError(f"`model.decoder.head_hidden` must be >= 1 (got {self.head_hidden}).")
+
+
+@dataclass(frozen=True)
+class NeRF2TrainConfig(TrainConfig):
+    """RF-LSCM's training settings; one parameter group, ``networks`` (paper §V: lr 0.001 for MLPs)."""
+
+    lr: dict[str, float] = dataclasses.field(default_factory=lambda: {"networks": 0.001})
+
+
+@dataclass(frozen=True)
+class NeRF2Config:
+    """NeRF²-LSCM: RF-LSCM's config with ``field`` and ``decoder`` replaced (same keys otherwise)."""
+
+    field: NeRF2FieldConfig = dataclasses.field(default_factory=NeRF2FieldConfig)
+    decoder: NeRF2DecoderConfig = dataclasses.field(default_factory=NeRF2DecoderConfig)
+    prior: PriorConfig = dataclasses.field(default_factory=PriorConfig)
+    render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
+    hitam: HiTAMConfig = dataclasses.field(default_factory=HiTAMConfig)
+    loss: LossConfig = dataclasses.field(default_factory=LossConfig)
+    train: NeRF2TrainConfig = dataclasses.field(default_factory=NeRF2TrainConfig)
+
+
+class NeRF2Field(nn.Module):
+    """γ(p) → 8 × 256 (skip at 4) trunk → (raw δ ``[S, C_δ]``, features ``[S, feature_dim]``).
+
+    Positions are normalised to [−1, 1] over the scene box before the encoding.
+    """
+
+    def __init__(self, cfg: NeRF2FieldConfig, frame: SceneFrame, delta_channels: int) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.register_buffer("box_lo", torch.tensor(frame.box_lo, dtype=torch.float32))
+        self.register_buffer("box_hi", torch.tensor(frame.box_hi, dtype=torch.float32))
+        in_dim = encoded_dim(3, cfg.pos_freqs)
+        # MLP's output layer is the feature layer (linear, no activation, as NeRF²'s feature_layer)
+        self.trunk = MLP(in_dim, cfg.feature_dim, hidden=cfg.hidden, num_layers=cfg.layers, skip_at=cfg.skip_at)
+        self.delta_head = nn.Linear(cfg.hidden, delta_channels)
+        with torch.no_grad():
+            self.delta_head.weight.mul_(cfg.delta_init_scale)
+            self.delta_head.bias.zero_()
+        self._last: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def hidden_of(self, points: torch.Tensor) -> torch.Tensor:
+        """Last hidden layer ``[S, hidden]`` of the trunk at world points ``[S, 3]`` [m]."""
+        unit = 2.0 * (points.to(self.box_lo.dtype) - self.box_lo) / (self.box_hi - self.box_lo) - 1.0
+        x = positional_encoding(unit, self.cfg.pos_freqs)
+        h = x
+        for i, layer in enumerate(self.trunk.hidden):
+            if self.trunk.skip_at is not None and i == self.trunk.skip_at:
+                h = torch.cat((h, x), dim=-1)
+            h = torch.relu(layer(h))
+        return h
+
+    def delta(self, points: torch.Tensor) -> torch.Tensor:
+        """Raw δ channels ``[S, C_δ]``; keeps the trunk output for :meth:`features`."""
+        h = self.hidden_of(points)
+        self._last = (points.detach(), h)
+        return self.delta_head(h)
+
+    def features(self, points: torch.Tensor) -> torch.Tensor:
+        """Features ``[S, feature_dim]``: trunk rows of the last :meth:`delta` call where the points match
+        exactly, a fresh trunk evaluation for the rest."""
+        last, self._last = self._last, None
+        if last is None or points.numel() == 0:
+            return self.trunk.out(self.hidden_of(points))
+        idx = _match_rows(last[0], points.detach())
+        found = idx >= 0
+        if bool(found.all()):
+            h = last[1][idx]
+        else:
+            h = points.new_empty(points.shape[0], last[1].shape[1])
+            h = h.index_put((found.nonzero().squeeze(1),), last[1][idx[found]])
+            h = h.index_put(((~found).nonzero().squeeze(1),), self.hidden_of(points[~found]))
+        return self.trunk.out(h)
+
+
+class _DeltaView(nn.Module):
+    """The δ field of a stage: ``[S, 3] → [S, C_δ]`` (owns the shared :class:`NeRF2Field`)."""
+
+    def __init__(self, field: NeRF2Field) -> None:
+        super().__init__()
+        self.net = field
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self.net.delta(points)
+
+
+class _FeatureView(nn.Module):
+    """The feature field of a stage: ``[S, 3] → [S, feature_dim]`` (shares, but does not register, the net)."""
+
+    def __init__(self, field: NeRF2Field) -> None:
+        super().__init__()
+        object.__setattr__(self, "_net", field)  # not a submodule: its parameters live under the δ view
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self._net.features(points)
+
+
+def _row_keys(points: torch.Tensor) -> torch.Tensor:
+    """int64 hash ``[S]`` of the float32 bit patterns of ``points [S, 3]``."""
+    bits = points.to(torch.float32).contiguous().view(torch.int32).to(torch.int64) & 0xFFFFFFFF
+    return bits[:, 0] * _HASH[0] ^ bits[:, 1] * _HASH[1] ^ bits[:, 2] * _HASH[2]
+
+
+def _match_rows(table: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+    """For each row of ``query [L, 3]`` the index of an identical row of ``table [S, 3]``, −1 where none."""
+    keys = _row_keys(table)
+    order = torch.argsort(keys)
+    sorted_keys = keys[order]
+    qk = _row_keys(query)
+    pos = torch.searchsorted(sorted_keys, qk).clamp(max=max(keys.numel() - 1, 0))
+    idx = order[pos]
+    ok = (sorted_keys[pos] == qk) & (table[idx] == query).all(-1)
+    return torch.where(ok, idx, torch.full_like(idx, -1))
+
+
+@register_model
+class NeRF2LSCM(RFLSCM):
+    """NeRF²-LSCM: RF-LSCM with NeRF²'s attenuation MLP and radiance head instead of VM tensors."""
+
+    name: ClassVar[str] = "nerf2"
+    config_class: ClassVar[type] = NeRF2Config
+    config_family: ClassVar[str] = "nerf2"
+
+    def build_fields(self, frame: SceneFrame) -> tuple[nn.Module, nn.Module]:
+        """``(δ view, feature view)`` of one shared :class:`NeRF2Field`."""
+        field = NeRF2Field(self.config.field, frame, self.medium(frame).num_channels)
+        return _DeltaView(field), _FeatureView(field)
+
+    def _build_stages(self, frame: SceneFrame) -> None:
+        """RF-LSCM's stages, with the decoder's layers after the first narrowed to ``head_hidden``
+        (NeRF²'s radiance head is 256 → 128 → 2; RF-LSCM's decoder keeps one width)."""
+        super()._build_stages(frame)
+        d = self.config.decoder
+        for stage in self.stages.values():
+            stage.decoder.mlp = MLP(d.hidden, 2, hidden=d.head_hidden, num_layers=d.layers - 1, out_scale=0.1)
+        self.stages.to(self.device)
+
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
+        """``{"networks": every parameter}`` (NeRF² has no tensor factors)."""
+        return {"networks": list(self.stages.parameters())}

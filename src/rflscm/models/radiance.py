@@ -1,0 +1,173 @@
+"""One radiance-field APS model (a "stage": HiTAM has a coarse and a refinement one).
+
+A stage owns a δ field (raw channels → passive (μ, ε) → FDAM), a feature field 𝓜 and the
+radiance decoder 𝒬, and renders x̃ (normalised, x / x_ref) for a batch of rays, each ray
+conditioned on its grid position and carrier (paper eq. (18)).  The fields are plain modules
+``[S, 3] → [S, C]``, so a NeRF²-style stage swaps them for MLPs and keeps everything else.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+
+from rflscm.fields import MLP, PassiveMedium, encoded_dim, fdam_attenuation, modulate, positional_encoding
+from rflscm.models.rflscm_config import DecoderConfig, RenderConfig
+from rflscm.render import PackedSamples, accumulate_power, join_queries, transmittance
+
+
+@dataclass(frozen=True)
+class SceneFrame:
+    """Scene constants the fields and the decoder are built on (saved in checkpoints)."""
+
+    box_lo: tuple[float, float, float]
+    box_hi: tuple[float, float, float]
+    num_samples: int
+    """Q, samples per ray."""
+    reference_wavelength_m: float
+    reference_distance_m: float
+    """Typical cell-to-grid distance d_ref [m] (decoder input scale, spreading prior)."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class RayBatch:
+    """Rays of one batch: a cell's antenna position, a direction and the cell's carrier."""
+
+    origin: torch.Tensor  # [R, 3] cell antenna position [m]
+    direction: torch.Tensor  # [R, 3] unit vectors (world ENU)
+    wavelength_m: torch.Tensor  # [R]
+    radius_rad: torch.Tensor  # [R] angular radius of the ray's bin (its cone) [rad]
+
+
+@dataclass
+class Queries:
+    """What to render: ray ``ray[q]`` as seen from grid ``grid_xyz[q]``; several queries may share a ray."""
+
+    ray: torch.Tensor  # long [Qn]
+    grid_xyz: torch.Tensor  # [Qn, 3] [m]
+
+
+class RadianceDecoder(nn.Module):
+    """𝒬: [𝓜(p), PE(ω), conditioning on the grid and λ] → complex R (2 outputs).
+
+    The first layer is split by what its inputs depend on: the sample (𝓜(p)), the query
+    (ω, λ, and p_l for ``inputs="paper"``) and, for ``inputs="offset"``, the (query, sample)
+    pair (direction and log-distance from the sample to the grid, log-distance along the ray).
+    The sum equals one linear layer over the concatenation, but each part is computed once.
+    """
+
+    def __init__(self, cfg: DecoderConfig, feature_dim: int, frame: SceneFrame, step_m: float) -> None:
+        super().__init__()
+        self.cfg, self.frame, self.step_m = cfg, frame, step_m
+        query_width = encoded_dim(3, cfg.dir_freqs) + encoded_dim(1, cfg.wavelength_freqs)
+        if cfg.inputs in ("paper", "offset+grid"):
+            query_width += encoded_dim(3, cfg.grid_freqs)
+        self.sample_in = nn.Linear(feature_dim, cfg.hidden)
+        self.query_in = nn.Linear(query_width, cfg.hidden, bias=False)
+        self.pair_in = None
+        if cfg.inputs in ("offset", "offset+grid"):
+            self.pair_in = nn.Linear(2 * encoded_dim(3, cfg.dir_freqs) + encoded_dim(3, cfg.pos_freqs), cfg.hidden, bias=False)
+        self.mlp = MLP(cfg.hidden, 2, hidden=cfg.hidden, num_layers=cfg.layers - 1, out_scale=0.1)
+        self.source_decay = nn.Parameter(torch.tensor(float(cfg.source_decay))) if cfg.source_decay else None
+        self.register_buffer("box_lo", torch.tensor(frame.box_lo, dtype=torch.float32))
+        self.register_buffer("box_hi", torch.tensor(frame.box_hi, dtype=torch.float32))
+        self.log_amp0 = cfg.init_radiance_db / 20.0 * math.log(10.0)
+
+    def _query_inputs(self, rays: RayBatch, queries: Queries) -> torch.Tensor:
+        cfg = self.cfg
+        log_wl = torch.log(rays.wavelength_m / self.frame.reference_wavelength_m)[queries.ray, None]
+        parts = [positional_encoding(rays.direction[queries.ray], cfg.dir_freqs), positional_encoding(log_wl, cfg.wavelength_freqs)]
+        if cfg.inputs in ("paper", "offset+grid"):
+            unit = 2.0 * (queries.grid_xyz - self.box_lo) / (self.box_hi - self.box_lo) - 1.0
+            parts.append(positional_encoding(unit, cfg.grid_freqs))
+        return torch.cat(parts, dim=-1)
+
+    def forward(
+        self, features: torch.Tensor, points: torch.Tensor, along_m: torch.Tensor,
+        rays: RayBatch, queries: Queries, join_query: torch.Tensor, join_sample: torch.Tensor,
+    ) -> torch.Tensor:  # fmt: skip
+        """Complex R ``[J]`` for (query, sample) pairs ``join_query, join_sample [J]``, from per-sample features
+        ``[L, D]``, positions ``[L, 3]`` [m] and along-ray distances ``[L]`` [m]."""
+        cfg, frame = self.cfg, self.frame
+        along = along_m[join_sample]
+        offset = queries.grid_xyz[join_query] - points[join_sample]
+        dist = offset.norm(dim=-1).clamp_min(1e-3)
+        footprint = (along * rays.radius_rad[queries.ray][join_query]).clamp_min(self.step_m)  # cone radius [m]
+        miss = torch.log1p(dist / footprint)  # how far the grid lies outside the ray's cone
+        hidden = self.sample_in(features)[join_sample] + self.query_in(self._query_inputs(rays, queries))[join_query]
+        if self.pair_in is not None:
+            scale = math.log1p(frame.reference_distance_m / self.step_m)
+            logs = torch.stack((torch.log1p(dist / self.step_m) / scale, torch.log1p(along / self.step_m) / scale, miss / scale), -1)
+            to_grid = offset / dist[:, None]
+            half = to_grid - rays.direction[queries.ray][join_query]  # specular reflection: ∥ surface normal
+            half = half / half.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+            pair = torch.cat(
+                (positional_encoding(to_grid, cfg.dir_freqs), positional_encoding(half, cfg.dir_freqs), positional_encoding(logs, cfg.pos_freqs)), -1
+            )
+            hidden = hidden + self.pair_in(pair)
+        out = self.mlp(torch.relu(hidden))  # [J, 2]
+        log_spread = torch.zeros_like(dist)
+        if cfg.spreading_prior:  # free-space amplitude ∝ λ / d
+            log_wl = torch.log(rays.wavelength_m / frame.reference_wavelength_m)[queries.ray][join_query]
+            log_spread = log_wl + torch.log(frame.reference_distance_m / (along + dist).clamp_min(self.step_m))
+        if self.source_decay is not None:  # the grid is the source: (1 + d₂/w)^−γ, w the ray cone's radius
+            log_spread = log_spread - self.source_decay * miss
+        if cfg.output == "polar":
+            return torch.exp(torch.complex(out[:, 0] + self.log_amp0 + log_spread, out[:, 1]))
+        amp0 = math.exp(self.log_amp0)
+        return torch.complex(out[:, 0] + amp0, out[:, 1]) * torch.exp(log_spread)
+
+    @torch.no_grad()
+    def scale_power(self, factor: float) -> None:
+        """Multiply the rendered power of a lone scatterer by ``factor`` (amplitude by √factor)."""
+        if self.cfg.output == "polar":
+            self.mlp.out.bias[0] += 0.5 * math.log(factor)
+        else:
+            amp0 = math.exp(self.log_amp0)
+            self.mlp.out.weight.mul_(math.sqrt(factor))
+            self.mlp.out.bias.mul_(math.sqrt(factor))
+            self.mlp.out.bias[0] += amp0 * (math.sqrt(factor) - 1.0)
+
+
+class RadianceStage(nn.Module):
+    """δ field + FDAM, feature field 𝓜, decoder 𝒬 and the renderer for a batch of rays."""
+
+    def __init__(
+        self, delta_field: nn.Module, feature_field: nn.Module, medium: PassiveMedium,
+        decoder: RadianceDecoder, render_cfg: RenderConfig,
+    ) -> None:  # fmt: skip
+        super().__init__()
+        self.delta_field, self.feature_field, self.decoder = delta_field, feature_field, decoder
+        self.medium, self.render_cfg = medium, render_cfg
+        self.decoder_evals = 0
+        """Decoder evaluations so far (throughput measurements)."""
+
+    def forward(self, rays: RayBatch, packed: PackedSamples, queries: Queries) -> torch.Tensor:
+        """x̃ ``[num_queries]`` (normalised): rays ``rays`` (stored samples ``packed``) seen from ``queries``.
+
+        Everything along a ray (δ, FDAM, transmittance, 𝓜) is computed once per ray; only the
+        decoder runs per (query, sample)."""
+        cfg = self.render_cfg
+        ray, step = packed.ray, cfg.step_m
+        along = packed.index.to(rays.direction.dtype) * step
+        points = rays.origin[ray] + along[:, None] * rays.direction[ray]  # p = p_BS + q Δr ω  [S, 3]
+        mu, eps = self.medium(self.delta_field(points))
+        log_delta = fdam_attenuation(
+            mu, eps, rays.wavelength_m[ray], step, log=True, first=packed.first, last=packed.last
+        )  # FDAM needs the neighbours, so it runs on every stored sample
+        live = (packed.phi > 0).nonzero().squeeze(1)  # the rest is inert (δ̃ = 1, R̃ = 0)
+        phi, ray_live = packed.phi[live], ray[live]
+        _, log_delta_tilde = modulate(phi, phi, log_delta[live])  # log δ̃ = Φ log δ
+        weight = transmittance(log_delta_tilde, ray_live, cfg.inclusive, cfg.max_log_gain) * phi  # (Π δ̃)·Φ
+        join_query, join_sample = join_queries(queries.ray, ray_live, packed.num_rays)
+        self.decoder_evals += int(join_query.numel())
+        radiance = self.decoder(
+            self.feature_field(points[live]), points[live], along[live], rays, queries, join_query, join_sample
+        )
+        return accumulate_power(weight[join_sample] * radiance, join_query, queries.ray.numel())

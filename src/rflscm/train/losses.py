@@ -1,0 +1,76 @@
+"""The LSCM training loss (paper eqs. (19), (22)–(23); SPEC §3).
+
+L = ‖r − A x̃‖² + β_pen ‖x̃‖₁ + α_P ‖𝟙(r missing) ⊙ [A x̃ − r_th]₊‖²
+
+per (cell, grid) pair, summed over beams and averaged over the pairs of a batch.  Quantities
+are in the model's normalised units (r / r_ref, A / a_ref, x / x_ref, so that r = A x holds in
+both).  ``fidelity="log"`` compares bels (dB/10) instead of linear power — RSRP spans six
+decades, and the linear form lets the strongest pairs dominate; its missing-beam penalty then
+compares bels too, and its L1 term is measured relative to each pair's own power scale
+(``x_scale``, the least APS power that explains the strongest observed beam), so that weak and
+strong pairs are regularised alike.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+
+
+def lscm_loss(
+    pred: torch.Tensor,
+    rsrp: torch.Tensor,
+    beam_mask: torch.Tensor,
+    aps: torch.Tensor,
+    x_scale: torch.Tensor,
+    threshold: float,
+    fidelity: Literal["linear", "log"] = "log",
+    sparsity_weight: float = 1e-3,
+    penalty_weight: float = 0.5,
+    floor: float = 1e-12,
+) -> dict[str, torch.Tensor]:
+    """Loss terms of a batch.
+
+    Args:
+        pred: predicted RSRP A x̃ ``[num_pairs, num_beams]`` (normalised linear power).
+        rsrp: measured RSRP ``[num_pairs, num_beams]`` (normalised linear power), NaN = not reported.
+        beam_mask: ``[num_pairs, num_beams]`` bool, the beams that take part (exist in the cell's
+            codebook, measured for this pair, not held out).
+        aps: the rendered APS x̃ ``[num_pairs, num_dirs]`` (normalised).
+        x_scale: ``[num_pairs]`` per-pair APS power scale (used by the log form's L1 term).
+        threshold: the reporting threshold r_th (normalised linear power).
+        floor: added to predictions before taking logs (normalised linear power).
+
+    Returns:
+        ``{"total", "fidelity", "sparsity", "penalty"}`` scalar tensors.
+    """
+    observed = beam_mask & ~torch.isnan(rsrp)
+    missing = beam_mask & torch.isnan(rsrp)
+    num_pairs = max(pred.shape[0], 1)
+    if fidelity == "log":
+        pred_b = torch.log10(pred + floor)
+        rsrp_b = torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
+        err = pred_b - rsrp_b
+        excess = torch.relu(pred_b - torch.log10(torch.as_tensor(threshold, dtype=pred.dtype)))
+        l1 = (aps / x_scale[:, None]).sum()
+    elif fidelity == "linear":
+        err = pred - torch.nan_to_num(rsrp)
+        excess = torch.relu(pred - threshold)
+        l1 = aps.sum()
+    else:
+        raise ValueError(f"unknown fidelity {fidelity!r}")
+    fid = torch.where(observed, err.square(), torch.zeros_like(err)).sum() / num_pairs
+    pen = torch.where(missing, excess.square(), torch.zeros_like(excess)).sum() / num_pairs
+    sparsity = sparsity_weight * l1 / num_pairs
+    total = fid + sparsity + penalty_weight * pen
+    return {"total": total, "fidelity": fid, "sparsity": sparsity, "penalty": pen}
+
+
+def mae_db(pred: torch.Tensor, rsrp: torch.Tensor, mask: torch.Tensor, floor: float = 1e-12) -> torch.Tensor:
+    """Mean |10 log10(pred) − 10 log10(r)| [dB] over observed entries of ``mask`` (any consistent linear unit)."""
+    observed = mask & ~torch.isnan(rsrp)
+    if not bool(observed.any()):
+        return torch.tensor(float("nan"))
+    diff = 10.0 * (torch.log10(pred[observed] + floor) - torch.log10(rsrp[observed]))
+    return diff.abs().mean()

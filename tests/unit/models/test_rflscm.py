@@ -1,0 +1,161 @@
+"""RF-LSCM end to end on the tiny scenario: config, gradients, learning, resume, persistence, contract."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from rflscm.data import load_scenario
+from rflscm.data.examples import tiny_scenario
+from rflscm.errors import CheckpointError, ConfigError
+from rflscm.fields import TensorVM
+from rflscm.geometry import AngleGrid
+from rflscm.models import MODEL_REGISTRY, UnsupportedError, load_model
+from rflscm.models.rflscm import RFLSCM
+from rflscm.models.rflscm_config import RFLSCMConfig, load_rflscm_config, preset_path
+
+GRID = AngleGrid.full_sphere(10, 12)
+
+
+def tiny_config(**sections) -> dict:
+    cfg = {
+        "prior": {"enabled": False},
+        "field": {"voxel_m": 20.0, "delta_rank": 2, "feature_rank": 2, "feature_dim": 4},
+        "decoder": {"hidden": 16},
+        "render": {"step_m": 8.0},
+        "hitam": {"top_k": 3, "warmup_steps": 4, "ramp_steps": 2},
+        "train": {"steps": 8, "batch_pairs": 4, "pairs_per_cell": 2, "val_pairs": 2, "val_every": 4, "checkpoint_every": 4},
+    }
+    for name, values in sections.items():
+        cfg[name] = {**cfg.get(name, {}), **values}
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def scenario(tmp_path_factory):
+    return load_scenario(tiny_scenario(tmp_path_factory.mktemp("tiny"), seed=0))
+
+
+def test_registered_and_built_from_presets(tmp_path) -> None:
+    assert MODEL_REGISTRY["rflscm"] is RFLSCM
+    quick, full = load_rflscm_config("quick"), load_rflscm_config("full")
+    assert isinstance(quick, RFLSCMConfig) and quick != full and preset_path("quick").is_file()
+    assert RFLSCM.build(None, GRID).config == RFLSCMConfig()
+    path = tmp_path / "c.yaml"
+    path.write_text("hitam:\n  top_k: 7\n")
+    assert RFLSCM.build(str(path), GRID).config.hitam.top_k == 7
+    with pytest.raises(ConfigError, match="valid keys"):
+        RFLSCM.build({"hitam": {"topk": 3}}, GRID)
+    with pytest.raises(ConfigError, match="preset"):
+        RFLSCM.build("quickest", GRID)
+    with pytest.raises(ConfigError, match="beta"):
+        RFLSCM.build({"hitam": {"beta": 1}}, GRID)
+
+
+def test_gradients_reach_every_parameter(scenario) -> None:
+    model = RFLSCM.build(tiny_config(), GRID)
+    model._prepare(scenario)
+    groups = model.parameter_groups()
+    assert set(groups) == {"tensors", "networks"}
+    losses = model.training_losses(torch.arange(model._train.data.num_pairs), step=4)  # 0 < α < 1: both stages
+    assert 0.0 < losses["alpha"] < 1.0
+    losses["total"].backward()
+    for name, p in model.stages.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, name
+    tensors = {id(p) for p in groups["tensors"]}
+    for module in model.stages.modules():
+        if isinstance(module, TensorVM):
+            assert all(id(p) in tensors for p in module.parameters())
+
+
+def test_loss_falls_by_a_large_factor(scenario) -> None:
+    """Full batches of the 6 pairs (the tiny data drops strong beams at random, so no missing-beam penalty)."""
+    cfg = tiny_config(
+        train={"steps": 150, "val_every": 50, "batch_pairs": 6, "pairs_per_cell": 3, "lr": {"tensors": 0.01, "networks": 0.01}},
+        hitam={"warmup_steps": 60, "ramp_steps": 20},
+        loss={"missing_penalty": 0.0},
+    )
+    history = []
+    RFLSCM.build(cfg, GRID).fit(scenario, progress=False, callback=lambda m: history.append(m["total"]))
+    first, last = np.mean(history[:3]), np.mean(history[-3:])
+    assert last < first / 8, (first, last)
+
+
+def test_resume_continues_exactly(scenario, tmp_path) -> None:
+    cfg = tiny_config()
+    reference = []
+    RFLSCM.build(cfg, GRID).fit(scenario, progress=False, callback=lambda m: reference.append(m["total"]))
+
+    class Interrupt(Exception):
+        pass
+
+    def stop_at_four(metrics: dict) -> None:
+        if metrics["step"] == 4:
+            raise Interrupt
+
+    ckpt = tmp_path / "run.ckpt"
+    with pytest.raises(Interrupt):
+        RFLSCM.build(cfg, GRID).fit(scenario, progress=False, callback=stop_at_four, checkpoint_path=ckpt)
+    resumed = []
+    RFLSCM.build(cfg, GRID).fit(scenario, progress=False, callback=lambda m: resumed.append(m["total"]),
+                                checkpoint_path=ckpt, resume=True)  # fmt: skip
+    assert resumed == reference[4:]
+    with pytest.raises(CheckpointError, match="another config"):
+        RFLSCM.build(tiny_config(decoder={"hidden": 8}), GRID).fit(scenario, progress=False, checkpoint_path=ckpt, resume=True)
+
+
+def test_save_load_round_trip_and_contract(scenario, tmp_path) -> None:
+    model = RFLSCM.build(tiny_config(), GRID)
+    model.fit(scenario, progress=False)
+    path = model.save(tmp_path / "m.ckpt")
+    loaded = load_model(path, scenario)
+    assert isinstance(loaded, RFLSCM) and loaded.step == 8
+    pairs, measured = scenario.rsrp_table(2, "ssb")
+    cells, grids = pairs["cell_id"].to_numpy(), pairs["grid_id"].to_numpy()
+    x = model.aps(cells, grids)
+    assert x.shape == (len(pairs), GRID.num_bins) and bool((x >= 0).all())
+    assert torch.equal(x, loaded.aps(cells, grids))
+    assert int((x > 0).sum(1).max()) <= 3 * 9  # zeros outside Ω′ (K_C β² bins)
+    pred = loaded.predict_rsrp(scenario, 2, "ssb", pairs)
+    assert pred.shape == measured.shape and np.isfinite(pred).all()
+    with pytest.raises(UnsupportedError):
+        model.aps(np.array([999]), grids[:1])
+    with pytest.raises(UnsupportedError):
+        model.aps(cells[:1], np.array([12345]))
+    unseen = model.aps(cells[:1], np.array([12345]), grid_xyz=np.array([[30.0, 40.0, 1.5]]))
+    assert unseen.shape == (1, GRID.num_bins)
+
+
+def test_without_hitam_renders_every_visible_bin(scenario) -> None:
+    model = RFLSCM.build(tiny_config(hitam={"enabled": False}, train={"steps": 3}, render={"min_gain_db": None}), GRID)
+    summary = model.fit(scenario, progress=False)
+    assert math.isfinite(summary["final_loss"]) and list(model.stages) == ["fine"]
+    x = model.aps(np.array([11]), np.array([100]))
+    assert int((x > 0).sum()) == GRID.num_bins
+    model = RFLSCM.build(tiny_config(hitam={"enabled": False}, train={"steps": 1}, render={"min_gain_db": -10.0}), GRID)
+    model.fit(scenario, progress=False)
+    visible = model.scene.visible[0]
+    assert 0 < visible.sum() < GRID.num_bins
+    x = model.aps(np.array([11]), np.array([100]))[0].numpy()
+    assert ((x > 0) == visible).all()
+
+
+def test_upsampling_during_training_survives_checkpoints(scenario, tmp_path) -> None:
+    cfg = tiny_config(field={"voxel_m": 10.0, "init_voxel_m": 40.0, "upsample_at": [2, 5]})
+    model = RFLSCM.build(cfg, GRID)
+    model.fit(scenario, progress=False, checkpoint_path=tmp_path / "u.ckpt")
+    fields = [m for m in model.stages.modules() if isinstance(m, TensorVM)]
+    box = np.array(model.scene.frame.box_hi) - np.array(model.scene.frame.box_lo)
+    assert all(f.resolution == tuple(int(round(e / 10.0)) + 1 for e in box) for f in fields)
+    loaded = load_model(tmp_path / "u.ckpt")
+    assert torch.equal(loaded.aps(np.array([11]), np.array([100])), model.aps(np.array([11]), np.array([100])))
+
+
+def test_prior_needs_a_point_cloud(scenario) -> None:
+    bare = dataclasses.replace(scenario, point_cloud=None)
+    with pytest.raises(ConfigError, match="point cloud"):
+        RFLSCM.build(tiny_config(prior={"enabled": True}), GRID).fit(bare, progress=False)
