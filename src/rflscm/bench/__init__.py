@@ -38,4 +38,13 @@ def register_bench(name: str, summary: str) -> Callable[[BenchFn], BenchFn]:
 
 def load_all() -> None:
     """Import the benchmark modules so that they register themselves."""
-    from rflscm.bench import sensing  # noqa: F401
+    from rflscm.bench import (  # noqa: F401
+        b01_adjust,
+        b02_convergence,
+        b03_multifreq,
+        b04_point_cloud,
+        b05_alpha_p,
+        b06_unseen,
+        sensing,
+        wnomp_speed,
+    )

@@ -1,0 +1,111 @@
+"""B5 — the missing-beam penalty weight α_P (paper §VI-B, Fig. "ablation_alpha_p"): α_P ∈ {0, 0.1, 0.5, 1, 2}
+(the plumbing tests' ``tiny`` size: {0, 0.5}).
+
+RF-LSCM (``loss.missing_penalty`` = α_P, everything else at the size's settings) trains on all
+round-1 data and predicts round 2 (adjust protocol).  Reported per α_P: MAE [dB] (SSB, CSI-RS; all
+and changed cells), the final validation MAE on held-aside round-1 beams, and the share of the
+*missing* round-2 beams that the model predicts above the reporting threshold (what L_P
+penalises; lower is better), next to the oracle's.
+
+Sizes: ``quick`` = the B1 quick scenario and RF-LSCM settings (one site, 150 grids, 91 × 72
+angles, 32 pairs per step) with 150 steps (HiTAM warm-up 100, ramp 25) on 2 CPU cores; ``full`` =
+the whole scenario and the ``full`` preset.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from rflscm.bench import BenchContext, register_bench
+from rflscm.bench.harness import BenchSize, bench_size, load_bench_data, merge, train_and_evaluate
+from rflscm.bench.report import aggregate, header, mae_summary, new_figure, record, save_figure, seeds_of
+from rflscm.eval import AdjustProtocol
+
+EXTRA = {  # size → RF-LSCM overrides on top of the size's
+    "tiny": {},
+    "quick": {"train": {"steps": 150}, "hitam": {"warmup_steps": 100, "ramp_steps": 25}},
+    "full": {},
+}
+ALPHAS = {"tiny": (0.0, 0.5), "quick": (0.0, 0.1, 0.5, 1.0, 2.0), "full": (0.0, 0.1, 0.5, 1.0, 2.0)}
+
+
+@register_bench("b5", "missing-beam penalty sweep: RF-LSCM with α_P ∈ {0, 0.1, 0.5, 1, 2}")
+def run(ctx: BenchContext) -> dict[str, Any]:
+    return run_b5(ctx, bench_size(ctx.size))
+
+
+def run_b5(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
+    data = load_bench_data(ctx, size)
+    seeds = seeds_of(ctx)
+    out = header(ctx, data, seeds, __doc__.split("\n\n")[-1].strip())
+    alphas = ALPHAS[size.name]
+    out["alphas"] = list(alphas)
+    sweep: dict[str, Any] = {}
+    reference: dict[str, Any] = {}
+    oracle_false = None
+    for alpha in alphas:
+        runs = [train_and_evaluate(data, "rflscm", AdjustProtocol(), merge(EXTRA[size.name], {"loss": {"missing_penalty": alpha}}), s, ctx.device)
+                for s in seeds]  # fmt: skip
+        agg = aggregate([record(r) for r in runs])
+        rates = [false_report_rate(r.judged, data) for r in runs]
+        sweep[f"{alpha:g}"] = {
+            "mae_db": agg["mean"]["mae_db"],
+            "mae_std_db": agg["std"]["mae_db"],
+            "val_mae_db": agg["mean"]["val_mae_db"],
+            "missing_above_threshold": float(np.mean(rates)) if all(r is not None for r in rates) else None,
+            "train_time_s": agg["mean"]["train_time_s"],
+        }
+        reference = reference or mae_summary(runs[0].metrics)
+        if oracle_false is None and data.oracle is not None:
+            oracle_false = false_report_rate(data.oracle, data)
+    out["sweep"] = sweep
+    out["oracle"] = {"mae_db": reference["oracle"], "missing_above_threshold": oracle_false}
+    out["best_alpha"] = {bt: _best(sweep, bt) for bt in ("ssb", "csi")}
+    out["plots"] = [_plot(ctx, sweep, reference["oracle"])]
+    return out
+
+
+def false_report_rate(model: Any, data: Any, max_pairs: int = 2000) -> float | None:
+    """Share of the round-2 beams that were *not* reported (below r_th or not among the reported ones)
+    that ``model`` predicts above the reporting threshold r_th (SSB and CSI-RS pooled)."""
+    scenario = data.scenario
+    threshold = scenario.meta.rsrp_threshold_dbm
+    hits = total = 0
+    for beam_type in ("ssb", "csi"):
+        pairs, measured = scenario.rsrp_table(2, beam_type)
+        pairs, measured = pairs.iloc[:max_pairs], measured[:max_pairs]
+        sizes = np.array([scenario.num_beams(int(c), beam_type, 2) for c in pairs["cell_id"]])
+        exists = np.arange(measured.shape[1])[None, :] < sizes[:, None]
+        missing = exists & np.isnan(measured)
+        if not missing.any():
+            continue
+        pred = model.predict_rsrp(scenario, 2, beam_type, pairs.reset_index(drop=True))[:, : measured.shape[1]]
+        hits += int((missing & (pred > threshold)).sum())
+        total += int(missing.sum())
+    return hits / total if total else None
+
+
+def _best(sweep: dict[str, Any], bt: str) -> float | None:
+    scored = [(e["mae_db"][bt]["all"], float(a)) for a, e in sweep.items() if e["mae_db"][bt]["all"] is not None]
+    return min(scored)[1] if scored else None
+
+
+def _plot(ctx: BenchContext, sweep: dict[str, Any], oracle: dict[str, Any]) -> str:
+    fig, axes = new_figure(ncols=2)
+    alphas = [float(a) for a in sweep]
+    for bt, marker in (("ssb", "o"), ("csi", "s")):
+        axes[0].plot(alphas, [e["mae_db"][bt]["all"] for e in sweep.values()], marker=marker, label=f"{bt.upper()} all")
+        axes[0].plot(alphas, [e["mae_db"][bt]["changed"] for e in sweep.values()], marker=marker, linestyle="--",
+                     label=f"{bt.upper()} changed")  # fmt: skip
+        if oracle[bt]["all"] is not None:
+            axes[0].axhline(oracle[bt]["all"], color="grey", linestyle=":", linewidth=0.8)
+    axes[0].set_xlabel("α_P")
+    axes[0].set_ylabel("MAE after adjustment [dB]")
+    axes[0].legend()
+    axes[1].plot(alphas, [e["missing_above_threshold"] for e in sweep.values()], marker="o")
+    axes[1].set_xlabel("α_P")
+    axes[1].set_ylabel("missing round-2 beams predicted above r_th")
+    fig.suptitle("B5 α_P sweep (grey: oracle)")
+    return save_figure(fig, ctx, "b5_alpha_p")

@@ -1,0 +1,162 @@
+"""The paper benchmarks B1–B6 end to end at the ``tiny`` size on a tiny procedural scenario.
+
+These check the plumbing — every model trains under its protocol, the result has its documented
+keys, is JSON-able and the plots are written — not the numbers (a handful of steps learns nothing).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from rflscm.bench import BENCHMARKS, BenchContext, load_all
+from rflscm.bench.harness import bench_size, load_bench_data, restrict_round1, sub_scenario, tiny_size
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """One intra-op thread: tiny tensors gain nothing from two, and on a busy machine OpenMP's spinning
+    threads make them many times slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def scenario_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from rflscm.sim import ProceduralCity, SimulationConfig, build_scenario
+
+    size = tiny_size()
+    cfg = SimulationConfig(
+        name="bench-tiny", num_sites=2, max_grids=40, seed=3, site_radius_m=70.0,
+        point_cloud_points_per_m2=0.05, angle_grid=size.grid(),
+    )  # fmt: skip
+    out = tmp_path_factory.mktemp("bench") / "scen"
+    build_scenario(ProceduralCity(seed=2, size_m=180.0, num_buildings=8), cfg, out, progress=False)
+    return out
+
+
+def ctx_for(tmp_path: Path, scenario_dir: Path, seeds: int = 1) -> BenchContext:
+    return BenchContext(size="tiny", seeds=seeds, out_dir=tmp_path, device="cpu", scenario=str(scenario_dir))
+
+
+def check_common(result: dict, tmp_path: Path) -> None:
+    json.dumps(result)  # JSON-able as the CLI writes it
+    assert {"size", "scenario", "seeds", "notes", "plots"} <= set(result)
+    assert result["size"]["name"] == "tiny" and result["scenario"]["oracle"] is True
+    for name in result["plots"]:
+        png = tmp_path / name
+        assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_all_benchmarks_registered_and_sizes_documented() -> None:
+    load_all()
+    assert {"b1", "b2", "b3", "b4", "b5", "b6"} <= set(BENCHMARKS)
+    quick = bench_size("quick")
+    assert quick.max_sites == 1 and quick.overrides["rflscm"]["train"]["steps"] > 0
+    assert bench_size("full").max_sites is None and bench_size("full").preset == "full"
+
+
+def test_sub_scenario_is_deterministic_and_keeps_whole_sites(scenario_dir: Path) -> None:
+    from rflscm.data import load_scenario
+
+    full = load_scenario(scenario_dir)
+    a, info = sub_scenario(full, tiny_size())
+    b, _ = sub_scenario(full, tiny_size())
+    assert a.measurements.equals(b.measurements) and info["grids"] == 24
+    site = full.cells[1].set_index("cell_id").loc[info["cells"], "site_id"].unique()
+    assert len(site) == 1 and len(info["cells"]) == int((full.cells[1]["site_id"] == site[0]).sum())
+    assert set(a.measurements["cell_id"]) == set(info["cells"]) and set(a.measurements["round"]) == {1, 2}
+    assert len(a.point_cloud.xyz) < len(full.point_cloud.xyz)
+
+
+def test_restrict_round1_keeps_round2(tmp_path: Path, scenario_dir: Path) -> None:
+    data = load_bench_data(ctx_for(tmp_path, scenario_dir), tiny_size())
+    restricted, grids = restrict_round1(data, 0.25)
+    m = restricted.scenario.measurements
+    assert set(m.loc[m["round"] == 1, "grid_id"]) == set(grids.tolist())
+    assert (m["round"] == 2).sum() == (data.scenario.measurements["round"] == 2).sum()
+
+
+def test_b1_adjust(tmp_path: Path, scenario_dir: Path) -> None:
+    from rflscm.bench.b01_adjust import run_b1
+
+    res = run_b1(ctx_for(tmp_path, scenario_dir), tiny_size())
+    check_common(res, tmp_path)
+    assert set(res["models"]) == {"rflscm", "nerf2", "wnomp"}
+    for name, entry in res["models"].items():
+        assert set(entry["mae_db"]) == {"ssb", "csi"} and set(entry["mae_db"]["ssb"]) == {"all", "changed"}
+        assert entry["mae_db"]["ssb"]["all"] is not None and entry["train_time_s"] > 0
+        assert entry["peak_memory_mb"] is None or entry["peak_memory_mb"] > 0
+    for name in ("rflscm", "nerf2"):
+        tp = res["models"][name]["throughput"]
+        assert tp["ray_samples_per_s"] > 0 and res["models"][name]["parameters"] > 0
+    assert res["oracle"]["mae_db"]["csi"]["all"] is not None and res["changed_cells"]
+
+
+def test_b2_convergence_two_seeds(tmp_path: Path, scenario_dir: Path) -> None:
+    from rflscm.bench.b02_convergence import VARIANTS, run_b2
+
+    res = run_b2(ctx_for(tmp_path, scenario_dir, seeds=2), tiny_size())
+    check_common(res, tmp_path)
+    assert res["seeds"] == [0, 1] and set(res["variants"]) == set(VARIANTS)
+    for entry in res["variants"].values():
+        assert len(entry["raw_curves"]) == 2 and entry["final_val_mae_db"]["n"] == 2
+        curve = entry["curve"]
+        assert len(curve["time_s"]) == len(curve["mae_mean_db"]) == len(curve["mae_std_db"])
+        assert np.all(np.diff(curve["time_s"]) >= 0)
+    assert res["target_mae_db"] is not None and set(res["hitam_speedup"]) == {"rflscm", "nerf2"}
+    assert any(v["reached"] for v in res["variants"].values())  # the best variant reaches its own target
+
+
+def test_b3_multifreq(tmp_path: Path, scenario_dir: Path) -> None:
+    from rflscm.bench.b03_multifreq import run_b3
+
+    res = run_b3(ctx_for(tmp_path, scenario_dir), tiny_size())
+    check_common(res, tmp_path)
+    assert res["percents"] == [5.0, 30.0] and set(res["arms"]) == {"with_other_band", "without_other_band"}
+    for arm in res["arms"].values():
+        assert set(arm) == {"p5", "p30"} and arm["p5"]["train_grids"] <= arm["p30"]["train_grids"]
+        assert arm["p30"]["mae_db"]["ssb"] is not None and arm["p30"]["trivial_mae_db"]["csi"] is not None
+    assert set(res["gain_db"]["p5"]) == {"ssb", "csi"} and res["carrier_hz"] == pytest.approx(2.1e9)
+
+
+def test_b4_point_cloud(tmp_path: Path, scenario_dir: Path) -> None:
+    from rflscm.bench.b04_point_cloud import run_b4
+
+    res = run_b4(ctx_for(tmp_path, scenario_dir), tiny_size())
+    check_common(res, tmp_path)
+    assert set(res["variants"]) == {"prior_on", "prior_off"} and len(res["plots"]) == 2
+    assert res["train_grids"] >= 1 and set(res["prior_gain_db"]) == {"ssb", "csi"}
+    assert res["variants"]["prior_on"]["mae_db"]["csi"]["all"] is not None
+
+
+def test_b5_alpha_p(tmp_path: Path, scenario_dir: Path) -> None:
+    from rflscm.bench.b05_alpha_p import run_b5
+
+    res = run_b5(ctx_for(tmp_path, scenario_dir), tiny_size())
+    check_common(res, tmp_path)
+    assert set(res["sweep"]) == {"0", "0.5"} and res["best_alpha"]["ssb"] in (0.0, 0.5)
+    rate = res["sweep"]["0"]["missing_above_threshold"]
+    assert rate is None or 0.0 <= rate <= 1.0
+
+
+def test_b6_unseen(tmp_path: Path, scenario_dir: Path) -> None:
+    from rflscm.bench.b06_unseen import run_b6
+
+    res = run_b6(ctx_for(tmp_path, scenario_dir), tiny_size())
+    check_common(res, tmp_path)
+    assert res["holdout_grids"] >= 1
+    models = res["models"]
+    assert models["wnomp"]["unseen_mae_db"]["ssb"] is None  # no notion of unseen grids
+    assert models["wnomp"]["aps_seen"]["nmse_db"] is not None and models["wnomp"]["aps_seen"]["pairs"] > 0
+    for name in ("rflscm", "nerf2"):
+        assert models[name]["unseen_mae_db"]["ssb"] is not None
+        assert models[name]["aps_unseen"]["angle_error_deg"] is not None
