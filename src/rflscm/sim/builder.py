@@ -30,6 +30,7 @@ from rflscm.sim.backend import SceneBackend
 from rflscm.sim.noise import MeasurementModel
 from rflscm.sim.paths import write_truth
 
+ASPRS_BUILDING = 6
 CODEBOOKS = {
     "ssb8": SSBCodebook(),
     "csi32": DFTCodebook(),
@@ -38,6 +39,7 @@ CODEBOOKS = {
 }
 """Codebooks of every simulated scenario: round 1 uses ``ssb8``/``csi32``; method (a) switches a cell
 to ``ssb8_b`` (beams turned and tilted, narrower vertically) and ``csi32_b`` (beams one step further down)."""
+_BACKEND_KINDS = {"ProceduralCity": "procedural", "SionnaSceneBackend": "sionna"}
 ROUND1_CODEBOOKS = ("ssb8", "csi32")
 ROUND2_CODEBOOKS = ("ssb8_b", "csi32_b")
 
@@ -57,6 +59,8 @@ class SimulationConfig:
     """Centre of the measured area [m]; default: centre of the scene."""
     site_radius_m: float = 300.0
     """Sites are picked among rooftops within this distance of the area centre [m]."""
+    site_min_roof_quantile: float = 0.5
+    """Sites go on roofs at least this tall among the candidates (0 = any roof, 0.5 = the taller half)."""
     site_placement: Literal["edge", "center"] = "edge"
     """``edge``: move each site from its roof centre towards the area centre, to the roof edge."""
     roof_setback_m: float = 1.5
@@ -80,6 +84,8 @@ class SimulationConfig:
     noise_sigma_db: float = 2.0
     quantization_db: float = 1.0
     rsrp_threshold_dbm: float = -120.0
+    detect_on: Literal["ssb", "any"] = "ssb"
+    """A (cell, grid) pair is measured when one of its SSB beams (``ssb``) or of any beam (``any``) is reported."""
     # --- round 2 (SPEC §5) ---
     round2_change_fraction: float = 1.0 / 3.0
     """Fraction of each carrier's cells changed in round 2."""
@@ -113,6 +119,7 @@ class SimulationConfig:
             (self.grid_size_m > 0 and self.points_per_grid >= 1, "`grid_size_m` > 0 and `points_per_grid` >= 1"),
             (self.max_grids >= 1, "`max_grids` must be >= 1"),
             (0.0 <= self.round2_change_fraction <= 1.0, "`round2_change_fraction` must be in 0…1"),
+            (0.0 <= self.site_min_roof_quantile <= 1.0, "`site_min_roof_quantile` must be in 0…1"),
             (0.0 <= self.round2_codebook_fraction <= 1.0, "`round2_codebook_fraction` must be in 0…1"),
             (bool(self.rotation_azimuth_deg) and bool(self.rotation_tilt_deg), "rotation lists must not be empty"),
             (self.point_cloud_points_per_m2 > 0, "`point_cloud_points_per_m2` must be > 0"),
@@ -143,14 +150,26 @@ def area_center(backend: SceneBackend, config: SimulationConfig) -> np.ndarray:
     return 0.5 * (np.asarray(lo[:2]) + np.asarray(hi[:2]))
 
 
-def choose_sites(backend: SceneBackend, config: SimulationConfig, rng: np.random.Generator) -> np.ndarray:
-    """Antenna positions ``[num_sites, 3]`` [m]: explicit, or rooftops spread by farthest-point sampling."""
+def choose_sites(
+    backend: SceneBackend, config: SimulationConfig, rng: np.random.Generator, cloud: PointCloud | None = None
+) -> np.ndarray:
+    """Antenna positions ``[num_sites, 3]`` [m]: explicit, or rooftops spread by farthest-point sampling.
+
+    Candidates are the backend's rooftops within ``site_radius_m`` of the area centre, on the taller
+    roofs (at least the ``site_min_roof_quantile`` of their heights), as operators choose.  With
+    ``site_placement = "edge"`` a site moves towards the area centre to its roof's edge; its base is then
+    the higher of the candidate's roof and the highest building point of ``cloud`` within 3 m, so that
+    an antenna never ends up inside a taller part of the building; plus ``site_height_above_roof_m``.
+    """
     if config.sites:
         return np.asarray(config.sites, dtype=np.float64)
     centre = area_center(backend, config)
     roofs = np.asarray(backend.rooftops(), dtype=np.float64).reshape(-1, 3)
     dist = np.linalg.norm(roofs[:, :2] - centre, axis=1)
     pool = roofs[dist <= config.site_radius_m]
+    if len(pool) >= config.num_sites:
+        tall = pool[:, 2] >= np.quantile(pool[:, 2], config.site_min_roof_quantile)
+        pool = pool[tall] if tall.sum() >= config.num_sites else pool
     if len(pool) < config.num_sites:
         pool = roofs[np.argsort(dist)[: config.num_sites]]
     if len(pool) < config.num_sites:
@@ -166,8 +185,21 @@ def choose_sites(backend: SceneBackend, config: SimulationConfig, rng: np.random
     sites = pool[chosen].copy()
     if config.site_placement == "edge":
         sites[:, :2] = _towards_roof_edge(backend, sites[:, :2], centre, config.roof_setback_m)
+        if cloud is not None:
+            sites[:, 2] = np.maximum(sites[:, 2], _surface_height(cloud, sites[:, :2], default=sites[:, 2]))
     sites[:, 2] += config.site_height_above_roof_m
     return sites
+
+
+def _surface_height(cloud: PointCloud, xy: np.ndarray, default: np.ndarray, radius_m: float = 3.0) -> np.ndarray:
+    """Highest building point ``[n]`` [m] within ``radius_m`` of each ``xy [n, 2]`` (``default`` where none)."""
+    from scipy.spatial import cKDTree
+
+    building = cloud.xyz[cloud.classification == ASPRS_BUILDING]
+    if len(building) == 0:
+        return np.asarray(default, dtype=np.float64)
+    near = cKDTree(building[:, :2]).query_ball_point(xy, r=radius_m)
+    return np.array([building[idx, 2].max() if idx else d for idx, d in zip(near, default, strict=True)])
 
 
 def _towards_roof_edge(backend: SceneBackend, xy: np.ndarray, centre: np.ndarray, setback_m: float) -> np.ndarray:
@@ -333,13 +365,15 @@ def build_scenario(
         raise ConfigError(f"{out}: folder exists and is not empty; choose another --out or pass --force.")
     rng = np.random.default_rng(config.seed)
     centre = area_center(backend, config)
-    sites = choose_sites(backend, config, rng)
+    scan = backend.sample_point_cloud(config.point_cloud_points_per_m2, config.point_cloud_noise_m, config.seed)
+    scan = PointCloud(*scan)
+    sites = choose_sites(backend, config, rng, scan)
     cells1 = make_cells(sites, config, rng)
     cells2, changes = make_round2(cells1, config, rng)
     grids = make_grids(backend, config, centre)
     rx = receiver_points(backend, grids, config, rng)
     paths, trace_stats = trace_all(backend, sites, rx, grids["grid_id"].to_numpy(), config, progress)
-    cloud = _point_cloud(backend, config, sites, grids)
+    cloud = _crop(scan, config, sites, grids)
 
     meta = ScenarioMeta(
         name=config.name, description=config.description or f"simulated with rflscm ({backend.name})",
@@ -354,7 +388,8 @@ def build_scenario(
     scenario = _normalised(scenario)
     points_per_grid = pd.Series(config.points_per_grid, index=grids["grid_id"].to_numpy())
     noiseless = noiseless_rsrp(scenario, paths, points_per_grid)
-    measurements = measure(noiseless, config.measurement_model, rng)
+    detect_on = None if config.detect_on == "any" else config.detect_on
+    measurements = measure(noiseless, config.measurement_model, rng, detect_on=detect_on)
     floor = None if config.truth_rsrp_margin_db is None else config.rsrp_threshold_dbm - config.truth_rsrp_margin_db
     write_truth(out / "truth", scenario, paths, noiseless, points_per_grid, config.angle_grid, floor)
     scenario = dataclasses.replace(scenario, measurements=measurements)
@@ -381,12 +416,12 @@ def _normalised(scenario: Scenario) -> Scenario:
     return dataclasses.replace(scenario, cells=cells)
 
 
-def _point_cloud(backend: SceneBackend, config: SimulationConfig, sites: np.ndarray, grids: pd.DataFrame) -> PointCloud:
-    xyz, cls = backend.sample_point_cloud(config.point_cloud_points_per_m2, config.point_cloud_noise_m, config.seed)
+def _crop(scan: PointCloud, config: SimulationConfig, sites: np.ndarray, grids: pd.DataFrame) -> PointCloud:
+    """The scan inside the box around sites and grids grown by ``point_cloud_margin_m``."""
     corners = np.vstack([sites[:, :2], grids[["x", "y"]].to_numpy()])
     lo, hi = corners.min(axis=0) - config.point_cloud_margin_m, corners.max(axis=0) + config.point_cloud_margin_m
-    keep = ((xyz[:, :2] >= lo) & (xyz[:, :2] <= hi)).all(axis=1)
-    return PointCloud(xyz[keep], cls[keep])
+    keep = ((scan.xyz[:, :2] >= lo) & (scan.xyz[:, :2] <= hi)).all(axis=1)
+    return PointCloud(scan.xyz[keep], scan.classification[keep])
 
 
 def _provenance(backend, config: SimulationConfig, scene, changes) -> dict[str, Any]:
@@ -395,7 +430,7 @@ def _provenance(backend, config: SimulationConfig, scene, changes) -> dict[str, 
     grid = config.angle_grid
     return {
         "generator": f"rflscm {__version__} simulate",
-        "backend": backend.name,
+        "backend": _BACKEND_KINDS.get(type(backend).__name__, type(backend).__name__),
         "scene": scene or backend.name,
         "seed": config.seed,
         "angle_grid": {"num_el": grid.num_el, "num_az": grid.num_az, "el_min_deg": grid.el_min_deg,

@@ -4,8 +4,9 @@ A UE's report of beam m is r̂ = Q(r + n), n ~ N(0, σ²) in dB (log-normal in
 linear units), Q rounding to the 1 dB report step; beams below the reporting
 threshold r_th are not reported (NaN) and reported values are clipped to the
 TS 38.133 reportable range −156…−31 dBm.  A (cell, grid) pair appears in the
-data only when the UE reports at least one of its beams (it detected the cell);
-then all of its beams are listed, missing ones as NaN.
+data only when the UE detects the cell — by default when at least one of its SSB
+beams is reported, since SSBs are how a UE finds cells; then all of its SSB and
+CSI-RS beams are listed, missing ones as NaN.
 """
 
 from __future__ import annotations
@@ -53,13 +54,20 @@ class MeasurementModel:
         return np.where(reported, np.clip(noisy, RSRP_MIN_DBM, RSRP_MAX_DBM), np.nan)
 
 
-def measure(noiseless: pd.DataFrame, model: MeasurementModel, rng: np.random.Generator) -> pd.DataFrame:
+def measure(
+    noiseless: pd.DataFrame, model: MeasurementModel, rng: np.random.Generator, detect_on: str | None = "ssb"
+) -> pd.DataFrame:
     """Measurements table from the long-form noiseless RSRP (``round``, ``cell_id``, ``grid_id``,
-    ``beam_type``, ``beam_id``, ``rsrp_dbm``): every row gets independent noise; only the rows of
-    (round, cell, grid) pairs with at least one reported beam (of either type) are kept."""
+    ``beam_type``, ``beam_id``, ``rsrp_dbm``).
+
+    Every row gets independent noise.  Only the rows of (round, cell, grid) pairs that the UE detects
+    are kept: pairs with at least one reported beam of type ``detect_on`` (``"ssb"``: a UE finds cells
+    by their SSB, and measures CSI-RS only on cells it found), or of any type with ``None``.
+    """
     reported = model.apply(noiseless["rsrp_dbm"].to_numpy(), rng)
     table = noiseless.assign(rsrp_dbm=reported)
-    detected = table["rsrp_dbm"].notna().groupby(
-        [table["round"], table["cell_id"], table["grid_id"]], sort=False
-    ).transform("any")
+    heard = table["rsrp_dbm"].notna()
+    if detect_on is not None:
+        heard &= table["beam_type"] == detect_on
+    detected = heard.groupby([table["round"], table["cell_id"], table["grid_id"]], sort=False).transform("any")
     return table[detected.to_numpy()].reset_index(drop=True)

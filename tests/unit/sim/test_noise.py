@@ -57,6 +57,16 @@ def test_measure_keeps_pairs_with_a_reported_beam_and_all_their_beams() -> None:
     assert out["rsrp_dbm"].notna().sum() == 2
 
 
+def test_cells_are_detected_by_their_ssb() -> None:
+    rows = [(1, 10, 1, "ssb", 0, -150.0), (1, 10, 1, "csi", 0, -80.0), (1, 10, 2, "ssb", 0, -90.0),
+            (1, 10, 2, "csi", 0, -150.0)]  # fmt: skip
+    noiseless = pd.DataFrame(rows, columns=["round", "cell_id", "grid_id", "beam_type", "beam_id", "rsrp_dbm"])
+    by_ssb = measure(noiseless, MeasurementModel(sigma_db=0.5), np.random.default_rng(0))
+    assert by_ssb["grid_id"].tolist() == [2, 2]  # grid 1: only a CSI-RS beam is strong, the cell is not found
+    by_any = measure(noiseless, MeasurementModel(sigma_db=0.5), np.random.default_rng(0), detect_on=None)
+    assert sorted(by_any["grid_id"].unique()) == [1, 2]
+
+
 def test_invalid_model_is_a_config_error() -> None:
     with pytest.raises(ConfigError, match="reportable range"):
         MeasurementModel(threshold_dbm=0.0)
