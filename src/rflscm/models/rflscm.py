@@ -25,13 +25,13 @@ from rflscm.errors import CheckpointError
 from rflscm.fields import PassiveMedium, TensorVM, resolution_for
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import LSCMModel, read_checkpoint, register_model
-from rflscm.models.hitam import HiTAM, scatter_fine
+from rflscm.models.hitam import HiTAM
 from rflscm.models.radiance import RadianceDecoder, RadianceStage, SceneFrame
 from rflscm.models.rflscm_config import RFLSCMConfig, load_rflscm_config
 from rflscm.models.rflscm_render import RenderMixin
 from rflscm.models.rflscm_scene import (
-    building_targets,
     SceneInfo,
+    building_targets,
     make_frame,
     make_prior,
     prior_from_state,
@@ -209,7 +209,7 @@ class RFLSCM(RenderMixin, LSCMModel):
         f, h = self.config.field, self.config.hitam
         if self.hitam is not None and h.fine_init == "copy_coarse" and step == h.warmup_steps and step > 0:
             self.stages["fine"].load_state_dict(self.stages["coarse"].state_dict())
-            self.stages["fine"].decoder.scale_power(1.0 / self.hitam.beta**2)
+            self._match_fine_to_coarse()
         if step in f.upsample_at:
             level = list(f.upsample_at).index(step) + 1
             lo, hi = torch.tensor(self.scene.frame.box_lo), torch.tensor(self.scene.frame.box_hi)

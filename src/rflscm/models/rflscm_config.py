@@ -78,7 +78,7 @@ class DecoderConfig:
 
     hidden: int = 64
     layers: int = 2
-    inputs: Literal["paper", "offset", "offset+grid"] = "offset"
+    inputs: Literal["paper", "offset", "offset+grid"] = "offset+grid"
     """``paper``: [𝓜(p), PE(ω), PE(p_l), PE(λ)]; ``offset`` replaces PE(p_l) by the direction from the
     sample to the grid, the half-vector between it and −ω (the surface normal of a specular
     reflection), the log-distances from the sample to the grid (also relative to the ray's cone)
@@ -92,7 +92,7 @@ class DecoderConfig:
     """``polar``: (log |R|, arg R), suited to the decades of path gain; ``cartesian``: (Re R, Im R)."""
     spreading_prior: bool = True
     """Multiply R by (λ/λ_ref)·(d_ref/d), d = along-ray distance + sample-to-grid distance."""
-    source_decay: float = 1.0
+    source_decay: float = 2.0
     """Initial γ of a learnable factor (1 + d₂/w)^−γ on |R|, d₂ the sample-to-grid distance and w the radius
     of the ray's cone at the sample (along-ray distance × the bin's angular radius, at least Δr): the
     grid is the source (reciprocity), so a voxel's radiance towards the cell falls as the grid leaves
@@ -180,8 +180,8 @@ class HiTAMConfig:
     mean of the block's columns (x̃⁽¹⁾ = the block's total power); ``representative``: the paper's
     every-β-th bin, direction and column."""
     fine_init: Literal["copy_coarse", "fresh"] = "copy_coarse"
-    """At the end of the warm-up, start the refinement model from the coarse one (power split
-    over the β² children) or from scratch."""
+    """At the end of the warm-up, start the refinement model from the coarse one (rescaled so that its
+    median error on a few training pairs matches the coarse model's) or from scratch."""
 
     def __post_init__(self) -> None:
         if self.beta < 2:

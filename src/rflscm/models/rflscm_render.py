@@ -13,7 +13,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from rflscm.models.hitam import scatter_fine
 from rflscm.models.radiance import Queries, RayBatch
 from rflscm.render import RaySamples, build_ray_samples, chunk_bounds, chunked, gather_samples
 from rflscm.train.losses import lscm_loss, mae_db
@@ -186,19 +185,38 @@ class RenderMixin:
         return out
 
     @torch.no_grad()
-    def _calibrate_level(self, target_db: float, num_pairs: int = 64) -> float:
-        """Rescale every stage's radiance so that the median (prediction − measurement) over the observed beams
-        of a few training pairs is ``target_db``; returns the shift applied [dB]."""
+    def _median_error_db(self, stage: str, num_pairs: int = 64) -> float:
+        """Median (prediction − measurement) [dB] of ``stage``'s APS over the observed beams of a few training pairs."""
         d = self._train.data
         pairs = torch.arange(d.num_pairs, device=self.device)[:: max(1, d.num_pairs // num_pairs)][:num_pairs]
-        cells = d.cell_index[pairs]
-        bins, values = self._output(cells, d.grid_xyz[pairs])
+        cells, xyz = d.cell_index[pairs], d.grid_xyz[pairs]
+        if self.hitam is None:
+            bins, values = self._output(cells, xyz)
+        elif stage == "coarse":
+            bins, values = self._coarse_as_fine(self._coarse_power(cells, xyz))
+        else:
+            bins, valid = self._expand(cells, self._coarse_power(cells, xyz))
+            values = self._fine_power(cells, xyz, bins, valid)
         pred = torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
         observed = d.beam_mask[pairs] & ~torch.isnan(d.rsrp[pairs])
         diff = 10.0 * torch.log10(pred[observed].clamp_min(1e-30) / d.rsrp[pairs][observed])
-        shift = target_db - float(diff.median())
+        return float(diff.median())
+
+    @torch.no_grad()
+    def _calibrate_level(self, target_db: float) -> float:
+        """Rescale every stage's radiance so that the median (prediction − measurement) is ``target_db``;
+        returns the shift applied [dB]."""
+        shift = target_db - self._median_error_db("coarse" if self.hitam is not None else "fine")
         for stage in self.stages.values():
             stage.decoder.scale_power(10.0 ** (shift / 10.0))
+        return shift
+
+    @torch.no_grad()
+    def _match_fine_to_coarse(self) -> float:
+        """Rescale the refinement model so that its median error equals the coarse model's (the hand-over
+        after a copy: fine rays have narrower cones, so β² children do not sum to their block); returns dB."""
+        shift = self._median_error_db("coarse") - self._median_error_db("fine")
+        self.stages["fine"].decoder.scale_power(10.0 ** (shift / 10.0))
         return shift
 
     @torch.no_grad()
