@@ -16,17 +16,7 @@ import torch
 from rflscm.bench import BENCHMARKS, BenchContext, load_all
 from rflscm.bench.harness import bench_size, load_bench_data, restrict_round1, sub_scenario, tiny_size
 
-pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """One intra-op thread: tiny tensors gain nothing from two, and on a busy machine OpenMP's spinning
-    threads make them many times slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_thread")]
 
 
 @pytest.fixture(scope="module")

@@ -22,15 +22,7 @@ NARROW = {
     "train": {"steps": 40, "batch_pairs": 8, "val_pairs": 4, "val_every": 20, "lr": {"networks": 0.01}},
 }
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """One intra-op thread: tiny tensors gain nothing from two, and on a busy machine OpenMP's spinning
-    threads make them many times slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
