@@ -67,6 +67,18 @@ def test_sub_scenario_is_deterministic_and_keeps_whole_sites(scenario_dir: Path)
     assert len(a.point_cloud.xyz) < len(full.point_cloud.xyz)
 
 
+def test_bench_oracle_is_fitted_on_the_sub_scenario(tmp_path: Path, scenario_dir: Path) -> None:
+    from rflscm.sim.truth import load_true_aps
+
+    size = tiny_size()
+    data = load_bench_data(ctx_for(tmp_path, scenario_dir), size)
+    sub = data.scenario
+    assert len(sub.grid_ids()) < len(data.full.grid_ids())
+    assert data.oracle.fingerprint == sub.fingerprint()  # like every other model, not the full scenario's
+    c, g = np.repeat(sub.cell_ids(), len(sub.grid_ids())), np.tile(sub.grid_ids(), len(sub.cell_ids()))
+    torch.testing.assert_close(data.oracle.aps(c, g), load_true_aps(data.full, size.grid()).aps(c, g), rtol=0, atol=0)
+
+
 def test_restrict_round1_keeps_round2(tmp_path: Path, scenario_dir: Path) -> None:
     data = load_bench_data(ctx_for(tmp_path, scenario_dir), tiny_size())
     restricted, grids = restrict_round1(data, 0.25)

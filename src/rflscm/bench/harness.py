@@ -142,7 +142,7 @@ def model_config(model: str, size: BenchSize, extra: dict[str, Any] | None = Non
 # --- the benchmark scenario ---------------------------------------------------------------------------
 @dataclass
 class BenchData:
-    """The full scenario, the benchmark's sub-scenario of it, and the oracle fitted on the full one."""
+    """The full scenario, the benchmark's sub-scenario of it, and the oracle fitted on the sub-scenario."""
 
     full: Any
     scenario: Any
@@ -181,9 +181,8 @@ def load_bench_data(ctx: BenchContext, size: BenchSize) -> BenchData:
     if full.meta.truth is not None:
         from rflscm.sim.truth import OracleModel
 
-        # fitted on the full scenario: truth/ is indexed by the full cell and grid tables
         oracle = OracleModel(size.grid(), ctx.device)
-        oracle.fit(full, progress=False)
+        oracle.fit(sub, progress=False)
     info.update(scenario=str(path), source=source, name=full.meta.name, oracle=oracle is not None)
     return BenchData(full, sub, oracle, size, info)
 

@@ -46,23 +46,26 @@ class TrueAPS:
         self.angle_grid = angle_grid
         self.cell_ids = np.unique(np.asarray(cell_ids, dtype=np.int64))
         self.grid_ids = np.unique(np.asarray(grid_ids, dtype=np.int64))
-        c = np.searchsorted(self.cell_ids, table["cell_id"].to_numpy(np.int64))
-        g = np.searchsorted(self.grid_ids, table["grid_id"].to_numpy(np.int64))
-        key = c.astype(np.int64) * len(self.grid_ids) + g
+        # Match rows to the covered cells and grids by id, and drop the rest: truth/ covers the whole
+        # simulated scenario, a scenario restricted to some cells or grids only a part of it (a row
+        # of an uncovered id must not land on the position of its covered neighbour).
+        c, c_known = _index_of(self.cell_ids, table["cell_id"].to_numpy(np.int64))
+        g, g_known = _index_of(self.grid_ids, table["grid_id"].to_numpy(np.int64))
+        known = c_known & g_known
+        key = c[known] * len(self.grid_ids) + g[known]
         order = np.argsort(key, kind="stable")
         self._keys, self._start, self._count = np.unique(key[order], return_index=True, return_counts=True)
-        self._bins = table["bin"].to_numpy(np.int64)[order]
-        self._power = table["power_lin"].to_numpy(np.float64)[order]
+        self._bins = table["bin"].to_numpy(np.int64)[known][order]
+        self._power = table["power_lin"].to_numpy(np.float64)[known][order]
         if len(self._bins) and self._bins.max() >= angle_grid.num_bins:
             raise DataError(
                 f"true APS bin {int(self._bins.max())} is outside the {angle_grid.num_bins}-bin angle grid."
             )
 
     def _positions(self, ids: np.ndarray, known: np.ndarray, what: str) -> np.ndarray:
-        pos = np.clip(np.searchsorted(known, ids), 0, max(len(known) - 1, 0))
-        bad = (known[pos] != ids) if len(known) else np.ones(len(ids), dtype=bool)
-        if bad.any():
-            missing = ", ".join(str(v) for v in np.unique(ids[bad])[:5])
+        pos, found = _index_of(known, ids)
+        if not found.all():
+            missing = ", ".join(str(v) for v in np.unique(ids[~found])[:5])
             raise UnsupportedError(f"no true APS for {what} {missing} (the simulation did not trace it).")
         return pos
 
@@ -84,6 +87,15 @@ class TrueAPS:
         rows += np.arange(len(rows)) - np.repeat(np.cumsum(counts) - counts, counts)
         out[pair, self._bins[rows]] = self._power[rows]
         return torch.as_tensor(out, dtype=dtype, device=device)
+
+
+def _index_of(known: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions of ``ids`` in the sorted unique array ``known`` and whether each id is there at all
+    (the position of a missing id is meaningless)."""
+    if len(known) == 0:
+        return np.zeros(len(ids), dtype=np.int64), np.zeros(len(ids), dtype=bool)
+    pos = np.minimum(np.searchsorted(known, ids), len(known) - 1).astype(np.int64)
+    return pos, known[pos] == ids
 
 
 def truth_folder(scenario) -> Path:

@@ -62,6 +62,42 @@ def test_unknown_pairs_raise_unsupported(scenario) -> None:
         truth.aps(scenario.cell_ids()[:1], np.array([-5]))
 
 
+def subset(scenario, cell_ids: np.ndarray, grid_ids: np.ndarray):
+    """``scenario`` restricted to some cells and grids, as the bench harness cuts one."""
+    m = scenario.measurements
+    rows = m["cell_id"].isin(cell_ids).to_numpy() & m["grid_id"].isin(grid_ids).to_numpy()
+    return dataclasses.replace(
+        scenario,
+        cells={r: t[t["cell_id"].isin(cell_ids)].reset_index(drop=True) for r, t in scenario.cells.items()},
+        grids=scenario.grids[scenario.grids["grid_id"].isin(grid_ids)].reset_index(drop=True),
+        measurements=m[rows].reset_index(drop=True),
+    )
+
+
+@pytest.mark.parametrize("grid", [None, AngleGrid(num_el=10, num_az=12, el_min_deg=-90.0, el_step_deg=20.0)],
+                         ids=["native", "rebinned"])  # fmt: skip
+def test_oracle_of_a_subset_scenario_matches_the_full_scenario_by_id(scenario, grid, tmp_path: Path) -> None:
+    # every other cell and every third grid: ids left out lie between and around the kept ones, so
+    # truth rows matched by position instead of by id would land on a kept neighbour
+    cells, grids = scenario.cell_ids()[1::2], scenario.grid_ids()[1::3]
+    sub = subset(scenario, cells, grids)
+    assert len(sub.cell_ids()) < len(scenario.cell_ids()) and len(sub.grid_ids()) < len(scenario.grid_ids())
+    c, g = np.repeat(cells, len(grids)), np.tile(grids, len(cells))
+    expected = load_true_aps(scenario, grid).aps(c, g, dtype=torch.float64)
+    assert (expected.sum(1) > 0).sum() >= 10  # enough pairs that some path reaches
+    torch.testing.assert_close(load_true_aps(sub, grid).aps(c, g, dtype=torch.float64), expected, rtol=0, atol=0)
+
+    oracle = OracleModel.build(None, grid or GRID, "cpu")
+    oracle.fit(sub, progress=False)
+    assert oracle.fingerprint == sub.fingerprint()
+    torch.testing.assert_close(oracle.aps(c, g).double(), expected.float().double(), rtol=0, atol=0)
+    loaded = load_model(oracle.save(tmp_path / "sub.ckpt"), sub)
+    torch.testing.assert_close(loaded.aps(c, g), oracle.aps(c, g), rtol=0, atol=0)
+    left_out = np.setdiff1d(scenario.cell_ids(), cells)[:1]
+    with pytest.raises(UnsupportedError, match=f"cell {left_out[0]}"):
+        oracle.aps(left_out, grids[:1])
+
+
 def test_scenario_without_truth_is_a_data_error(scenario) -> None:
     no_truth = dataclasses.replace(scenario, meta=dataclasses.replace(scenario.meta, truth=None))
     with pytest.raises(DataError, match="no truth folder"):
