@@ -12,6 +12,7 @@ import sys
 import typer
 
 from rflscm import __version__
+from rflscm.cli.common import ThreadsOption, set_threads
 from rflscm.errors import RflscmError
 
 app = typer.Typer(
@@ -33,8 +34,10 @@ def _version(value: bool) -> None:
 @app.callback()
 def _root(
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+    threads: int | None = ThreadsOption,
 ) -> None:
     """rflscm: radiance-field channel models from multi-beam RSRP."""
+    set_threads(threads)  # before any command runs
 
 
 def _register_commands() -> None:
@@ -56,9 +59,26 @@ def main() -> None:
         print("Aborted.", file=sys.stderr)
         sys.exit(1)
     except Exception as exc:  # click usage errors carry their own exit code
-        import click
-
-        if isinstance(exc, click.ClickException):
+        if isinstance(exc, _click_exceptions()):
             exc.show()
             sys.exit(exc.exit_code)
         raise
+
+
+def _click_exceptions() -> tuple[type[Exception], ...]:
+    """Click's usage-error base class: typer ≥ 0.2x raises those of the click copy it vendors
+    (``typer._click``), not the ``click`` package's, so both are recognised."""
+    classes: list[type[Exception]] = []
+    try:
+        from typer._click.exceptions import ClickException as Vendored
+
+        classes.append(Vendored)
+    except ImportError:  # a typer that uses the click package
+        pass
+    try:
+        import click
+
+        classes.append(click.ClickException)
+    except ImportError:
+        pass
+    return tuple(classes)
