@@ -57,9 +57,12 @@ class RadianceDecoder(nn.Module):
     """𝒬: [𝓜(p), PE(ω), conditioning on the grid and λ] → complex R (2 outputs).
 
     The first layer is split by what its inputs depend on: the sample (𝓜(p)), the query
-    (ω, λ, and p_l for ``inputs="paper"``) and, for ``inputs="offset"``, the (query, sample)
-    pair (direction and log-distance from the sample to the grid, log-distance along the ray).
-    The sum equals one linear layer over the concatenation, but each part is computed once.
+    (PE(ω), PE(log λ/λ_ref), PE(p_l) for ``paper``/``offset+grid``, 𝓜(p_l) with ``grid_features``)
+    and, for ``offset``/``offset+grid``, the (query, sample) pair: PE of the direction to the grid,
+    of the half-vector between it and −ω, and of three log-distances (to the grid, along the ray,
+    and to the grid relative to the ray's cone radius).  The sum equals one linear layer over the
+    concatenation, but each part is computed once.  Output: (log |R|, arg R) (``polar``) or
+    (Re R, Im R), times the spreading factors of :class:`~rflscm.models.rflscm_config.DecoderConfig`.
     """
 
     def __init__(self, cfg: DecoderConfig, feature_dim: int, frame: SceneFrame, step_m: float) -> None:
@@ -68,6 +71,8 @@ class RadianceDecoder(nn.Module):
         query_width = encoded_dim(3, cfg.dir_freqs) + encoded_dim(1, cfg.wavelength_freqs)
         if cfg.inputs in ("paper", "offset+grid"):
             query_width += encoded_dim(3, cfg.grid_freqs)
+        if cfg.grid_features:
+            query_width += feature_dim
         self.sample_in = nn.Linear(feature_dim, cfg.hidden)
         self.query_in = nn.Linear(query_width, cfg.hidden, bias=False)
         self.pair_in = None
@@ -79,38 +84,48 @@ class RadianceDecoder(nn.Module):
         self.register_buffer("box_hi", torch.tensor(frame.box_hi, dtype=torch.float32))
         self.log_amp0 = cfg.init_radiance_db / 20.0 * math.log(10.0)
 
-    def _query_inputs(self, rays: RayBatch, queries: Queries) -> torch.Tensor:
+    def _query_inputs(self, rays: RayBatch, queries: Queries, grid_features: torch.Tensor | None) -> torch.Tensor:
         cfg = self.cfg
         log_wl = torch.log(rays.wavelength_m / self.frame.reference_wavelength_m)[queries.ray, None]
         parts = [positional_encoding(rays.direction[queries.ray], cfg.dir_freqs), positional_encoding(log_wl, cfg.wavelength_freqs)]
         if cfg.inputs in ("paper", "offset+grid"):
             unit = 2.0 * (queries.grid_xyz - self.box_lo) / (self.box_hi - self.box_lo) - 1.0
             parts.append(positional_encoding(unit, cfg.grid_freqs))
+        if grid_features is not None:
+            parts.append(grid_features)
         return torch.cat(parts, dim=-1)
+
+    def _pair_inputs(self, to_grid: torch.Tensor, dist: torch.Tensor, along: torch.Tensor, miss: torch.Tensor,
+                     direction: torch.Tensor) -> torch.Tensor:  # fmt: skip
+        """Per (query, sample) inputs ``[J, ·]``: PE of the unit vector to the grid, of the half-vector
+        (∥ the surface normal of a specular reflection) and of the scaled log-distances."""
+        cfg = self.cfg
+        scale = math.log1p(self.frame.reference_distance_m / self.step_m)
+        logs = torch.stack((torch.log1p(dist / self.step_m), torch.log1p(along / self.step_m), miss), -1) / scale
+        half = to_grid - direction
+        half = half / half.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        return torch.cat(
+            (positional_encoding(to_grid, cfg.dir_freqs), positional_encoding(half, cfg.dir_freqs), positional_encoding(logs, cfg.pos_freqs)), -1
+        )
 
     def forward(
         self, features: torch.Tensor, points: torch.Tensor, along_m: torch.Tensor,
         rays: RayBatch, queries: Queries, join_query: torch.Tensor, join_sample: torch.Tensor,
+        grid_features: torch.Tensor | None = None,
     ) -> torch.Tensor:  # fmt: skip
         """Complex R ``[J]`` for (query, sample) pairs ``join_query, join_sample [J]``, from per-sample features
-        ``[L, D]``, positions ``[L, 3]`` [m] and along-ray distances ``[L]`` [m]."""
+        ``[L, D]``, positions ``[L, 3]`` [m], along-ray distances ``[L]`` [m] and, with ``grid_features``,
+        𝓜(p_l) per query ``[Qn, D]``."""
         cfg, frame = self.cfg, self.frame
         along = along_m[join_sample]
         offset = queries.grid_xyz[join_query] - points[join_sample]
         dist = offset.norm(dim=-1).clamp_min(1e-3)
         footprint = (along * rays.radius_rad[queries.ray][join_query]).clamp_min(self.step_m)  # cone radius [m]
         miss = torch.log1p(dist / footprint)  # how far the grid lies outside the ray's cone
-        hidden = self.sample_in(features)[join_sample] + self.query_in(self._query_inputs(rays, queries))[join_query]
+        query = self.query_in(self._query_inputs(rays, queries, grid_features))
+        hidden = self.sample_in(features)[join_sample] + query[join_query]
         if self.pair_in is not None:
-            scale = math.log1p(frame.reference_distance_m / self.step_m)
-            logs = torch.stack((torch.log1p(dist / self.step_m) / scale, torch.log1p(along / self.step_m) / scale, miss / scale), -1)
-            to_grid = offset / dist[:, None]
-            half = to_grid - rays.direction[queries.ray][join_query]  # specular reflection: ∥ surface normal
-            half = half / half.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-            pair = torch.cat(
-                (positional_encoding(to_grid, cfg.dir_freqs), positional_encoding(half, cfg.dir_freqs), positional_encoding(logs, cfg.pos_freqs)), -1
-            )
-            hidden = hidden + self.pair_in(pair)
+            hidden = hidden + self.pair_in(self._pair_inputs(offset / dist[:, None], dist, along, miss, rays.direction[queries.ray][join_query]))
         out = self.mlp(torch.relu(hidden))  # [J, 2]
         log_spread = torch.zeros_like(dist)
         if cfg.spreading_prior:  # free-space amplitude ∝ λ / d
@@ -167,7 +182,7 @@ class RadianceStage(nn.Module):
         weight = transmittance(log_delta_tilde, ray_live, cfg.inclusive, cfg.max_log_gain) * phi  # (Π δ̃)·Φ
         join_query, join_sample = join_queries(queries.ray, ray_live, packed.num_rays)
         self.decoder_evals += int(join_query.numel())
-        radiance = self.decoder(
-            self.feature_field(points[live]), points[live], along[live], rays, queries, join_query, join_sample
-        )
+        features = self.feature_field(points[live])
+        grid_features = self.feature_field(queries.grid_xyz) if self.decoder.cfg.grid_features else None
+        radiance = self.decoder(features, points[live], along[live], rays, queries, join_query, join_sample, grid_features)
         return accumulate_power(weight[join_sample] * radiance, join_query, queries.ray.numel())

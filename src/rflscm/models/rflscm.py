@@ -7,6 +7,23 @@ NeRF²-style model overrides (MLP fields instead of VM tensors) to reuse the res
 
 Units: the stages render the APS in the normalised unit x_ref = r_ref / a_ref (see
 :mod:`rflscm.train.data`); :meth:`aps` returns linear path gain.
+
+Decisions where the paper is silent (each switchable in :mod:`~rflscm.models.rflscm_config`):
+
+* media: 3 passive degrees of freedom (loss on a log scale at a reference carrier, excess real
+  index, real μ ≥ 1), each on its own VM factors; FDAM itself is exact, δ^Φ uses the continuous
+  branch of log δ; the cumulative |Π δ̃| is capped at 1 (a passivity guard: single FDAM factors
+  can exceed 1);
+* empty-space skipping from Φ is exact (Φ = 0 samples are inert); a ray's fields are computed
+  once per cell and shared by every grid that looks along it; directions a cell's round-1 beams
+  cannot see (−30 dB) are not rendered for that cell;
+* decoder: the paper's inputs plus the sample-to-grid geometry (direction, half-vector, log
+  distances, distance relative to the ray's cone), polar output (log |R|, arg R) with free-space
+  and bistatic spreading factors, level calibrated to the data at initialisation;
+* attenuation initialised from the classified scan (walls opaque, ground and air transparent);
+* HiTAM: coarse rays through block centres with block-mean columns; the refinement model starts
+  as a copy of the coarse one, rescaled to the coarse model's level;
+* loss in bels by default (paper: linear), L1 relative to each pair's power scale.
 """
 
 from __future__ import annotations

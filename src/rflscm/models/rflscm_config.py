@@ -87,6 +87,8 @@ class DecoderConfig:
     pos_freqs: int = 4
     grid_freqs: int = 6
     """Frequencies of PE(p_l) (p_l scaled to [−1, 1] over the scene box)."""
+    grid_features: bool = True
+    """Also feed 𝓜(p_l), the feature field at the grid: a learned code of the grid's surroundings."""
     wavelength_freqs: int = 1
     output: Literal["polar", "cartesian"] = "polar"
     """``polar``: (log |R|, arg R), suited to the decades of path gain; ``cartesian``: (Re R, Im R)."""
