@@ -3,6 +3,7 @@
 #
 #   bash scripts/make_default_scenario.sh                 # Sionna RT, scene "munich" (the shipped one)
 #   RFLSCM_BACKEND=procedural bash scripts/make_default_scenario.sh   # fallback without the rt extra
+#   RFLSCM_SCENE=etoile RFLSCM_OUT=out/etoile bash scripts/make_default_scenario.sh  # same recipe, another scene
 #
 # Sized like the paper's multi-cell experiment (SPEC §5, §6): 7 rooftop sites × 3 sectors = 21 cells
 # on the primary 3.5 GHz carrier plus 21 co-sited 2.1 GHz cells, 800 grids of 10 m × 10 m with 4
@@ -15,20 +16,21 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 BACKEND="${RFLSCM_BACKEND:-sionna}"
-OUT="src/rflscm/assets/scenarios/default"
+OUT="${RFLSCM_OUT:-src/rflscm/assets/scenarios/default}"
+NAME="$(basename "$OUT")"
 SEED=2024
 CONFIG="$(mktemp --suffix=.yaml)"
 trap 'rm -f "$CONFIG"' EXIT
 
 case "$BACKEND" in
   sionna)
-    SCENE=munich
+    SCENE="${RFLSCM_SCENE:-munich}"
     # 3e5 rays per trace find the same receivers as 1e6 at a third of the time (measured); depth 2 with
     # first-order diffraction reaches the street canyons around the sites.
     OPTIONS="{samples_per_src: 300000, max_depth: 2, diffraction: true}"
     ;;
   procedural)
-    SCENE=city
+    SCENE="${RFLSCM_SCENE:-city}"
     OPTIONS="{size_m: 700, num_buildings: 110, max_reflections: 2}"
     ;;
   *)
@@ -38,9 +40,9 @@ case "$BACKEND" in
 esac
 
 cat > "$CONFIG" <<YAML
-name: default
+name: $NAME
 description: >-
-  Shipped default scenario (scripts/make_default_scenario.sh, backend $BACKEND, scene $SCENE, seed $SEED):
+  Scenario made by (scripts/make_default_scenario.sh, backend $BACKEND, scene $SCENE, seed $SEED):
   7 sites x 3 sectors on 3.5 GHz (primary) and 2.1 GHz, 800 grids of 10 m, SSB 8 + CSI-RS 32 beams, two rounds.
 site_radius_m: 300
 backend_options: $OPTIONS
