@@ -180,6 +180,9 @@ class RadianceStage(nn.Module):
         phi, ray_live = packed.phi[live], ray[live]
         _, log_delta_tilde = modulate(phi, phi, log_delta[live])  # log δ̃ = Φ log δ
         weight = transmittance(log_delta_tilde, ray_live, cfg.inclusive, cfg.max_log_gain) * phi  # (Π δ̃)·Φ
+        if cfg.min_weight > 0:  # early ray termination: samples deep behind walls are not decoded
+            keep = (weight.detach().abs() > cfg.min_weight).nonzero().squeeze(1)
+            live, weight, ray_live = live[keep], weight[keep], ray_live[keep]
         join_query, join_sample = join_queries(queries.ray, ray_live, packed.num_rays)
         self.decoder_evals += int(join_query.numel())
         features = self.feature_field(points[live])

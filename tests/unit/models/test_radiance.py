@@ -53,3 +53,26 @@ def test_inert_samples_change_nothing() -> None:
     full = stage(rays_for(1), gather_samples(everything, torch.tensor([0])), queries)
     sparse = stage(rays_for(1), gather_samples(select_samples(phi), torch.tensor([0])), queries)
     assert torch.allclose(full, sparse, rtol=1e-5) and float(full) > 0
+
+
+def test_early_termination_drops_only_negligible_samples() -> None:
+    """Samples below ``min_weight`` are skipped: the APS changes by less than their possible share."""
+    import dataclasses
+
+    stage = make_stage()
+    with torch.no_grad():  # an opaque scene: most samples lie deep behind the first walls
+        for p in stage.delta_field.parameters():
+            p.mul_(6.0)
+    phi = torch.rand(3, 12, generator=torch.Generator().manual_seed(3))
+    samples = select_samples(phi)
+    rays, queries = rays_for(3), Queries(torch.tensor([0, 1, 2]), torch.tensor([[10.0, 5.0, 1.5], [-20.0, 7.0, 1.5], [3.0, -30.0, 1.5]]))
+    full_cfg = dataclasses.replace(stage.render_cfg, min_weight=0.0)
+    stage.render_cfg = full_cfg
+    evals0 = stage.decoder_evals
+    full = stage(rays, gather_samples(samples, torch.arange(3)), queries)
+    all_evals = stage.decoder_evals - evals0
+    stage.render_cfg = dataclasses.replace(full_cfg, min_weight=1e-5)
+    evals0 = stage.decoder_evals
+    pruned = stage(rays, gather_samples(samples, torch.arange(3)), queries)
+    assert stage.decoder_evals - evals0 < all_evals
+    assert torch.allclose(pruned, full, rtol=1e-3, atol=0.0)
