@@ -68,14 +68,14 @@ def _train(steps: int, batch: int, val_every: int, val_pairs: int = 64) -> dict[
 
 
 def quick_size() -> BenchSize:
-    """2 CPU cores, about five minutes per benchmark: one site (its 6 cells on both carriers), the 150
+    """2 CPU cores, at most fifteen minutes per benchmark: one site (its 6 cells on both carriers), the 150
     measured grids nearest to it, the paper's 91 × 72 angle grid, the models' ``quick`` presets with
-    300 training steps of 32 pairs (HiTAM warm-up 200, ramp 50), validation only at the end; NeRF²
+    900 training steps of 32 pairs (HiTAM warm-up 600, ramp 100), validation only at the end; NeRF²
     at its quick preset's shrunk widths.  Benchmarks with many runs cut the steps further (their
     ``EXTRA``).  Far from converged: quick checks that the machinery runs and shows trends; the
     paper-like numbers need ``full``."""
-    hitam = {"warmup_steps": 200, "ramp_steps": 50}
-    train = _train(300, 32, 300, val_pairs=64)
+    hitam = {"warmup_steps": 600, "ramp_steps": 100}
+    train = _train(900, 32, 900, val_pairs=64)
     return BenchSize(
         name="quick", max_sites=1, max_grids=150, crop_margin_m=20.0, angle_grid=(91, 72, -90.0, 2.0),
         overrides={"rflscm": {"train": train, "hitam": hitam}, "nerf2": {"train": train, "hitam": hitam}, "wnomp": {}},
