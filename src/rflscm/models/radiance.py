@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from rflscm.fields import MLP, PassiveMedium, encoded_dim, fdam_attenuation, modulate, positional_encoding
+from rflscm.fields.surfaces import specularity
 from rflscm.models.rflscm_config import DecoderConfig, RenderConfig
 from rflscm.render import PackedSamples, accumulate_power, join_queries, transmittance
 
@@ -77,7 +78,8 @@ class RadianceDecoder(nn.Module):
         self.query_in = nn.Linear(query_width, cfg.hidden, bias=False)
         self.pair_in = None
         if cfg.inputs in ("offset", "offset+grid"):
-            self.pair_in = nn.Linear(2 * encoded_dim(3, cfg.dir_freqs) + encoded_dim(3, cfg.pos_freqs), cfg.hidden, bias=False)
+            width = 2 * encoded_dim(3, cfg.dir_freqs) + encoded_dim(3, cfg.pos_freqs) + len(cfg.specular_powers)
+            self.pair_in = nn.Linear(width, cfg.hidden, bias=False)
         self.mlp = MLP(cfg.hidden, 2, hidden=cfg.hidden, num_layers=cfg.layers - 1, out_scale=0.1)
         self.source_decay = nn.Parameter(torch.tensor(float(cfg.source_decay))) if cfg.source_decay else None
         self.register_buffer("box_lo", torch.tensor(frame.box_lo, dtype=torch.float32))
@@ -96,26 +98,30 @@ class RadianceDecoder(nn.Module):
         return torch.cat(parts, dim=-1)
 
     def _pair_inputs(self, to_grid: torch.Tensor, dist: torch.Tensor, along: torch.Tensor, miss: torch.Tensor,
-                     direction: torch.Tensor) -> torch.Tensor:  # fmt: skip
+                     direction: torch.Tensor, surface: torch.Tensor | None) -> torch.Tensor:  # fmt: skip
         """Per (query, sample) inputs ``[J, ·]``: PE of the unit vector to the grid, of the half-vector
-        (∥ the surface normal of a specular reflection) and of the scaled log-distances."""
+        (∥ the surface normal of a specular reflection), of the scaled log-distances and, with
+        ``specular_powers``, sⁿ of the specularity s = hᵀ T h given the structure tensors ``surface [J, 6]``
+        (0 without them)."""
         cfg = self.cfg
         scale = math.log1p(self.frame.reference_distance_m / self.step_m)
         logs = torch.stack((torch.log1p(dist / self.step_m), torch.log1p(along / self.step_m), miss), -1) / scale
         half = to_grid - direction
         half = half / half.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-        return torch.cat(
-            (positional_encoding(to_grid, cfg.dir_freqs), positional_encoding(half, cfg.dir_freqs), positional_encoding(logs, cfg.pos_freqs)), -1
-        )
+        parts = [positional_encoding(to_grid, cfg.dir_freqs), positional_encoding(half, cfg.dir_freqs), positional_encoding(logs, cfg.pos_freqs)]
+        if cfg.specular_powers:
+            spec = specularity(surface, half).clamp(0.0, 1.0) if surface is not None else torch.zeros_like(dist)
+            parts.append(torch.stack([spec**p for p in cfg.specular_powers], -1))
+        return torch.cat(parts, -1)
 
     def forward(
         self, features: torch.Tensor, points: torch.Tensor, along_m: torch.Tensor,
         rays: RayBatch, queries: Queries, join_query: torch.Tensor, join_sample: torch.Tensor,
-        grid_features: torch.Tensor | None = None,
+        grid_features: torch.Tensor | None = None, surface: torch.Tensor | None = None,
     ) -> torch.Tensor:  # fmt: skip
         """Complex R ``[J]`` for (query, sample) pairs ``join_query, join_sample [J]``, from per-sample features
-        ``[L, D]``, positions ``[L, 3]`` [m], along-ray distances ``[L]`` [m] and, with ``grid_features``,
-        𝓜(p_l) per query ``[Qn, D]``."""
+        ``[L, D]``, positions ``[L, 3]`` [m], along-ray distances ``[L]`` [m], with ``grid_features``
+        𝓜(p_l) per query ``[Qn, D]`` and with ``surface`` the structure tensors per sample ``[L, 6]``."""
         cfg, frame = self.cfg, self.frame
         along = along_m[join_sample]
         offset = queries.grid_xyz[join_query] - points[join_sample]
@@ -125,7 +131,9 @@ class RadianceDecoder(nn.Module):
         query = self.query_in(self._query_inputs(rays, queries, grid_features))
         hidden = self.sample_in(features)[join_sample] + query[join_query]
         if self.pair_in is not None:
-            hidden = hidden + self.pair_in(self._pair_inputs(offset / dist[:, None], dist, along, miss, rays.direction[queries.ray][join_query]))
+            direction = rays.direction[queries.ray][join_query]
+            pair = self._pair_inputs(offset / dist[:, None], dist, along, miss, direction, None if surface is None else surface[join_sample])
+            hidden = hidden + self.pair_in(pair)
         out = self.mlp(torch.relu(hidden))  # [J, 2]
         log_spread = torch.zeros_like(dist)
         if cfg.spreading_prior:  # free-space amplitude ∝ λ / d
@@ -155,11 +163,13 @@ class RadianceStage(nn.Module):
 
     def __init__(
         self, delta_field: nn.Module, feature_field: nn.Module, medium: PassiveMedium,
-        decoder: RadianceDecoder, render_cfg: RenderConfig,
+        decoder: RadianceDecoder, render_cfg: RenderConfig, surfaces: nn.Module | None = None,
     ) -> None:  # fmt: skip
         super().__init__()
         self.delta_field, self.feature_field, self.decoder = delta_field, feature_field, decoder
         self.medium, self.render_cfg = medium, render_cfg
+        # the scan's surface orientation (shared by the stages and saved by the model, so not a submodule)
+        self.surfaces_fn = surfaces.forward if surfaces is not None else None
         self.decoder_evals = 0
         """Decoder evaluations so far (throughput measurements)."""
 
@@ -187,5 +197,6 @@ class RadianceStage(nn.Module):
         self.decoder_evals += int(join_query.numel())
         features = self.feature_field(points[live])
         grid_features = self.feature_field(queries.grid_xyz) if self.decoder.cfg.grid_features else None
-        radiance = self.decoder(features, points[live], along[live], rays, queries, join_query, join_sample, grid_features)
-        return accumulate_power(weight[join_sample] * radiance, join_query, queries.ray.numel())
+        surface = self.surfaces_fn(points[live]) if self.surfaces_fn is not None and self.decoder.cfg.specular_powers else None
+        radiance = self.decoder(features, points[live], along[live], rays, queries, join_query, join_sample, grid_features, surface)
+        return accumulate_power(weight[join_sample] * radiance, join_query, queries.ray.numel(), cfg.coherent)

@@ -51,9 +51,12 @@ from rflscm.models.rflscm_scene import (
     building_targets,
     make_frame,
     make_prior,
+    make_surfaces,
     prior_from_state,
     prior_state,
     scene_box,
+    surfaces_from_state,
+    surfaces_state,
     visible_bins,
 )
 from rflscm.train.data import build_pair_data, reference_power, stacked_sensing
@@ -75,6 +78,8 @@ class RFLSCM(RenderMixin, LSCMModel):
         self.hitam = HiTAM(angle_grid, h.beta, h.top_k, h.coarse_bins, h.warmup_steps, h.ramp_steps) if h.enabled else None
         self.scene: SceneInfo | None = None
         self.prior: nn.Module | None = None
+        self.surfaces: nn.Module | None = None
+        """The scan's surface orientation (decoder's specular cue), or None."""
         self.stages = nn.ModuleDict()
         self.step = 0
         """Training steps done."""
@@ -114,7 +119,7 @@ class RFLSCM(RenderMixin, LSCMModel):
         def stage() -> RadianceStage:
             delta, features = self.build_fields(frame)
             decoder = RadianceDecoder(self.config.decoder, self.config.field.feature_dim, frame, self.config.render.step_m)
-            return RadianceStage(delta, features, self.medium(frame), decoder, self.config.render)
+            return RadianceStage(delta, features, self.medium(frame), decoder, self.config.render, self.surfaces)
 
         names = ("coarse", "fine") if self.hitam is not None else ("fine",)
         self.stages = nn.ModuleDict({n: stage() for n in names}).to(self.device)
@@ -153,6 +158,8 @@ class RFLSCM(RenderMixin, LSCMModel):
         )  # fmt: skip
         prior = make_prior(cfg, scenario, lo, hi)
         self.prior = prior.to(self.device) if prior is not None else None
+        surfaces = make_surfaces(cfg, scenario, lo, hi, seed=cfg.train.seed)
+        self.surfaces = surfaces.to(self.device) if surfaces is not None else None
         self._build_stages(self.scene.frame)
         targets = building_targets(cfg, scenario, prior, seed=cfg.train.seed) if prior is not None else None
         if targets is not None:
@@ -249,6 +256,7 @@ class RFLSCM(RenderMixin, LSCMModel):
             "angle_grid": [g.num_el, g.num_az, g.el_min_deg, g.el_step_deg],
             "scene": self.scene.to_dict() if self.scene is not None else None,
             "prior": prior_state(self.prior),
+            "surfaces": surfaces_state(self.surfaces),
             "stages": {k: v.detach().cpu().clone() for k, v in self.stages.state_dict().items()},
             "step": self.step,
             "train_state": self.train_state,
@@ -263,6 +271,8 @@ class RFLSCM(RenderMixin, LSCMModel):
         model.scene = SceneInfo.from_dict(state["scene"])
         prior = prior_from_state(state["prior"])
         model.prior = prior.to(model.device) if prior is not None else None
+        surfaces = surfaces_from_state(state.get("surfaces"))
+        model.surfaces = surfaces.to(model.device) if surfaces is not None else None
         model._build_stages(model.scene.frame)
         model._load_stage_weights(state["stages"])
         model.step, model.train_state = int(state["step"]), state.get("train_state")
@@ -274,7 +284,13 @@ class RFLSCM(RenderMixin, LSCMModel):
                 res = tuple(int(weights[f"{name}.lines.{a}"].shape[2]) for a in range(3))
                 if res != module.resolution:
                     module.upsample(res)
-        self.stages.load_state_dict(weights)
+        try:
+            self.stages.load_state_dict(weights)
+        except (RuntimeError, KeyError) as exc:  # a checkpoint of an older layout of the model
+            first = str(exc).strip().splitlines()[-1].strip()
+            raise CheckpointError(
+                f"the checkpoint's weights do not fit this version of {self.name!r} ({first}); retrain it with this version."
+            ) from None
         self.stages.to(self.device)
         self.forget_aps()
 

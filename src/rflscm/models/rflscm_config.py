@@ -89,6 +89,13 @@ class DecoderConfig:
     """Frequencies of PE(p_l) (p_l scaled to [−1, 1] over the scene box)."""
     grid_features: bool = True
     """Also feed 𝓜(p_l), the feature field at the grid: a learned code of the grid's surroundings."""
+    specular_powers: tuple[int, ...] = (1, 4, 16, 64)
+    """Powers sⁿ of the specularity s = hᵀ T h fed to the decoder (offset inputs only), h the half-vector
+    and T the point cloud's surface orientation at the sample (:mod:`rflscm.fields.surfaces`): s → 1
+    where the sample's surface would mirror the ray onto the grid; high powers give narrow lobes.
+    Empty: no specular cue (the paper's decoder has none)."""
+    specular_voxel_m: float = 4.0
+    """Spacing of the surface-orientation grid [m]."""
     wavelength_freqs: int = 1
     output: Literal["polar", "cartesian"] = "polar"
     """``polar``: (log |R|, arg R), suited to the decades of path gain; ``cartesian``: (Re R, Im R)."""
@@ -111,6 +118,9 @@ class DecoderConfig:
             raise ConfigError(f"`model.decoder` needs hidden >= 1 and layers >= 1 (got {self.hidden}, {self.layers}).")
         for name in ("dir_freqs", "pos_freqs", "grid_freqs", "wavelength_freqs"):
             _positive(f"model.decoder.{name}", getattr(self, name), allow_zero=True)
+        _positive("model.decoder.specular_voxel_m", self.specular_voxel_m)
+        if any(p < 1 for p in self.specular_powers):
+            raise ConfigError(f"`model.decoder.specular_powers` must be positive integers (got {list(self.specular_powers)}).")
 
 
 @dataclass(frozen=True)
@@ -147,6 +157,8 @@ class RenderConfig:
     """Δr, the sample spacing and FDAM voxel thickness d [m]."""
     num_samples: int | None = None
     """Q; default: enough to reach the farthest corner of the scene box from every cell."""
+    coherent: bool = True
+    """x̃ = |Σ_q (Π δ̃) R̃|² (paper) or Σ_q |(Π δ̃) R̃|² (scatterers along a ray add in power)."""
     inclusive: bool = True
     """Π_{q̃≤q} (paper) or Π_{q̃<q}."""
     max_log_gain: float | None = 0.0

@@ -15,6 +15,7 @@ import torch
 from rflscm.errors import ConfigError
 from rflscm.models.base import UnsupportedError
 from rflscm.fields import PointPrior, density_grid
+from rflscm.fields.surfaces import SurfaceOrientation, structure_grid
 from rflscm.models.radiance import SceneFrame
 from rflscm.models.rflscm_config import RFLSCMConfig
 from rflscm.render import num_samples_for
@@ -129,6 +130,32 @@ def make_prior(cfg: RFLSCMConfig, scenario: Any, lo: np.ndarray, hi: np.ndarray)
         threshold = 0.5 * float(np.median(occupied)) if occupied.size else 1.0
     beta = cfg.prior.beta if cfg.prior.beta is not None else 0.1 / max(threshold, 1e-9)
     return PointPrior(torch.from_numpy(density), torch.from_numpy(grid_lo), torch.from_numpy(grid_hi), threshold, beta)
+
+
+def make_surfaces(cfg: Any, scenario: Any, lo: np.ndarray, hi: np.ndarray, seed: int = 0) -> SurfaceOrientation | None:
+    """The scan's surface orientation for the decoder's specular cue; ``None`` when the decoder takes none
+    (``decoder.specular_powers`` empty) or the scenario has no point cloud (the cue is then 0)."""
+    cloud = scenario.point_cloud
+    if not cfg.decoder.specular_powers or cloud is None or len(cloud.xyz) < 3:
+        return None
+    step = cfg.decoder.specular_voxel_m
+    lo = np.asarray(lo, np.float64)
+    shape = tuple(int(n) for n in np.maximum(np.ceil((np.asarray(hi, np.float64) - lo) / step).astype(int) + 1, 2))
+    grid_hi = lo + (np.asarray(shape) - 1) * step
+    grid = structure_grid(cloud.xyz, lo, grid_hi, shape, seed=seed)
+    return SurfaceOrientation(torch.from_numpy(grid), torch.from_numpy(lo), torch.from_numpy(grid_hi))
+
+
+def surfaces_state(surfaces: SurfaceOrientation | None) -> dict[str, Any] | None:
+    if surfaces is None:
+        return None
+    return {"grid": torch.from_numpy(surfaces.grid_numpy()).half(), "box_lo": surfaces.box_lo.cpu().clone(), "box_hi": surfaces.box_hi.cpu().clone()}
+
+
+def surfaces_from_state(state: dict[str, Any] | None) -> SurfaceOrientation | None:
+    if state is None:
+        return None
+    return SurfaceOrientation(state["grid"].float(), state["box_lo"], state["box_hi"])
 
 
 def building_targets(cfg: RFLSCMConfig, scenario: Any, prior: PointPrior, max_points: int = 30_000,

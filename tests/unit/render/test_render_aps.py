@@ -92,3 +92,12 @@ def test_chunk_bounds_respect_budget_and_cover_everything() -> None:
         assert costs[a:b].sum() <= 7 or b - a == 1
     out = chunked(lambda a, b: costs[a:b] * 2, bounds)
     assert torch.equal(out, costs * 2)
+
+
+def test_coherent_sum_interferes_and_incoherent_sum_adds_powers() -> None:
+    from rflscm.render import accumulate_power
+
+    contrib = torch.tensor([1.0 + 0j, -1.0 + 0j, 0.5j, 2.0 + 0j], dtype=torch.complex64)
+    target = torch.tensor([0, 0, 1, 1])
+    assert torch.allclose(accumulate_power(contrib, target, 2), torch.tensor([0.0, 4.25]))
+    assert torch.allclose(accumulate_power(contrib, target, 2, coherent=False), torch.tensor([2.0, 4.25]))
