@@ -9,7 +9,7 @@ samples per second, see :func:`~rflscm.bench.harness.render_throughput`) and the
 decoder evaluations per second.
 
 Sizes (:mod:`rflscm.bench.harness`): ``quick`` = one site (6 cells, 2 carriers), 150 grids, the
-paper's 91 × 72 angle grid, 900 steps of 32 pairs per field model (NeRF² at its quick preset's
+paper's 91 × 72 angle grid, 1500 steps of 32 pairs per field model (NeRF² at its quick preset's
 shrunk widths), on 2 CPU cores; ``full`` = the whole scenario and the models' ``full`` presets, for
 a GPU.  Seeds: each field model is trained once per seed; MAEs are averaged (WNOMP: first seed).
 """

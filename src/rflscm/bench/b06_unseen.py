@@ -12,7 +12,7 @@ RF-LSCM, NeRF²-LSCM and WNOMP train on the rest.  Reported per model:
   full 2000) — the recovery WNOMP is built for.
 
 Sizes: ``quick`` = the B1 quick scenario and models (one site, 150 grids → 30 held out, 91 × 72
-angles, 900 steps of 32 pairs) on 2 CPU cores; ``full`` = the whole scenario and ``full`` presets.
+angles, 1500 steps of 32 pairs) on 2 CPU cores; ``full`` = the whole scenario and ``full`` presets.
 """
 
 from __future__ import annotations

@@ -70,12 +70,12 @@ def _train(steps: int, batch: int, val_every: int, val_pairs: int = 64) -> dict[
 def quick_size() -> BenchSize:
     """2 CPU cores, at most fifteen minutes per benchmark: one site (its 6 cells on both carriers), the 150
     measured grids nearest to it, the paper's 91 × 72 angle grid, the models' ``quick`` presets with
-    900 training steps of 32 pairs (HiTAM warm-up 600, ramp 100), validation only at the end; NeRF²
+    1500 training steps of 32 pairs (HiTAM warm-up 600, ramp 150), validation only at the end; NeRF²
     at its quick preset's shrunk widths.  Benchmarks with many runs cut the steps further (their
     ``EXTRA``).  Far from converged: quick checks that the machinery runs and shows trends; the
     paper-like numbers need ``full``."""
-    hitam = {"warmup_steps": 600, "ramp_steps": 100}
-    train = _train(900, 32, 900, val_pairs=64)
+    hitam = {"warmup_steps": 600, "ramp_steps": 150}
+    train = _train(1500, 32, 1500, val_pairs=64)
     return BenchSize(
         name="quick", max_sites=1, max_grids=150, crop_margin_m=20.0, angle_grid=(91, 72, -90.0, 2.0),
         overrides={"rflscm": {"train": train, "hitam": hitam}, "nerf2": {"train": train, "hitam": hitam}, "wnomp": {}},
