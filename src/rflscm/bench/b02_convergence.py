@@ -13,9 +13,9 @@ The paper plots the MAE on the other measurement round; here the final round-2 (
 MAE of every run is reported beside the curves.
 
 Sizes: ``quick`` = the B1 quick scenario and models (one site, 150 grids, 91 × 72 angles, 32 pairs
-per step) with a 150-step schedule (learning-rate decay; HiTAM warm-up 80, ramp 20, so that the
-HiTAM variants reach the refinement stage within the budget), 40 s of training per variant and
-seed (validation every 10 steps on 64 pairs), 2 CPU cores; ``full`` = the whole scenario and
+per step) with a 400-step schedule (learning-rate decay; HiTAM warm-up 150, ramp 40, so that the
+HiTAM variants reach the refinement stage within the budget), 90 s of training per variant and
+seed (validation every 20 steps on 64 pairs), 2 CPU cores; ``full`` = the whole scenario and
 ``full`` presets, each variant trained for its full step count.
 """
 
@@ -39,8 +39,8 @@ VARIANTS = {
 SETTINGS: dict[str, dict[str, Any]] = {  # per size: time budget per run [s] (None: the full step count),
     # validation every N steps, and overrides on top of the size's (steps: the learning-rate schedule's length)
     "tiny": {"time_budget_s": None, "val_every": 2, "extra": {}},
-    "quick": {"time_budget_s": 40.0, "val_every": 10,
-              "extra": {"train": {"steps": 150}, "hitam": {"warmup_steps": 80, "ramp_steps": 20}}},
+    "quick": {"time_budget_s": 90.0, "val_every": 20,
+              "extra": {"train": {"steps": 400}, "hitam": {"warmup_steps": 150, "ramp_steps": 40}}},
     "full": {"time_budget_s": None, "val_every": 100, "extra": {}},
 }  # fmt: skip
 TARGET_MARGIN_DB = 1.0

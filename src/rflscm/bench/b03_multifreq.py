@@ -8,7 +8,7 @@ training data (each test pair gets its cell's mean training RSRP) and the oracle
 3.5 GHz data, ``gain_db[p] = MAE(without) − MAE(with)`` (positive: the other band helps), also in %.
 
 Sizes: ``quick`` = the B1 quick scenario (one site: 3 cells per carrier, 150 grids, so p = 3 % is
-4 grids), RF-LSCM with 80 steps of 32 pairs (HiTAM warm-up 50, ramp 15), 2 CPU cores;
+4 grids), RF-LSCM with 200 steps of 32 pairs (HiTAM warm-up 80, ramp 20), 2 CPU cores;
 ``full`` = the whole scenario and the ``full`` preset.
 """
 
@@ -27,7 +27,7 @@ PERCENTS = {"tiny": (5.0, 30.0), "quick": (3.0, 5.0, 10.0, 20.0, 30.0), "full": 
 ARMS = {"with_other_band": True, "without_other_band": False}
 EXTRA = {  # size → RF-LSCM overrides on top of the size's
     "tiny": {},
-    "quick": {"train": {"steps": 80}, "hitam": {"warmup_steps": 50, "ramp_steps": 15}},
+    "quick": {"train": {"steps": 200}, "hitam": {"warmup_steps": 80, "ramp_steps": 20}},
     "full": {},
 }
 

@@ -8,8 +8,8 @@ changed cells), the MAE on the unseen grids, the oracle, training time; plots: t
 attenuation maps (paper Fig. "deltahanghzou"): the largest per-voxel loss Φ·loss_dB at the
 reference carrier over height, top-down, with and without the prior.
 
-Sizes: ``quick`` = the B1 quick scenario (one site, 150 grids → 15 training grids), 60 steps of 8
-pairs (HiTAM warm-up 40, ramp 10): without the prior every one of the Q samples of a ray is
+Sizes: ``quick`` = the B1 quick scenario (one site, 150 grids → 15 training grids), 200 steps of 8
+pairs (HiTAM warm-up 80, ramp 20): without the prior every one of the Q samples of a ray is
 rendered (~10× the cost of a step and of the evaluation), 2 CPU cores; ``full`` = the whole
 scenario and the ``full`` preset.
 """
@@ -37,7 +37,7 @@ TRAIN_FRACTION = 0.1
 VARIANTS = {"prior_on": {}, "prior_off": {"prior": {"enabled": False}}}
 EXTRA = {
     "tiny": {},
-    "quick": {"train": {"steps": 60, "batch_pairs": 8}, "hitam": {"warmup_steps": 40, "ramp_steps": 10}},
+    "quick": {"train": {"steps": 200, "batch_pairs": 8}, "hitam": {"warmup_steps": 80, "ramp_steps": 20}},
     "full": {},
 }
 

@@ -8,7 +8,7 @@ and changed cells), the final validation MAE on held-aside round-1 beams, and th
 penalises; lower is better), next to the oracle's.
 
 Sizes: ``quick`` = the B1 quick scenario and RF-LSCM settings (one site, 150 grids, 91 × 72
-angles, 32 pairs per step) with 150 steps (HiTAM warm-up 100, ramp 25) on 2 CPU cores; ``full`` =
+angles, 32 pairs per step) with 400 steps (HiTAM warm-up 160, ramp 40) on 2 CPU cores; ``full`` =
 the whole scenario and the ``full`` preset.
 """
 
@@ -25,7 +25,7 @@ from rflscm.eval import AdjustProtocol
 
 EXTRA = {  # size → RF-LSCM overrides on top of the size's
     "tiny": {},
-    "quick": {"train": {"steps": 150}, "hitam": {"warmup_steps": 100, "ramp_steps": 25}},
+    "quick": {"train": {"steps": 400}, "hitam": {"warmup_steps": 160, "ramp_steps": 40}},
     "full": {},
 }
 ALPHAS = {"tiny": (0.0, 0.5), "quick": (0.0, 0.1, 0.5, 1.0, 2.0), "full": (0.0, 0.1, 0.5, 1.0, 2.0)}
