@@ -159,7 +159,8 @@ class Trainer:
             metrics = {"step": float(self.step), **losses, "val_mae_db": self.last_val_mae, "time_s": self.elapsed_s}
             if checkpoint_path is not None and (self.step % cfg.checkpoint_every == 0 or self.step == cfg.steps):
                 self.save(checkpoint_path)
-            bar.set_postfix(loss=f"{losses['total']:.4g}", val_mae=f"{self.last_val_mae:.2f} dB", refresh=False)
+            val = f"{self.last_val_mae:.2f} dB" if math.isfinite(self.last_val_mae) else "pending"
+            bar.set_postfix(loss=f"{losses['total']:.4g}", val_mae=val, refresh=False)
             bar.update(1)
             if callback is not None:
                 callback(metrics)
