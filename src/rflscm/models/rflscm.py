@@ -235,6 +235,7 @@ class RFLSCM(RenderMixin, LSCMModel):
             self.stages["fine"].load_state_dict(self.stages["coarse"].state_dict())
             self._match_fine_to_coarse()
         if step in f.upsample_at:
+            self._cache.pop("selection", None)
             level = list(f.upsample_at).index(step) + 1
             lo, hi = torch.tensor(self.scene.frame.box_lo), torch.tensor(self.scene.frame.box_hi)
             res = resolution_for(lo, hi, self._voxel_m(level), f.max_resolution)
@@ -293,6 +294,7 @@ class RFLSCM(RenderMixin, LSCMModel):
             ) from None
         self.stages.to(self.device)
         self.forget_aps()
+        self._cache.pop("selection", None)
 
 
 class _TrainContext:

@@ -168,21 +168,42 @@ class RenderMixin:
         if self.hitam is None:
             return self._loss(self._train.a_norm[cells], self._full_power(cells, xyz), pairs)
         alpha = self.hitam.alpha(step)
-        with torch.set_grad_enabled(alpha < 1.0 and torch.is_grad_enabled()):
-            coarse = self._coarse_power(cells, xyz)
         out: dict[str, Any] = {"alpha": alpha}
         total = 0.0
         if alpha < 1.0:
+            coarse = self._coarse_power(cells, xyz)
             l1 = self._loss(self._train.a_coarse[cells], coarse, pairs)
             total = total + (1.0 - alpha) * l1["total"]
             out.update({"coarse": l1["total"], **{k: v for k, v in l1.items() if k != "total"}})
-        if alpha > 0.0:
             bins, valid = self._expand(cells, coarse.detach())
+        else:
+            bins, valid = self._frozen_selection(pairs)
+        if alpha > 0.0:
             l2 = self._loss(self._columns(cells, bins, valid), self._fine_power(cells, xyz, bins, valid), pairs)
             total = total + alpha * l2["total"]
             out.update({"fine": l2["total"], **{k: v for k, v in l2.items() if k != "total"}})
         out["total"] = total
         return out
+
+    @torch.no_grad()
+    def _frozen_selection(self, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """HiTAM's Ω′ of training ``pairs [B]`` once α = 1: the coarse model no longer trains, so each pair's
+        selection is rendered once and remembered (until the weights are replaced, see :meth:`forget_aps`)."""
+        d = self._train.data
+        memo = self._cache.get("selection")
+        if memo is None:
+            width = self.hitam.top_k * self.hitam.beta**2
+            memo = (torch.zeros(d.num_pairs, width, dtype=torch.long, device=self.device),
+                    torch.zeros(d.num_pairs, width, dtype=torch.bool, device=self.device),
+                    torch.zeros(d.num_pairs, dtype=torch.bool, device=self.device))  # fmt: skip
+            self._cache["selection"] = memo
+        bins, valid, known = memo
+        todo = pairs[~known[pairs]].unique()
+        if todo.numel():
+            cells = d.cell_index[todo]
+            bins[todo], valid[todo] = self._expand(cells, self._coarse_power(cells, d.grid_xyz[todo]))
+            known[todo] = True
+        return bins[pairs], valid[pairs]
 
     @torch.no_grad()
     def _median_error_db(self, stage: str, num_pairs: int = 64) -> float:

@@ -159,3 +159,19 @@ def test_prior_needs_a_point_cloud(scenario) -> None:
     bare = dataclasses.replace(scenario, point_cloud=None)
     with pytest.raises(ConfigError, match="point cloud"):
         RFLSCM.build(tiny_config(prior={"enabled": True}), GRID).fit(bare, progress=False)
+
+
+def test_coarse_model_is_frozen_once_alpha_is_one_and_its_selection_is_remembered(scenario) -> None:
+    model = RFLSCM.build(tiny_config(train={"steps": 9}), GRID)
+    snapshots = []
+    model.fit(scenario, progress=False,
+              callback=lambda m: snapshots.append([p.detach().clone() for p in model.stages["coarse"].parameters()]))  # fmt: skip
+    after_ramp = snapshots[6:]  # α = 1 from step 6 (warm-up 4, ramp 2)
+    assert all(torch.equal(a, b) for snap in after_ramp[1:] for a, b in zip(after_ramp[0], snap))
+    assert "selection" in model._cache
+    d = model._train.data
+    pairs = torch.arange(d.num_pairs)
+    remembered = model._frozen_selection(pairs)
+    fresh = model._expand(d.cell_index, model._coarse_power(d.cell_index, d.grid_xyz))
+    assert torch.equal(remembered[1], fresh[1])
+    assert torch.equal(remembered[0][fresh[1]], fresh[0][fresh[1]])
