@@ -10,9 +10,9 @@ from __future__ import annotations
 import os
 import sys
 
-# OpenMP threads that spin while idle make torch's many small CPU ops up to 20x slower as soon as
-# another process competes for the cores (measured on 2 cores: 48 s vs 1.8 s); passive waiting
-# keeps the multi-thread speed-up on an idle machine.  Read when torch loads, hence before imports.
+# OpenMP threads that spin while idle make torch's many small CPU ops several times slower as soon as
+# another process competes for the cores (scripts/omp_contention.py; 2 cores, 3 busy processes:
+# 13.6 s vs 2.6 s) and cost nothing on an idle machine.  Read when torch loads, hence before imports.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import typer

@@ -52,7 +52,7 @@ def test_inert_samples_change_nothing() -> None:
     queries = Queries(torch.tensor([0]), torch.tensor([[10.0, 5.0, 1.5]]))
     full = stage(rays_for(1), gather_samples(everything, torch.tensor([0])), queries)
     sparse = stage(rays_for(1), gather_samples(select_samples(phi), torch.tensor([0])), queries)
-    assert torch.allclose(full, sparse, rtol=1e-5) and float(full) > 0
+    assert torch.allclose(full, sparse, rtol=1e-5) and float(full.detach()) > 0
 
 
 def test_early_termination_drops_only_negligible_samples() -> None:
