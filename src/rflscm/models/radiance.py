@@ -197,6 +197,7 @@ class RadianceStage(nn.Module):
         self.decoder_evals += int(join_query.numel())
         features = self.feature_field(points[live])
         grid_features = self.feature_field(queries.grid_xyz) if self.decoder.cfg.grid_features else None
-        surface = self.surfaces_fn(points[live]) if self.surfaces_fn is not None and self.decoder.cfg.specular_powers else None
+        wants_surface = self.surfaces_fn is not None and self.decoder.pair_in is not None and self.decoder.cfg.specular_powers
+        surface = self.surfaces_fn(points[live]) if wants_surface else None
         radiance = self.decoder(features, points[live], along[live], rays, queries, join_query, join_sample, grid_features, surface)
         return accumulate_power(weight[join_sample] * radiance, join_query, queries.ray.numel(), cfg.coherent)
