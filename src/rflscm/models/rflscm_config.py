@@ -171,7 +171,7 @@ class RenderConfig:
     antenna at −30 dB); null renders the whole sphere."""
     min_weight: float = 1e-5
     """Samples whose |Π δ̃|·Φ is below this are not decoded (NeRF's early ray termination; 1e-5 is
-    −100 dB of power: measured on the default scenario, ~45 % of the samples a trained model would
+    −100 dB of power: in a one-off profile on the default scenario, ~45 % of the samples a trained model would
     decode lie below it); 0 decodes every live sample."""
     chunk_samples: int = 262_144
     """Decoder evaluations per chunk at inference (memory bound)."""
