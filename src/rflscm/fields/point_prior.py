@@ -18,6 +18,14 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 
+def grid_span(box_lo: np.ndarray, box_hi: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
+    """``(lo, hi, shape)`` of the regular grid with spacing ``voxel_m`` that starts at ``box_lo`` and covers
+    ``box_hi`` (at least 2 points per axis): point (i, j, k) sits at ``lo + (i, j, k)·voxel_m``."""
+    lo = np.asarray(box_lo, np.float64)
+    shape = np.maximum(np.ceil((np.asarray(box_hi, np.float64) - lo) / voxel_m).astype(int) + 1, 2)
+    return lo, lo + (shape - 1) * voxel_m, tuple(int(n) for n in shape)
+
+
 def density_grid(
     points: np.ndarray, box_lo: np.ndarray, box_hi: np.ndarray, voxel_m: float, radius_m: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -27,10 +35,8 @@ def density_grid(
     ``lo + (i, j, k)·voxel_m`` and ``hi = lo + (shape − 1)·voxel_m`` covers the box.  Only grid points
     near an occupied voxel are queried (the rest are 0 by construction).
     """
-    lo = np.asarray(box_lo, np.float64)
-    shape = np.maximum(np.ceil((np.asarray(box_hi, np.float64) - lo) / voxel_m).astype(int) + 1, 2)
-    hi = lo + (shape - 1) * voxel_m
-    density = np.zeros(tuple(shape), np.float32)
+    lo, hi, shape = grid_span(box_lo, box_hi, voxel_m)
+    density = np.zeros(shape, np.float32)
     pts = np.asarray(points, np.float64)
     if len(pts) == 0:
         return density, lo, hi

@@ -15,6 +15,7 @@ import torch
 from rflscm.errors import ConfigError
 from rflscm.models.base import UnsupportedError
 from rflscm.fields import PointPrior, density_grid
+from rflscm.fields.point_prior import grid_span
 from rflscm.fields.surfaces import SurfaceOrientation, structure_grid
 from rflscm.models.radiance import SceneFrame
 from rflscm.models.rflscm_config import RFLSCMConfig
@@ -138,10 +139,7 @@ def make_surfaces(cfg: Any, scenario: Any, lo: np.ndarray, hi: np.ndarray, seed:
     cloud = scenario.point_cloud
     if not cfg.decoder.specular_powers or cloud is None or len(cloud.xyz) < 3:
         return None
-    step = cfg.decoder.specular_voxel_m
-    lo = np.asarray(lo, np.float64)
-    shape = tuple(int(n) for n in np.maximum(np.ceil((np.asarray(hi, np.float64) - lo) / step).astype(int) + 1, 2))
-    grid_hi = lo + (np.asarray(shape) - 1) * step
+    lo, grid_hi, shape = grid_span(lo, hi, cfg.decoder.specular_voxel_m)
     grid = structure_grid(cloud.xyz, lo, grid_hi, shape, seed=seed)
     return SurfaceOrientation(torch.from_numpy(grid), torch.from_numpy(lo), torch.from_numpy(grid_hi))
 
