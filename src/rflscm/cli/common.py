@@ -59,3 +59,19 @@ def set_threads(threads: int | None) -> int | None:
         raise ConfigError(f"{source} must be at least 1 CPU thread (got {threads}).")
     torch.set_num_threads(threads)
     return threads
+
+
+FEW_PASSES = 4.0
+"""Below this many passes over the training pairs a radiance-field model is far from trained (BENCHMARKS.md)."""
+
+
+def budget_note(summary: dict[str, float]) -> str | None:
+    """A warning when a training run showed the model each training pair fewer than ``FEW_PASSES`` times."""
+    passes = summary.get("passes")
+    if passes is None or passes >= FEW_PASSES:
+        return None
+    return (
+        f"[yellow]note:[/yellow] the run showed the model each training pair only {passes:.1f} times on average; "
+        f"expect it to underfit. Give it more steps (`train.steps` in a YAML config, `--config FILE.yaml`) or "
+        f"train `--config full` on a GPU."
+    )

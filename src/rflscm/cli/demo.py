@@ -11,7 +11,7 @@ from rich.console import Console
 from rich.table import Table
 
 from rflscm.cli import app
-from rflscm.cli.common import DeviceOption, SeedOption, resolve_device, seed_everything
+from rflscm.cli.common import DeviceOption, SeedOption, budget_note, resolve_device, seed_everything
 
 ROWS = [
     ("SSB MAE, all cells [dB]", ("ssb", "all")),
@@ -72,6 +72,8 @@ def demo(
         t0 = time.perf_counter()
         summary = fit_with_protocol(model, scen, AdjustProtocol(), progress=progress)
         model.run_info["fit"] = {**{k: float(v) for k, v in summary.items()}, "train_time_s": time.perf_counter() - t0}
+        if (note := budget_note(summary)) is not None:
+            console.print(note)
         model.save(out / f"{name}.ckpt")
         with console.status(f"evaluating {name}…"):
             evaluation = run_evaluation(model, scen, AdjustProtocol(), oracle="auto")

@@ -9,7 +9,7 @@ import typer
 from rich.console import Console
 
 from rflscm.cli import app
-from rflscm.cli.common import DeviceOption, SeedOption, resolve_device, seed_everything
+from rflscm.cli.common import DeviceOption, SeedOption, budget_note, resolve_device, seed_everything
 from rflscm.errors import ConfigError
 
 
@@ -66,3 +66,5 @@ def train(
     fitted.run_info["fit"] = {**{k: float(v) for k, v in summary.items()}, "train_time_s": elapsed}
     fitted.save(out)
     console.print(f"wrote {out} in {elapsed:.1f} s")
+    if (note := budget_note(summary)) is not None:
+        console.print(note)

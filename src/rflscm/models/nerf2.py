@@ -228,10 +228,10 @@ class NeRF2LSCM(RFLSCM):
         field = NeRF2Field(self.config.field, frame, self.medium(frame).num_channels)
         return _DeltaView(field), _FeatureView(field)
 
-    def _build_stages(self, frame: SceneFrame) -> None:
+    def _build_stages(self, frame: SceneFrame, code_xyz: torch.Tensor | None = None) -> None:
         """RF-LSCM's stages, with the decoder's layers after the first narrowed to ``head_hidden``
         (NeRF²'s radiance head is 256 → 128 → 2; RF-LSCM's decoder keeps one width)."""
-        super()._build_stages(frame)
+        super()._build_stages(frame, code_xyz)
         d = self.config.decoder
         for stage in self.stages.values():
             stage.decoder.mlp = MLP(d.hidden, 2, hidden=d.head_hidden, num_layers=d.layers - 1, out_scale=0.1)

@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from rflscm.fields import MLP, PassiveMedium, encoded_dim, fdam_attenuation, modulate, positional_encoding
+from rflscm.fields.grid_codes import GridCodes
 from rflscm.fields.surfaces import specularity
 from rflscm.models.rflscm_config import DecoderConfig, RenderConfig
 from rflscm.render import PackedSamples, accumulate_power, join_queries, transmittance
@@ -66,7 +67,10 @@ class RadianceDecoder(nn.Module):
     (Re R, Im R), times the spreading factors of :class:`~rflscm.models.rflscm_config.DecoderConfig`.
     """
 
-    def __init__(self, cfg: DecoderConfig, feature_dim: int, frame: SceneFrame, step_m: float) -> None:
+    def __init__(self, cfg: DecoderConfig, feature_dim: int, frame: SceneFrame, step_m: float,
+                 code_xyz: torch.Tensor | None = None) -> None:  # fmt: skip
+        """``code_xyz [G, 3]``: the measured grids that own a code (``grid_code_dim`` > 0; when loading a
+        checkpoint any placeholder does, the table takes the checkpoint's size)."""
         super().__init__()
         self.cfg, self.frame, self.step_m = cfg, frame, step_m
         query_width = encoded_dim(3, cfg.dir_freqs) + encoded_dim(1, cfg.wavelength_freqs)
@@ -74,6 +78,12 @@ class RadianceDecoder(nn.Module):
             query_width += encoded_dim(3, cfg.grid_freqs)
         if cfg.grid_features:
             query_width += feature_dim
+        self.grid_codes = None
+        if cfg.grid_code_dim:
+            if code_xyz is None:
+                raise ValueError("a decoder with grid codes needs the positions of the measured grids")
+            self.grid_codes = GridCodes(code_xyz, cfg.grid_code_dim, cfg.grid_code_neighbours)
+            query_width += cfg.grid_code_dim
         self.sample_in = nn.Linear(feature_dim, cfg.hidden)
         self.query_in = nn.Linear(query_width, cfg.hidden, bias=False)
         self.pair_in = None
@@ -95,6 +105,8 @@ class RadianceDecoder(nn.Module):
             parts.append(positional_encoding(unit, cfg.grid_freqs))
         if grid_features is not None:
             parts.append(grid_features)
+        if self.grid_codes is not None:
+            parts.append(self.grid_codes(queries.grid_xyz))
         return torch.cat(parts, dim=-1)
 
     def _pair_inputs(self, to_grid: torch.Tensor, dist: torch.Tensor, along: torch.Tensor, miss: torch.Tensor,

@@ -40,6 +40,7 @@ from rflscm.config import from_dict, to_dict
 from rflscm.data import BEAM_TYPES
 from rflscm.errors import CheckpointError
 from rflscm.fields import PassiveMedium, TensorVM, resolution_for
+from rflscm.fields.grid_codes import GridCodes
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import LSCMModel, read_checkpoint, register_model
 from rflscm.models.hitam import HiTAM
@@ -115,20 +116,25 @@ class RFLSCM(RenderMixin, LSCMModel):
             return f.voxel_m
         return f.init_voxel_m * (f.voxel_m / f.init_voxel_m) ** (level / len(f.upsample_at))
 
-    def _build_stages(self, frame: SceneFrame) -> None:
+    def _build_stages(self, frame: SceneFrame, code_xyz: torch.Tensor | None = None) -> None:
+        """Fresh stages; ``code_xyz [G, 3]`` are the measured grids that own a code (``decoder.grid_code_dim``)."""
+        if code_xyz is None:  # loading a checkpoint: the code table takes the checkpoint's size
+            code_xyz = torch.zeros(1, 3)
+
         def stage() -> RadianceStage:
             delta, features = self.build_fields(frame)
-            decoder = RadianceDecoder(self.config.decoder, self.config.field.feature_dim, frame, self.config.render.step_m)
+            decoder = RadianceDecoder(self.config.decoder, self.config.field.feature_dim, frame, self.config.render.step_m, code_xyz)
             return RadianceStage(delta, features, self.medium(frame), decoder, self.config.render, self.surfaces)
 
         names = ("coarse", "fine") if self.hitam is not None else ("fine",)
         self.stages = nn.ModuleDict({n: stage() for n in names}).to(self.device)
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        """``{"tensors": VM vectors, matrices and basis vectors, "networks": the decoders}`` (empty groups dropped)."""
+        """``{"tensors": VM vectors, matrices and basis vectors and the grid codes, "networks": the decoders}``
+        (empty groups dropped)."""
         groups: dict[str, list[nn.Parameter]] = {"tensors": [], "networks": []}
         for module in self.stages.modules():
-            if isinstance(module, TensorVM):
+            if isinstance(module, (TensorVM, GridCodes)):
                 groups["tensors"].extend(module.parameters())
         tensor_ids = {id(p) for p in groups["tensors"]}
         groups["networks"] = [p for p in self.stages.parameters() if id(p) not in tensor_ids]
@@ -160,7 +166,7 @@ class RFLSCM(RenderMixin, LSCMModel):
         self.prior = prior.to(self.device) if prior is not None else None
         surfaces = make_surfaces(cfg, scenario, lo, hi, seed=cfg.train.seed)
         self.surfaces = surfaces.to(self.device) if surfaces is not None else None
-        self._build_stages(self.scene.frame)
+        self._build_stages(self.scene.frame, torch.unique(data.grid_xyz, dim=0))
         targets = building_targets(cfg, scenario, prior, seed=cfg.train.seed) if prior is not None else None
         if targets is not None:
             self._init_attenuation(*targets)

@@ -98,6 +98,11 @@ class DecoderConfig:
     Empty: no specular cue (the paper's decoder has none)."""
     specular_voxel_m: float = 4.0
     """Spacing of the surface-orientation grid [m]."""
+    grid_code_dim: int = 0
+    """Width of a learned per-grid code z_l fed beside PE(p_l) (:mod:`rflscm.fields.grid_codes`: one free
+    vector per measured grid, interpolated from the nearest ones for unseen grids); 0: none (paper)."""
+    grid_code_neighbours: int = 4
+    """Measured grids an unseen grid's code is interpolated from (inverse squared distance)."""
     wavelength_freqs: int = 1
     output: Literal["polar", "cartesian"] = "polar"
     """``polar``: (log |R|, arg R), suited to the decades of path gain; ``cartesian``: (Re R, Im R)."""
@@ -118,9 +123,11 @@ class DecoderConfig:
     def __post_init__(self) -> None:
         if self.hidden < 1 or self.layers < 1:
             raise ConfigError(f"`model.decoder` needs hidden >= 1 and layers >= 1 (got {self.hidden}, {self.layers}).")
-        for name in ("dir_freqs", "pos_freqs", "grid_freqs", "wavelength_freqs"):
+        for name in ("dir_freqs", "pos_freqs", "grid_freqs", "wavelength_freqs", "grid_code_dim"):
             _positive(f"model.decoder.{name}", getattr(self, name), allow_zero=True)
         _positive("model.decoder.specular_voxel_m", self.specular_voxel_m)
+        if self.grid_code_neighbours < 1:
+            raise ConfigError(f"`model.decoder.grid_code_neighbours` must be >= 1 (got {self.grid_code_neighbours}).")
         if any(p < 1 for p in self.specular_powers):
             raise ConfigError(f"`model.decoder.specular_powers` must be positive integers (got {list(self.specular_powers)}).")
 

@@ -64,6 +64,10 @@ class Trainer:
         """Learning-rate multiplier at ``step``: decays exponentially to ``lr_decay`` at the last step."""
         return self.cfg.lr_decay ** (step / max(self.cfg.steps, 1))
 
+    def passes(self, steps: int) -> float:
+        """How many times ``steps`` steps show the model each training pair, on average."""
+        return steps * min(self.cfg.batch_pairs, self.train_pairs.numel()) / max(self.train_pairs.numel(), 1)
+
     def next_batch(self) -> torch.Tensor:
         """The next ``batch_pairs`` pair indices (a fresh permutation each epoch)."""
         out, need = [], min(self.cfg.batch_pairs, self.train_pairs.numel())
@@ -146,7 +150,8 @@ class Trainer:
         from tqdm.auto import tqdm
 
         cfg = self.cfg
-        bar = tqdm(total=cfg.steps, initial=self.step, disable=not progress, desc="rflscm train", dynamic_ncols=True)
+        desc = f"rflscm train ({self.passes(cfg.steps):.1f} passes over {self.train_pairs.numel()} pairs)"
+        bar = tqdm(total=cfg.steps, initial=self.step, disable=not progress, desc=desc, dynamic_ncols=True)
         losses: dict[str, float] = {}
         start = time.perf_counter() - self.elapsed_s
         while self.step < cfg.steps:
@@ -168,6 +173,7 @@ class Trainer:
         return {
             "train_time_s": self.elapsed_s,
             "steps": float(self.step),
+            "passes": self.passes(self.step),
             "final_loss": losses.get("total", float("nan")),
             "val_mae_db": self.last_val_mae,
         }

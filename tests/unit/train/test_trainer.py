@@ -67,9 +67,18 @@ def test_training_decays_lr_and_state_round_trips() -> None:
     summary = trainer.run(progress=False)
     assert summary["steps"] == 200 and abs(model.w.item() - 3.0) < 0.2 and model.step == 200
     assert summary["final_loss"] < 0.1
+    assert summary["passes"] == 200 * 3 / 8  # steps × batch / pairs
     assert trainer.lr_factor(0) == 1.0 and abs(trainer.lr_factor(200) - 0.1) < 1e-12
     assert abs(trainer.optimizer.param_groups[0]["lr"] - 0.1 * trainer.lr_factor(199)) < 1e-12
     state = trainer.state_dict()
     other = Trainer(Quadratic(), cfg, torch.arange(1, 9))
     other.load_state_dict(state)
     assert torch.equal(other.next_batch(), trainer.next_batch())
+
+
+def test_budget_note_only_for_runs_that_barely_see_their_data() -> None:
+    from rflscm.cli.common import budget_note
+
+    assert budget_note({"passes": 1.6}) is not None and "1.6 times" in budget_note({"passes": 1.6})
+    assert budget_note({"passes": 8.0}) is None
+    assert budget_note({"train_time_s": 3.0}) is None  # models without passes (WNOMP)
