@@ -60,7 +60,7 @@ class GridCodes(nn.Module):
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
         # the table's size comes from the checkpoint (the model is built before its weights are read)
         codes, positions = state_dict.get(prefix + "codes"), state_dict.get(prefix + "positions")
-        if codes is not None and positions is not None and codes.shape[0] == positions.shape[0]:
+        if codes is not None and positions is not None and codes.shape != self.codes.shape and codes.shape[0] == positions.shape[0]:
             self.positions = torch.empty_like(positions, device=self.positions.device)
             self.codes = nn.Parameter(torch.empty(codes.shape, device=self.codes.device))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
