@@ -95,7 +95,8 @@ class DecoderConfig:
     """Powers sⁿ of the specularity s = hᵀ T h fed to the decoder (offset inputs only), h the half-vector
     and T the point cloud's surface orientation at the sample (:mod:`rflscm.fields.surfaces`): s → 1
     where the sample's surface would mirror the ray onto the grid; high powers give narrow lobes.
-    Empty: no specular cue (the paper's decoder has none)."""
+    Empty: no specular cue (the paper's decoder has none; on the B1 quick subset, two seeds, SSB MAE 0.2–0.3 dB
+    and CSI-RS 0.2–0.5 dB worse than with it)."""
     specular_voxel_m: float = 4.0
     """Spacing of the surface-orientation grid [m]."""
     grid_code_dim: int = 0
