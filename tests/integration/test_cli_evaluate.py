@@ -96,3 +96,15 @@ def test_default_scenario(tmp_path) -> None:
     metrics = json.loads((tmp_path / "d.json").read_text())
     for beam_type in ("ssb", "csi"):
         assert metrics["mae_db"][beam_type]["all"] < metrics["trivial_mae_db"][beam_type]["all"]
+
+
+def test_train_reports_passes_and_warns_when_a_run_barely_sees_its_data(tiny, tmp_path) -> None:
+    config = tmp_path / "short.yaml"
+    config.write_text(
+        "prior: {enabled: false}\nfield: {voxel_m: 20.0, delta_rank: 2, feature_rank: 2, feature_dim: 4}\n"
+        "decoder: {hidden: 8}\nrender: {step_m: 8.0}\nhitam: {top_k: 2, warmup_steps: 1, ramp_steps: 1}\n"
+        "train: {steps: 2, batch_pairs: 4, val_pairs: 0}\n"
+    )
+    run = rflscm("train", str(tiny.root), "--config", str(config), "--out", str(tmp_path / "r.ckpt"), "--no-progress", "--device", "cpu")
+    assert run.returncode == 0, run.stderr
+    assert "expect it to underfit" in " ".join(run.stderr.split())

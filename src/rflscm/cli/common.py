@@ -71,7 +71,7 @@ def budget_note(summary: dict[str, float]) -> str | None:
     if passes is None or passes >= FEW_PASSES:
         return None
     return (
-        f"[yellow]note:[/yellow] the run showed the model each training pair only {passes:.1f} times on average; "
+        f"[yellow]note:[/yellow] the run showed the model each training pair only {passes:.2g} times on average; "
         f"expect it to underfit. Give it more steps (`train.steps` in a YAML config, `--config FILE.yaml`) or "
         f"train `--config full` on a GPU."
     )
