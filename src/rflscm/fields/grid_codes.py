@@ -33,10 +33,6 @@ class GridCodes(nn.Module):
         self.codes = nn.Parameter(torch.zeros(positions.shape[0], dim))
         self.neighbours, self.chunk = neighbours, chunk
 
-    @property
-    def dim(self) -> int:
-        return int(self.codes.shape[1])
-
     def weights(self, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(index [Q, k], weight [Q, k])``: the ``k`` nearest table grids of each query and their
         normalised inverse-squared-distance weights (no gradient: positions are data)."""
