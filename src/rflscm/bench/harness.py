@@ -179,10 +179,9 @@ def load_bench_data(ctx: BenchContext, size: BenchSize) -> BenchData:
     sub, info = sub_scenario(full, size)
     oracle = None
     if full.meta.truth is not None:
-        from rflscm.sim.truth import OracleModel
+        from rflscm.eval.oracle import OracleModel
 
-        oracle = OracleModel(size.grid(), ctx.device)
-        oracle.fit(sub, progress=False)
+        oracle = OracleModel.for_scenario(sub, size.grid(), ctx.device)
     info.update(scenario=str(path), source=source, name=full.meta.name, oracle=oracle is not None)
     return BenchData(full, sub, oracle, size, info)
 

@@ -54,6 +54,7 @@ import torch
 from rflscm.errors import ConfigError, DataError
 from rflscm.eval import metrics as M
 from rflscm.geometry import AngleGrid
+from rflscm.eval.oracle import OracleModel
 from rflscm.eval.protocols import AdjustProtocol, Protocol, protocol_from_dict, protocol_to_dict
 from rflscm.models.base import LSCMModel, UnsupportedError
 
@@ -137,7 +138,7 @@ def run_evaluation(
     """Like :func:`evaluate`, keeping the predictions for the report.
 
     Args:
-        oracle: ``"auto"`` (fit :class:`~rflscm.sim.truth.OracleModel` when the scenario has ground
+        oracle: ``"auto"`` (build :class:`~rflscm.eval.oracle.OracleModel` when the scenario has ground
             truth), an already fitted model, or ``None`` (no oracle, no APS metrics).
         top_k: bins per APS compared by the angular error.
         max_aps_pairs: APS metrics use at most this many test pairs (seeded subsample).
@@ -183,15 +184,9 @@ def _oracle(scenario: Any, model: LSCMModel, oracle: LSCMModel | str | None) -> 
     if scenario.meta.truth is None:
         return None
     try:
-        from rflscm.sim.truth import OracleModel
-    except ImportError:  # pragma: no cover - the simulator is part of the package
-        return None
-    try:
-        fitted = OracleModel(model.angle_grid, model.device)
-        fitted.fit(scenario, progress=False)
+        return OracleModel.for_scenario(scenario, model.angle_grid, model.device)
     except (DataError, UnsupportedError):
         return None
-    return fitted
 
 
 def _trained_pairs(train: Any) -> pd.MultiIndex:

@@ -23,14 +23,12 @@ import numpy as np
 import pandas as pd
 import torch
 
-from rflscm.errors import CheckpointError, RflscmError
+from rflscm.errors import CheckpointError, UnsupportedError
 from rflscm.geometry import AngleGrid
 
 MIN_POWER_MW = 1e-30  # floor before taking dB of a predicted RSRP
 
-
-class UnsupportedError(RflscmError):
-    """The model cannot answer this request (e.g. WNOMP asked about a grid it never saw)."""
+__all__ = ["MIN_POWER_MW", "MODEL_REGISTRY", "LSCMModel", "UnsupportedError", "load_model", "read_checkpoint", "register_model"]
 
 
 class LSCMModel(abc.ABC):
