@@ -86,7 +86,8 @@ def load_scenario(path: str | Path) -> Scenario:
     root, yaml_path = locate_scenario(path)
     meta = load_meta(yaml_path)
     yaml_name = yaml_path.name
-    cells, elements = {}, {}
+    cells: dict[int, pd.DataFrame] = {}
+    elements: dict[str, Any] = {}
     for rnd, name in meta.rounds.items():
         df, ref = _read(root, name, f"rounds.{rnd}.cells", yaml_name)
         round1 = None if rnd == 1 else (cells[1], meta.rounds[1])

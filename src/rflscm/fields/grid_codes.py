@@ -25,6 +25,8 @@ EXACT_M = 1e-3
 class GridCodes(nn.Module):
     """``[Q, 3] → [Q, dim]``: codes of table grids at ``positions [G, 3]``, interpolated elsewhere."""
 
+    positions: torch.Tensor
+
     def __init__(self, positions: torch.Tensor, dim: int, neighbours: int = 4, chunk: int = 4096) -> None:
         super().__init__()
         if positions.ndim != 2 or positions.shape[1] != 3 or positions.shape[0] == 0:

@@ -2,8 +2,9 @@
 
 Evaluation only ever calls this contract:
 
-* :meth:`LSCMModel.fit` learns from a scenario's **round-1** measurements (never
-  round 2, never ``truth/``), optionally restricted to a subset of grids;
+* the trainer's ``fit`` (package ``train``) learns from a scenario's **round-1** measurements (never round 2,
+  never ``truth/``), optionally restricted to a subset of grids: iterative models through the
+  trainer, closed-form ones through :meth:`LSCMModel.fit`;
 * :meth:`LSCMModel.aps` returns the APS of (cell, grid) pairs on the model's
   :class:`~rflscm.geometry.AngleGrid` in linear path-power gain (world frame);
 * :meth:`LSCMModel.predict_rsrp` turns APS into RSRP [dBm] for *any* antenna
@@ -16,8 +17,9 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 import pandas as pd
@@ -26,16 +28,40 @@ import torch
 from rflscm.errors import CheckpointError, UnsupportedError
 from rflscm.geometry import AngleGrid
 
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
+
 MIN_POWER_MW = 1e-30  # floor before taking dB of a predicted RSRP
 
-__all__ = ["MIN_POWER_MW", "MODEL_REGISTRY", "LSCMModel", "UnsupportedError", "load_model", "read_checkpoint", "register_model"]
+__all__ = [
+    "MIN_POWER_MW",
+    "MODEL_REGISTRY",
+    "LSCMModel",
+    "TrainingPlan",
+    "UnsupportedError",
+    "load_model",
+    "read_checkpoint",
+    "register_model",
+]
+
+
+@dataclass
+class TrainingPlan:
+    """What an iteratively trained model's ``prepare`` hands the trainer (the trainer's ``Trainable`` protocol):
+    the pairs to draw batches from and their group keys."""
+
+    pairs: torch.Tensor
+    """long ``[P]``: indices of the training pairs (the model's own numbering)."""
+    groups: torch.Tensor | None = None
+    """long ``[P]``: a group key per pair (batches come in runs of ``pairs_per_cell`` of one group), or None."""
 
 
 class LSCMModel(abc.ABC):
     """Base class of all channel models.
 
-    Subclasses set :attr:`name` (the registry key) and implement :meth:`fit`,
-    :meth:`aps`, :meth:`state_dict_for_checkpoint` and :meth:`from_checkpoint`.
+    Subclasses set :attr:`name` (the registry key) and implement :meth:`build`, :meth:`aps`,
+    :meth:`state_dict_for_checkpoint` and :meth:`from_checkpoint`, and either :meth:`fit` (closed
+    form) or the the trainer's ``Trainable`` protocol methods (iterative).
     """
 
     name: ClassVar[str]
@@ -55,23 +81,23 @@ class LSCMModel(abc.ABC):
     def build(cls, config: str | Path | dict[str, Any] | None, angle_grid: AngleGrid, device: torch.device | str) -> LSCMModel:
         """A fresh model from a preset name (``"quick"``/``"full"``), a YAML path, a mapping or ``None`` (defaults)."""
 
-    @abc.abstractmethod
     def fit(
         self,
-        scenario: Any,
+        scenario: Scenario,
         progress: bool = True,
         callback: Callable[[dict[str, float]], None] | None = None,
         checkpoint_path: str | Path | None = None,
         resume: bool = False,
     ) -> dict[str, float]:
-        """Learn from the round-1 measurements of ``scenario``.
+        """Closed-form learning from the round-1 measurements of ``scenario`` (WNOMP overrides it).
 
-        Protocols (hold-outs, frequency subsets) hand in a scenario whose measurement
-        table is already filtered, so a model never needs to know about splits.
-        Iterative models write ``checkpoint_path`` atomically every few steps and, with
-        ``resume``, continue exactly from it.  ``callback`` receives periodic metrics.
-        Returns a summary (e.g. ``{"train_time_s": …, "final_loss": …}``).
+        Callers use the trainer's ``fit`` (package ``train``), which trains iterative models (RF-LSCM, NeRF²-LSCM:
+        the trainer's ``Trainable`` protocol) step by step and calls this method for the others.
+        Protocols (hold-outs, frequency subsets) hand in a scenario whose measurement table is
+        already filtered, so a model never needs to know about splits.  Returns a summary
+        (e.g. ``{"train_time_s": …}``).
         """
+        raise UnsupportedError(f"{self.name} is trained iteratively: use fit(model, scenario) from the train package.")
 
     @abc.abstractmethod
     def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
@@ -82,7 +108,7 @@ class LSCMModel(abc.ABC):
 
     # --- prediction, shared --------------------------------------------------------------------
     def predict_rsrp(
-        self, scenario: Any, round: int, beam_type: str, pairs: pd.DataFrame, chunk: int = 4096
+        self, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, chunk: int = 4096
     ) -> np.ndarray:
         """Predicted RSRP [dBm] ``[num_pairs, max_beams]`` (NaN past a cell's codebook size) under the
         antenna configuration of ``round`` for ``pairs`` (columns ``cell_id``, ``grid_id``)."""
@@ -123,7 +149,7 @@ class LSCMModel(abc.ABC):
             "rflscm_version": __version__,
             "model": self.name,
             "fingerprint": self.fingerprint,
-            "angle_grid": [self.angle_grid.num_el, self.angle_grid.num_az, self.angle_grid.el_min_deg, self.angle_grid.el_step_deg],
+            "angle_grid": self.angle_grid.to_dict(),
             "run_info": self.run_info,
             "state": self.state_dict_for_checkpoint(),
         }
@@ -149,14 +175,14 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"{path}: checkpoint file not found.")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # noqa: BLE001 - any unreadable file is a user-facing problem
+    except Exception as exc:
         raise CheckpointError(f"{path}: not a readable rflscm checkpoint ({type(exc).__name__}: {exc}).") from None
     if not isinstance(payload, dict) or payload.get("format") != "rflscm-checkpoint/1":
         raise CheckpointError(f"{path}: not an rflscm checkpoint (no `rflscm-checkpoint/1` header).")
     return payload
 
 
-def load_model(path: str | Path, scenario: Any | None = None, device: torch.device | str = "cpu") -> LSCMModel:
+def load_model(path: str | Path, scenario: Scenario | None = None, device: torch.device | str = "cpu") -> LSCMModel:
     """Load a checkpoint; with ``scenario``, refuse it unless it was fitted on that scenario's round-1 data."""
     import rflscm.models  # noqa: F401  (fills the registry)
 
@@ -167,11 +193,10 @@ def load_model(path: str | Path, scenario: Any | None = None, device: torch.devi
     if scenario is not None and payload["fingerprint"] != scenario.fingerprint():
         raise CheckpointError(
             f"{path}: this checkpoint was trained on another scenario (fingerprint {str(payload['fingerprint'])[:12]}…, "
-            f"scenario {scenario.meta.name!r} has {scenario.fingerprint()[:12]}…); retrain it with `rflscm train`."
+            f"scenario {scenario.meta.name!r} has {scenario.fingerprint()[:12]}…); retrain it on this scenario."
         )
     model = MODEL_REGISTRY[name].from_checkpoint(payload["state"], device=device)
-    num_el, num_az, el_min, el_step = payload["angle_grid"]
-    model.angle_grid = AngleGrid(int(num_el), int(num_az), float(el_min), float(el_step))
+    model.angle_grid = AngleGrid.from_dict(payload["angle_grid"])
     model.fingerprint = payload["fingerprint"]
     model.run_info = dict(payload.get("run_info", {}))
     return model

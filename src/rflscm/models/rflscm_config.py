@@ -7,8 +7,8 @@ only what they change.
 
 from __future__ import annotations
 
-import importlib.resources
 import dataclasses
+import importlib.resources
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal

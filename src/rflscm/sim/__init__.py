@@ -24,7 +24,6 @@ from rflscm.sim.noise import MeasurementModel, measure
 from rflscm.sim.procedural import MATERIALS, PROCEDURAL_SCENES, ProceduralCity
 from rflscm.sim.truth import TrueAPS, load_true_aps
 
-
 BACKENDS = ("procedural", "sionna")
 """Names accepted by :func:`make_backend` (``rflscm simulate --backend``)."""
 
@@ -56,7 +55,7 @@ def make_backend(
 
 def _check_options(cls: type, options: dict[str, Any], name: str, reserved: tuple[str, ...]) -> None:
     """Unknown ``backend_options`` keys (or ones set elsewhere) are a :class:`ConfigError` listing the valid ones."""
-    valid = [p for p in inspect.signature(cls.__init__).parameters if p != "self" and p not in reserved]
+    valid = [p for p in inspect.signature(cls).parameters if p not in reserved]
     unknown = sorted(set(options) - set(valid))
     if unknown:
         raise ConfigError(

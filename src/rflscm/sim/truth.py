@@ -18,7 +18,7 @@ Models never read ``truth/``; only evaluation does, through :class:`rflscm.eval.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -28,6 +28,9 @@ from rflscm.data.io import read_table
 from rflscm.errors import DataError, UnsupportedError
 from rflscm.geometry import AngleGrid
 from rflscm.sim.paths import APS_FILE, PATHS_FILE, RSRP_FILE, true_aps_table, write_truth  # noqa: F401
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 class TrueAPS:
     """The true APS of (cell, grid) pairs, dense on request.
@@ -95,7 +98,7 @@ def _index_of(known: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return pos, known[pos] == ids
 
 
-def truth_folder(scenario) -> Path:
+def truth_folder(scenario: Scenario) -> Path:
     """The scenario's ``truth/`` folder, or a :class:`DataError` saying that it has none."""
     if scenario.meta.truth is None or not (scenario.root / scenario.meta.truth).is_dir():
         raise DataError(
@@ -110,10 +113,10 @@ def simulation_angle_grid(simulation: dict[str, Any]) -> AngleGrid:
     spec = simulation.get("angle_grid")
     if not isinstance(spec, dict):
         raise DataError("scenario.yaml `simulation.angle_grid` is missing; the truth folder cannot be read.")
-    return AngleGrid(int(spec["num_el"]), int(spec["num_az"]), float(spec["el_min_deg"]), float(spec["el_step_deg"]))
+    return AngleGrid.from_dict(spec)
 
 
-def load_true_aps(scenario, angle_grid: AngleGrid | None = None) -> TrueAPS:
+def load_true_aps(scenario: Scenario, angle_grid: AngleGrid | None = None) -> TrueAPS:
     """The true APS of ``scenario`` (from ``truth/``), on its simulation grid or re-binned onto ``angle_grid``."""
     simulation = scenario.meta.simulation
     return read_true_aps(
