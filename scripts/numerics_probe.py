@@ -40,7 +40,7 @@ def main() -> None:
     for label, name, cfg in (("rflscm", "rflscm", base), ("rflscm+prior", "rflscm", prior), ("nerf2", "nerf2", nerf2)):
         model = MODEL_REGISTRY[name].build(cfg, grid)
         history: list[float] = []
-        kwargs = {"progress": False, "callback": lambda m: history.append(m["total"])}
+        kwargs = {"progress": False, "callback": lambda m, history=history: history.append(m["total"])}
         summary = fit(model, scenario, **kwargs) if fit is not None else model.fit(scenario, **kwargs)
         aps = model.aps(np.array([11, 11, 12]), np.array([100, 101, 102]))
         print(label, "losses", " ".join(f"{v:.9g}" for v in history))

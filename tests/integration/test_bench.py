@@ -93,7 +93,7 @@ def test_b1_adjust(tmp_path: Path, scenario_dir: Path) -> None:
     res = run_b1(ctx_for(tmp_path, scenario_dir), tiny_size())
     check_common(res, tmp_path)
     assert set(res["models"]) == {"rflscm", "nerf2", "wnomp"}
-    for name, entry in res["models"].items():
+    for entry in res["models"].values():
         assert set(entry["mae_db"]) == {"ssb", "csi"} and set(entry["mae_db"]["ssb"]) == {"all", "changed"}
         assert entry["mae_db"]["ssb"]["all"] is not None and entry["train_time_s"] > 0
         # on Linux the probe samples the RSS: a process holding torch and a scenario is ≥ 50 MB, and the

@@ -11,11 +11,11 @@ import torch
 from rflscm.config import to_dict
 from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
-from rflscm.train import fit
 from rflscm.models import MODEL_REGISTRY, load_model
 from rflscm.models.nerf2 import NeRF2Config, NeRF2Field, NeRF2FieldConfig, NeRF2LSCM
-from rflscm.models.rflscm import RFLSCM
 from rflscm.models.radiance import SceneFrame
+from rflscm.models.rflscm import RFLSCM
+from rflscm.train import fit
 
 GRID = AngleGrid(num_el=16, num_az=18, el_min_deg=-90.0, el_step_deg=12.0)
 NARROW = {

@@ -14,10 +14,10 @@ from rflscm.data.examples import tiny_scenario
 from rflscm.errors import CheckpointError, ConfigError
 from rflscm.fields import TensorVM
 from rflscm.geometry import AngleGrid
-from rflscm.train import fit
 from rflscm.models import MODEL_REGISTRY, UnsupportedError, load_model
 from rflscm.models.rflscm import RFLSCM
 from rflscm.models.rflscm_config import RFLSCMConfig, load_rflscm_config, preset_path
+from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)
 

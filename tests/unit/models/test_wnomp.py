@@ -12,10 +12,10 @@ from rflscm.data import load_scenario
 from rflscm.data.examples import tiny_scenario
 from rflscm.errors import CheckpointError, ConfigError
 from rflscm.geometry import AngleGrid
-from rflscm.train import fit
 from rflscm.models import MODEL_REGISTRY, UnsupportedError, load_model
 from rflscm.models.wnomp import WNOMPConfig, WNOMPModel, wnomp_config
 from rflscm.models.wnomp_solver import batched_nnls, row_argmax, spd_solve, wnomp_solve
+from rflscm.train import fit
 
 SMALL = AngleGrid(num_el=13, num_az=24, el_min_deg=-90.0, el_step_deg=15.0)
 
@@ -204,7 +204,7 @@ def test_config_presets_and_errors(tmp_path) -> None:
     yaml_file = tmp_path / "w.yaml"
     yaml_file.write_text("k_max: 5\nweighting: none\n")
     assert wnomp_config(yaml_file) == WNOMPConfig(k_max=5, weighting="none")
-    with pytest.raises(ConfigError, match="valid keys: .*k_max"):
+    with pytest.raises(ConfigError, match=r"valid keys: .*k_max"):
         wnomp_config({"kmax": 4})
     with pytest.raises(ConfigError, match="must be one of 'inverse_rsrp', 'none'"):
         wnomp_config({"weighting": "log"})

@@ -12,8 +12,8 @@ import torch
 
 from rflscm.data import load_scenario
 from rflscm.errors import ConfigError, DataError
-from rflscm.geometry import AngleGrid
 from rflscm.eval.oracle import OracleModel
+from rflscm.geometry import AngleGrid
 from rflscm.models.base import MODEL_REGISTRY, UnsupportedError
 from rflscm.sim import ProceduralCity, SimulationConfig, build_scenario
 from rflscm.sim.truth import load_true_aps
