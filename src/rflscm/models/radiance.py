@@ -30,7 +30,6 @@ from rflscm.fields import (
     positional_encoding,
     resolution_for,
 )
-from rflscm.fields.grid_codes import GridCodes
 from rflscm.fields.surfaces import specularity
 from rflscm.models.rflscm_config import DecoderConfig, FieldConfig, RenderConfig
 from rflscm.render import PackedSamples, accumulate_power, join_queries, transmittance
@@ -177,10 +176,9 @@ class RadianceDecoder(nn.Module):
     box_hi: torch.Tensor
 
     def __init__(self, cfg: DecoderConfig, feature_dim: int, frame: SceneFrame, step_m: float,
-                 code_xyz: torch.Tensor | None = None, head_hidden: int | None = None) -> None:  # fmt: skip
-        """``code_xyz [G, 3]``: the measured grids that own a code (``grid_code_dim`` > 0; when loading a
-        checkpoint any placeholder does, the table takes the checkpoint's size); ``head_hidden``: width of
-        the layers after the first (default ``cfg.hidden``; NeRF²'s radiance head narrows to 128)."""
+                 head_hidden: int | None = None) -> None:  # fmt: skip
+        """``head_hidden``: width of the layers after the first (default ``cfg.hidden``; NeRF²'s radiance
+        head narrows to 128)."""
         super().__init__()
         self.cfg, self.frame, self.step_m = cfg, frame, step_m
         query_width = encoded_dim(3, cfg.dir_freqs) + encoded_dim(1, cfg.wavelength_freqs)
@@ -188,12 +186,6 @@ class RadianceDecoder(nn.Module):
             query_width += encoded_dim(3, cfg.grid_freqs)
         if cfg.grid_features:
             query_width += feature_dim
-        self.grid_codes = None
-        if cfg.grid_code_dim:
-            if code_xyz is None:
-                raise ValueError("a decoder with grid codes needs the positions of the measured grids")
-            self.grid_codes = GridCodes(code_xyz, cfg.grid_code_dim, cfg.grid_code_neighbours)
-            query_width += cfg.grid_code_dim
         self.sample_in = nn.Linear(feature_dim, cfg.hidden)
         self.query_in = nn.Linear(query_width, cfg.hidden, bias=False)
         self.pair_in = None
@@ -215,8 +207,6 @@ class RadianceDecoder(nn.Module):
             parts.append(positional_encoding(unit, cfg.grid_freqs))
         if grid_features is not None:
             parts.append(grid_features)
-        if self.grid_codes is not None:
-            parts.append(self.grid_codes(queries.grid_xyz))
         return torch.cat(parts, dim=-1)
 
     def _pair_inputs(self, to_grid: torch.Tensor, dist: torch.Tensor, along: torch.Tensor, miss: torch.Tensor,
@@ -323,4 +313,4 @@ class RadianceStage(nn.Module):
         wants_surface = self.surfaces_fn is not None and self.decoder.pair_in is not None and self.decoder.cfg.specular_powers
         surface = self.surfaces_fn(points[live]) if wants_surface and self.surfaces_fn is not None else None
         radiance = self.decoder(features, points[live], along[live], rays, queries, join_query, join_sample, grid_features, surface)
-        return accumulate_power(weight[join_sample] * radiance, join_query, queries.ray.numel(), cfg.coherent)
+        return accumulate_power(weight[join_sample] * radiance, join_query, queries.ray.numel())

@@ -44,7 +44,6 @@ from rflscm.config import from_dict, to_dict
 from rflscm.data import BEAM_TYPES
 from rflscm.errors import CheckpointError
 from rflscm.fields import PassiveMedium, TensorVM
-from rflscm.fields.grid_codes import GridCodes
 from rflscm.fields.point_prior import PointPrior
 from rflscm.fields.surfaces import SurfaceOrientation
 from rflscm.geometry import AngleGrid
@@ -90,7 +89,7 @@ class RFLSCM(LSCMModel):
         self.config = config
         self.fields: FieldFactory = fields if fields is not None else VMFieldFactory(config.field)
         h = config.hitam
-        self.hitam = HiTAM(angle_grid, h.beta, h.top_k, h.coarse_bins, h.warmup_steps, h.ramp_steps) if h.enabled else None
+        self.hitam = HiTAM(angle_grid, h.beta, h.top_k, "block", h.warmup_steps, h.ramp_steps) if h.enabled else None
         self.scene: SceneInfo | None = None
         self.prior: PointPrior | None = None
         self.surfaces: SurfaceOrientation | None = None
@@ -114,15 +113,13 @@ class RFLSCM(LSCMModel):
         f = self.config.field
         return PassiveMedium(frame.reference_wavelength_m, self.config.render.step_m, f.learn_mu, f.init_loss_db)
 
-    def _build_stages(self, frame: SceneFrame, code_xyz: torch.Tensor | None = None) -> None:
-        """Fresh stages; ``code_xyz [G, 3]`` are the measured grids that own a code (``decoder.grid_code_dim``)."""
-        if code_xyz is None:  # loading a checkpoint: the code table takes the checkpoint's size
-            code_xyz = torch.zeros(1, 3)
+    def _build_stages(self, frame: SceneFrame) -> None:
+        """Fresh stages (``coarse`` and ``fine`` with HiTAM, else ``fine``) and the renderer over them."""
 
         def stage() -> RadianceStage:
             fields = self.fields(frame, self.medium(frame).num_channels)
             cfg = self.config
-            decoder = RadianceDecoder(cfg.decoder, fields.feature_dim, frame, cfg.render.step_m, code_xyz, self.fields.head_hidden)
+            decoder = RadianceDecoder(cfg.decoder, fields.feature_dim, frame, cfg.render.step_m, self.fields.head_hidden)
             return RadianceStage(fields, self.medium(frame), decoder, cfg.render, self.surfaces)
 
         names = ("coarse", "fine") if self.hitam is not None else ("fine",)
@@ -131,11 +128,11 @@ class RFLSCM(LSCMModel):
         self.renderer = APSRenderer(self.config, self.angle_grid, self.hitam, self.scene, self.prior, self.stages, self.device)
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        """``{"tensors": VM vectors, matrices and basis vectors and the grid codes, "networks": the decoders}``
+        """``{"tensors": VM vectors, matrices and basis vectors, "networks": the decoders}``
         (empty groups dropped)."""
         groups: dict[str, list[nn.Parameter]] = {"tensors": [], "networks": []}
         for module in self.stages.modules():
-            if isinstance(module, (TensorVM, GridCodes)):
+            if isinstance(module, TensorVM):
                 groups["tensors"].extend(module.parameters())
         tensor_ids = {id(p) for p in groups["tensors"]}
         groups["networks"] = [p for p in self.stages.parameters() if id(p) not in tensor_ids]
@@ -167,7 +164,7 @@ class RFLSCM(LSCMModel):
         self.prior = prior.to(self.device) if prior is not None else None
         surfaces = make_surfaces(cfg, scenario, lo, hi, seed=cfg.train.seed)
         self.surfaces = surfaces.to(self.device) if surfaces is not None else None
-        self._build_stages(self.scene.frame, torch.unique(data.grid_xyz, dim=0))
+        self._build_stages(self.scene.frame)
         targets = building_targets(cfg, scenario, prior, seed=cfg.train.seed) if prior is not None else None
         if targets is not None:
             self._init_attenuation(*targets)

@@ -191,11 +191,9 @@ class APSRenderer:
 
     def coarse_as_fine(self, coarse: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The coarse APS on fine bins (before the refinement model has trained): a block's power is spread
-        evenly over its bins (``block``) or put on its representative bin (paper form)."""
+        evenly over its bins."""
         h = self.hitam
         assert h is not None
-        if h.coarse_bins == "representative":
-            return h.mapping.representative_bins().to(self.device).expand_as(coarse), coarse
         children, valid = h.children.to(self.device), h.valid.to(self.device)
         share = valid / valid.sum(-1, keepdim=True)  # [Nc, β²]
         values = coarse[:, :, None] * share  # [B, Nc, β²]

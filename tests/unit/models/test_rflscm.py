@@ -178,23 +178,6 @@ def test_coarse_model_is_frozen_once_alpha_is_one_and_its_selection_is_remembere
     assert torch.equal(remembered[0][fresh[1]], fresh[0][fresh[1]])
 
 
-def test_grid_codes_train_persist_and_answer_unseen_grids(scenario, tmp_path) -> None:
-    model = RFLSCM.build(tiny_config(decoder={"grid_code_dim": 4}), GRID)
-    model._prepare(scenario)
-    codes = model.stages["coarse"].decoder.grid_codes
-    assert codes.codes.shape == (np.unique(model._train.data.grid_ids).size, 4)
-    assert any(p is codes.codes for p in model.parameter_groups()["tensors"])
-    model.training_losses(torch.arange(model._train.data.num_pairs), step=4)["total"].backward()
-    assert codes.codes.grad.abs().sum(1).gt(0).all()  # every measured grid's code is used
-    model = RFLSCM.build(tiny_config(decoder={"grid_code_dim": 4}), GRID)
-    fit(model, scenario, progress=False)
-    loaded = load_model(model.save(tmp_path / "g.ckpt"), scenario)
-    cells, grids = np.array([11, 11]), np.array([100, 101])
-    assert torch.equal(loaded.aps(cells, grids), model.aps(cells, grids))
-    between = model.aps(cells[:1], np.array([12345]), grid_xyz=np.array([[30.0, 40.0, 1.5]]))
-    assert between.shape == (1, GRID.num_bins) and bool(torch.isfinite(between).all())
-
-
 def test_iterative_models_are_trained_by_the_trainer_not_by_model_fit(scenario) -> None:
     with pytest.raises(UnsupportedError, match="trained iteratively"):
         RFLSCM.build(tiny_config(), GRID).fit(scenario, progress=False)
