@@ -49,5 +49,5 @@ def test_missing_and_broken_files(tmp_path: Path) -> None:
     with pytest.raises(DataError, match=r"empty\.csv is empty"):
         read_table(tmp_path / "empty.csv")
     (tmp_path / "broken.parquet").write_bytes(b"not parquet at all")
-    with pytest.raises(DataError, match=r"broken\.parquet: not a readable parquet file"):
+    with pytest.raises(DataError, match=r"broken\.parquet: not a readable Parquet file"):
         read_table(tmp_path / "broken.parquet")
