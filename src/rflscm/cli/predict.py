@@ -59,7 +59,7 @@ def long_form(round: int, beam_type: str, pairs: pd.DataFrame, rsrp_dbm: np.ndar
 def _export_aps(model, scenario, cells: np.ndarray, grids: np.ndarray, path: Path) -> int:
     cell_ids, grid_ids = (a.ravel() for a in np.meshgrid(cells, grids, indexing="ij"))
     xyz = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
-    aps = model.aps(cell_ids, grid_ids, xyz).detach().cpu().double().numpy()
+    aps = model.checked_aps(cell_ids, grid_ids, xyz).detach().cpu().double().numpy()
     pair, bins = np.nonzero(aps > 0)
     el, az = model.angle_grid.bin_angles()
     table = pd.DataFrame(
