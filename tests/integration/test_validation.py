@@ -264,3 +264,29 @@ def test_empty_field_still_means_not_reported(scenario_dir: Path, monkeypatch, c
     assert code == 0, err
     assert m["rsrp_dbm"].isna().any()  # the tiny scenario has unreported beams, written as empty fields
     assert f"measurements.csv {len(m)}" in out
+
+
+MORE_CASES: list[tuple[str, Callable[[Path], None], list[str]]] = [
+    ("carrier-nan", yaml_edit(lambda d: d.update(frequencies_hz=[float("nan"), 3.5e9])),
+     ["`frequencies_hz[0]` = nan must be a carrier in Hz"]),
+    ("carrier-inf", yaml_edit(lambda d: d.update(frequencies_hz=[2.1e9, float("inf")])),
+     ["`frequencies_hz[1]` = inf must be a carrier in Hz"]),
+    ("round-number-huge", yaml_edit(lambda d: d["rounds"].update({2**70: d["rounds"].pop(2)})),
+     ["`rounds` keys must be round numbers"]),
+    ("array-too-large", both_rounds(lambda df: df.assign(array_nh=1024, array_nv=1024)),
+     ["`array_nh` = 1024 × `array_nv` is more than 4096 elements"]),
+]
+
+
+@pytest.mark.parametrize(
+    ("mistake", "expected"), [(c[1], c[2]) for c in MORE_CASES], ids=[c[0] for c in MORE_CASES]
+)
+def test_more_malformed_scenarios(scenario_dir: Path, mistake, expected, monkeypatch, capsys) -> None:
+    test_malformed_scenario_gives_one_line_and_exit_2(scenario_dir, mistake, expected, monkeypatch, capsys)
+
+
+def test_trailing_empty_header_column_is_ignored(scenario_dir: Path, monkeypatch, capsys) -> None:
+    text_edit(G, lambda t: "\n".join(line + "," for line in t.splitlines()) + "\n")(scenario_dir)
+    code, out, err = run_check(scenario_dir, monkeypatch, capsys)
+    assert code == 0, err
+    assert "grids.csv: column(s) `Unnamed: 4` are not used" in " ".join(out.split())

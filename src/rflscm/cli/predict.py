@@ -19,7 +19,7 @@ def _id_list(text: str | None, option: str) -> np.ndarray | None:
         return None
     try:
         return np.array([int(v) for v in text.split(",") if v.strip()], dtype=np.int64)
-    except ValueError:
+    except (ValueError, OverflowError):
         raise ConfigError(f"{option} takes comma-separated integer ids (got {text!r}).") from None
 
 
@@ -57,6 +57,13 @@ def long_form(round: int, beam_type: str, pairs: pd.DataFrame, rsrp_dbm: np.ndar
 
 
 def _export_aps(model, scenario, cells: np.ndarray, grids: np.ndarray, path: Path) -> int:
+    options = (("--aps-cells", cells, scenario.cell_ids()), ("--aps-grids", grids, scenario.grid_ids()))
+    for option, ids, known in options:
+        unknown = np.setdiff1d(ids, known)
+        if unknown.size or not ids.size:
+            shown = ", ".join(map(str, known[:10])) + (", …" if len(known) > 10 else "")
+            what = f"has unknown id(s) {', '.join(map(str, unknown[:5]))}" if unknown.size else "is empty"
+            raise ConfigError(f"{option} {what}; ids of scenario {scenario.meta.name!r}: {shown}.")
     cell_ids, grid_ids = (a.ravel() for a in np.meshgrid(cells, grids, indexing="ij"))
     xyz = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
     aps = model.checked_aps(cell_ids, grid_ids, xyz).detach().cpu().double().numpy()

@@ -65,6 +65,8 @@ TX_POWER_RANGE_DBM = (-20.0, 40.0)
 """Plausible RS power per resource element (EPRE) [dBm]: small cells ≈ 0…10, macro cells ≈ 10…25 (TS 38.104
 output powers spread over the subcarriers); values outside are a unit mistake (W, mW or total power)."""
 _CODEBOOK_TYPE = {"ssb_codebook": "ssb", "csi_codebook": "dft"}
+MAX_ARRAY_ELEMENTS = 4096
+"""Most antenna elements of one cell (array_nh × array_nv): 64 × 64; massive-MIMO panels have a few hundred."""
 MAX_SPACING_WL = 2.0
 """Element spacings above this many wavelengths are taken for a unit mistake (wavelengths given as metres)."""
 
@@ -144,6 +146,9 @@ def _array(df: pd.DataFrame, ref: TableRef, out: pd.DataFrame) -> None:
         n = int_column(df, ref, name, default=default)
         raise_rows(ref, (n < 1) | (n > 1024), name, df.get(name, n), "must be a number of elements in 1…1024")
         out[name] = n
+    total = out["array_nh"].to_numpy() * out["array_nv"].to_numpy()
+    problem = f"× `array_nv` is more than {MAX_ARRAY_ELEMENTS} elements (the largest array rflscm models)"
+    raise_rows(ref, total > MAX_ARRAY_ELEMENTS, "array_nh", df.get("array_nh", out["array_nh"]), problem)
     wavelength = wavelength_of(1.0) / out["freq_hz"].to_numpy()  # [num_cells] m
     for name, default_wl in (("spacing_h_m", 0.5), ("spacing_v_m", 0.7)):
         spacing = float_column(df, ref, name, default=default_wl * wavelength)

@@ -110,7 +110,7 @@ def _read_csv(data: bytes, name: str) -> pd.DataFrame:
         raise DataError(f"{name} is empty (no header, no rows); it needs a header line and data rows.")
     header = next(csv.reader([text.splitlines()[records[0][0] - 1]], skipinitialspace=True))
     names = [h.strip().lstrip("\ufeff") for h in header]
-    duplicated = [n for i, n in enumerate(names) if n in names[:i]]
+    duplicated = [n for i, n in enumerate(names) if n and n in names[:i]]
     if duplicated:
         raise DataError(
             f"{name} line {records[0][0]}: column `{duplicated[0]}` appears twice in the header; keep one "
@@ -177,11 +177,16 @@ def write_table(df: pd.DataFrame, path: str | Path) -> None:
     """Write ``df`` (without its index) as CSV or Parquet, by extension; NaN is an empty CSV field."""
     path = Path(path)
     kind = table_kind(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if kind == "csv":
-        df.to_csv(path, index=False)
-    else:
-        df.to_parquet(path, index=False)
+    if path.is_dir():
+        raise DataError(f"{path}: is a folder; give a file name to write the table to.")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if kind == "csv":
+            df.to_csv(path, index=False)
+        else:
+            df.to_parquet(path, index=False)
+    except (PermissionError, NotADirectoryError, FileExistsError) as exc:
+        raise DataError(f"{path}: cannot write the table ({exc.strerror or type(exc).__name__}).") from None
 
 
 def _first_line(exc: BaseException) -> str:
