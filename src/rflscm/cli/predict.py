@@ -10,7 +10,7 @@ import typer
 from rich.console import Console
 
 from rflscm.cli import app
-from rflscm.cli.common import DeviceOption, SeedOption, resolve_device, seed_everything
+from rflscm.cli.common import DeviceOption, SeedOption, output_file, resolve_device, seed_everything
 from rflscm.errors import ConfigError
 
 
@@ -103,6 +103,14 @@ def predict(
     from rflscm.data import load_scenario, write_table
     from rflscm.models import load_model
 
+    output_file(out, "--out")
+    cells, grids = _id_list(aps_cells, "--aps-cells"), _id_list(aps_grids, "--aps-grids")
+    if (cells is None) != (grids is None):
+        raise ConfigError("--aps-cells and --aps-grids go together.")
+    if cells is not None:
+        output_file(aps_out, "--aps-out")
+    if attenuation_map is not None:
+        output_file(attenuation_map, "--attenuation-map")
     seed_everything(seed)
     dev = resolve_device(device)
     console = Console(stderr=True)
@@ -116,9 +124,6 @@ def predict(
     out.parent.mkdir(parents=True, exist_ok=True)
     write_table(pd.concat(tables, ignore_index=True), out)
     console.print(f"wrote {out} ({sum(len(t) for t in tables)} beams)")
-    cells, grids = _id_list(aps_cells, "--aps-cells"), _id_list(aps_grids, "--aps-grids")
-    if (cells is None) != (grids is None):
-        raise ConfigError("--aps-cells and --aps-grids go together.")
     if cells is not None:
         n = _export_aps(model, scen, cells, grids, aps_out)
         console.print(f"wrote {aps_out} ({n} non-zero bins)")

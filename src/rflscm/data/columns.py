@@ -133,8 +133,9 @@ def require_columns(df: pd.DataFrame, ref: TableRef, required: list[str], requir
         if close:
             hints.append(f"`{close[0]}` → `{name}`?")
     hint = f" Rename {', '.join(hints)}" if hints else ""
-    if len(df.columns) == 1 and ";" in str(df.columns[0]):
-        hint = " The header looks ';'-separated; save the file as comma-separated CSV."
+    for separator, label in ((";", "';'"), ("\t", "tab"), ("|", "'|'")):
+        if len(df.columns) == 1 and separator in str(df.columns[0]):
+            hint = f" The header looks {label}-separated; save the file as comma-separated CSV."
     found = ", ".join(f"`{c}`" for c in df.columns) or "none"
     raise DataError(
         f"{ref.name}: missing column(s) {', '.join(f'`{c}`' for c in missing)}; "

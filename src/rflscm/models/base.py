@@ -25,6 +25,7 @@ import hashlib
 import json
 import os
 import pickle
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar
@@ -155,6 +156,8 @@ class LSCMModel(abc.ABC):
         from rflscm import __version__
 
         path = Path(path)
+        if path.is_dir():
+            raise CheckpointError(f"{path}: is a folder; give the checkpoint a file name (e.g. {path / 'model.ckpt'}).")
         path.parent.mkdir(parents=True, exist_ok=True)
         payload = to_plain({
             "rflscm_version": __version__,
@@ -300,11 +303,15 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"{path}: is a folder, not a checkpoint file; give the .ckpt file.")
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file not found.")
+    if not zipfile.is_zipfile(path):
+        raise CheckpointError(
+            f"{path}: not an rflscm checkpoint (not a PyTorch archive; damaged, truncated or another kind of file)."
+        )
     try:
         archive = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        if "weights only" in str(exc).lower() or "weights_only" in str(exc):
+        if "unsupported global" in str(exc).lower() or "unsupported class" in str(exc).lower():
             raise CheckpointError(
                 f"{path}: refused: the file holds Python objects other than tensors and plain data, which could run "
                 "code when loaded; rflscm checkpoints never do (a file from elsewhere, or from an rflscm before "
