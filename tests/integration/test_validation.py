@@ -290,3 +290,34 @@ def test_trailing_empty_header_column_is_ignored(scenario_dir: Path, monkeypatch
     code, out, err = run_check(scenario_dir, monkeypatch, capsys)
     assert code == 0, err
     assert "grids.csv: column(s) `Unnamed: 4` are not used" in " ".join(out.split())
+
+
+def test_output_options_are_checked_before_any_work(scenario_dir: Path, tmp_path: Path, monkeypatch, capsys) -> None:
+    """A folder given where a file is written was a traceback after training (IsADirectoryError)."""
+    for argv in (["train", str(scenario_dir), "--model", "wnomp", "--out", str(tmp_path)],
+                 ["evaluate", str(tmp_path / "none.ckpt"), str(scenario_dir), "--json", str(tmp_path)],
+                 ["evaluate", str(tmp_path / "none.ckpt"), str(scenario_dir), "--report", str(scenario_dir / G)],
+                 ["predict", str(tmp_path / "none.ckpt"), str(scenario_dir), "--out", str(tmp_path)],
+                 ["predict", str(tmp_path / "none.ckpt"), str(scenario_dir), "--aps-cells", "11",
+                  "--aps-grids", "99999999999999999999999"]):  # fmt: skip
+        monkeypatch.setattr(sys, "argv", ["rflscm", *argv])
+        with pytest.raises(SystemExit) as exit_info:
+            main()
+        err = capsys.readouterr().err
+        assert exit_info.value.code == 2 and len(err.strip().splitlines()) == 1, (argv, err)
+        assert err.startswith("ConfigError: --"), err
+
+
+def test_wnomp_outputs_hold_no_nan(scenario_dir: Path, tmp_path: Path, monkeypatch, capsys) -> None:
+    ckpt, pred, metrics = tmp_path / "w.ckpt", tmp_path / "p.csv", tmp_path / "m.json"
+    for argv in (["train", str(scenario_dir), "--model", "wnomp", "--out", str(ckpt), "--no-progress"],
+                 ["predict", str(ckpt), str(scenario_dir), "--out", str(pred)],
+                 ["evaluate", str(ckpt), str(scenario_dir), "--json", str(metrics)]):  # fmt: skip
+        monkeypatch.setattr(sys, "argv", ["rflscm", *argv])
+        try:
+            main()
+        except SystemExit as exc:
+            assert not exc.code, capsys.readouterr().err
+    assert "NaN" not in metrics.read_text() and "Infinity" not in metrics.read_text()
+    table = pd.read_csv(pred)
+    assert len(table) and np.isfinite(table["rsrp_dbm"]).all()

@@ -33,7 +33,8 @@ def output_file(path: Path, option: str) -> Path:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise ConfigError(f"{option} {path}: cannot create its folder ({exc.strerror or type(exc).__name__}).") from None
+        reason = exc.strerror or type(exc).__name__
+        raise ConfigError(f"{option} {path}: cannot create its folder ({reason}).") from None
     if not os.access(path.parent, os.W_OK):
         raise ConfigError(f"{option} {path}: its folder is not writable.")
     return path
@@ -47,7 +48,8 @@ def output_folder(path: Path, option: str) -> Path:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise ConfigError(f"{option} {path}: cannot create the folder ({exc.strerror or type(exc).__name__}).") from None
+        reason = exc.strerror or type(exc).__name__
+        raise ConfigError(f"{option} {path}: cannot create the folder ({reason}).") from None
     return path
 
 

@@ -303,6 +303,11 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"{path}: is a folder, not a checkpoint file; give the .ckpt file.")
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file not found.")
+    try:
+        with open(path, "rb") as f:
+            f.read(4)
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot read the checkpoint ({exc.strerror or type(exc).__name__}).") from None
     if not zipfile.is_zipfile(path):
         raise CheckpointError(
             f"{path}: not an rflscm checkpoint (not a PyTorch archive; damaged, truncated or another kind of file)."
