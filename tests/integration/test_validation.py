@@ -199,7 +199,7 @@ CASES: list[tuple[str, Callable[[Path], None], list[str]]] = [
         cell_id=[99999999999999999999, 12])),
      ["cells_round1.csv row 1 (line 2): `cell_id` = 99999999999999999999 is too large"]),
     ("csv-latin1", raw(G, lambda b: b.replace(b"101,", b"10\xe9,")),
-     ["grids.csv line 3: byte 0xe9 is not UTF-8 text"]),
+     ["grids.csv row 2 (line 3): byte 0xe9 is not UTF-8 text"]),
     ("table-is-a-folder", lambda root: [(root / G).unlink(), (root / G).mkdir()],
      ["scenario.yaml: `grids` = 'grids.csv' is a folder"]),
     ("point-cloud-is-a-folder", lambda root: [(root / "point_cloud.ply").unlink(), (root / "point_cloud.ply").mkdir()],

@@ -70,8 +70,9 @@ def decode_text(data: bytes, name: str) -> str:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         line = data[: exc.start].count(b"\n") + 1
+        where = f"line {line} (the header)" if line == 1 else f"row {line - 1} (line {line})"
         raise DataError(
-            f"{name} line {line}: byte 0x{data[exc.start]:02x} is not UTF-8 text; save the file as UTF-8 "
+            f"{name} {where}: byte 0x{data[exc.start]:02x} is not UTF-8 text; save the file as UTF-8 "
             "(in a spreadsheet: CSV UTF-8)."
         ) from None
     if "\x00" in text:
