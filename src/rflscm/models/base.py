@@ -157,7 +157,8 @@ class LSCMModel(abc.ABC):
 
         path = Path(path)
         if path.is_dir():
-            raise CheckpointError(f"{path}: is a folder; give the checkpoint a file name (e.g. {path / 'model.ckpt'}).")
+            example = path / "model.ckpt"
+            raise CheckpointError(f"{path}: is a folder; give the checkpoint a file name (e.g. {example}).")
         path.parent.mkdir(parents=True, exist_ok=True)
         payload = to_plain({
             "rflscm_version": __version__,
@@ -196,9 +197,10 @@ def to_plain(value: Any) -> Any:
     if isinstance(value, torch.Tensor):
         return value.detach().cpu()
     if isinstance(value, np.ndarray):
-        if value.dtype == object:
+        try:
+            return {_NDARRAY: torch.from_numpy(np.ascontiguousarray(value).copy())}
+        except TypeError:  # text or object arrays, dtypes torch has no tensor for
             return {_JSON: json.dumps(value.tolist(), default=str)}
-        return {_NDARRAY: torch.from_numpy(np.ascontiguousarray(value).copy())}
     if isinstance(value, np.generic):
         return value.item()
     if value is None or isinstance(value, (bool, int, float, str)):
