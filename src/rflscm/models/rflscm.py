@@ -42,12 +42,13 @@ from rflscm.errors import CheckpointError
 from rflscm.fields import PassiveMedium, TensorVM, resolution_for
 from rflscm.fields.grid_codes import GridCodes
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import LSCMModel, read_checkpoint, register_model
+from rflscm.models.base import LSCMModel, discard_partial_save, read_checkpoint, register_model
 from rflscm.models.hitam import HiTAM
 from rflscm.models.radiance import RadianceDecoder, RadianceStage, SceneFrame
 from rflscm.models.rflscm_config import RFLSCMConfig, load_rflscm_config
 from rflscm.models.rflscm_render import RenderMixin
 from rflscm.models.rflscm_scene import (
+    check_scene_box,
     SceneInfo,
     building_targets,
     make_frame,
@@ -157,6 +158,7 @@ class RFLSCM(RenderMixin, LSCMModel):
         wavelengths = np.array([scenario.wavelength_m(int(c)) for c in cell_ids])
         dist = np.linalg.norm(data.grid_xyz.double().numpy() - cell_xyz[data.cell_index.numpy()], axis=1)
         lo, hi = scene_box(scenario, cfg.render.step_m)
+        check_scene_box(cfg, lo, hi)
         grids = scenario.grids
         self.scene = SceneInfo(
             cell_ids, cell_xyz, wavelengths, grids["grid_id"].to_numpy(np.int64), grids[["x", "y", "z"]].to_numpy(np.float64),
@@ -180,6 +182,7 @@ class RFLSCM(RenderMixin, LSCMModel):
     def fit(self, scenario: Any, progress: bool = True, callback: Any = None,
             checkpoint_path: str | Path | None = None, resume: bool = False) -> dict[str, float]:  # fmt: skip
         """Train on the round-1 measurements of ``scenario`` (see :meth:`LSCMModel.fit`)."""
+        discard_partial_save(checkpoint_path)  # a save killed half-way (kill -9) leaves its temporary file behind
         self._prepare(scenario)
         self.fingerprint = scenario.fingerprint()
         d = self._train.data
@@ -197,13 +200,27 @@ class RFLSCM(RenderMixin, LSCMModel):
     def _resume_from(self, path: str | Path, trainer: Trainer) -> None:
         payload = read_checkpoint(path)
         state = payload["state"]
-        if payload["model"] != self.name or payload["fingerprint"] != self.fingerprint:
-            raise CheckpointError(f"{path}: cannot resume: it holds a {payload['model']!r} model of another scenario.")
+        if payload["model"] != self.name:
+            raise CheckpointError(
+                f"{path}: cannot resume: it holds a {payload['model']!r} model, not {self.name!r}; train {self.name} "
+                "into another file, or without --resume to overwrite it."
+            )
+        if payload["fingerprint"] != self.fingerprint:
+            raise CheckpointError(f"{path}: cannot resume: it was trained on another scenario (or other data).")
         ours, theirs = to_dict(self.config), dict(state["config"])
-        ours["train"] = {**ours["train"], "steps": None}
-        theirs["train"] = {**theirs["train"], "steps": None}
+        steps_now, steps_then = ours["train"]["steps"], dict(theirs.get("train") or {}).get("steps")
+        if steps_now != steps_then:
+            raise CheckpointError(
+                f"{path}: cannot resume: it was trained towards `train.steps` = {steps_then}, this run asks for "
+                f"{steps_now}; the learning-rate schedule (lr_decay ** (step / steps)) depends on it. Resume with "
+                f"`train.steps: {steps_then}`, or train afresh without --resume."
+            )
         if ours != theirs:
-            raise CheckpointError(f"{path}: cannot resume: the checkpoint was trained with another config.")
+            keys = _changed_keys(ours, theirs)
+            raise CheckpointError(
+                f"{path}: cannot resume: the checkpoint was trained with another config (changed: "
+                f"{', '.join(keys[:5]) or 'layout'}); resume with its config or train afresh without --resume."
+            )
         if state.get("train_state") is None:
             raise CheckpointError(f"{path}: cannot resume: the checkpoint holds no optimizer state.")
         self._load_stage_weights(state["stages"])
@@ -301,6 +318,17 @@ class RFLSCM(RenderMixin, LSCMModel):
         self.stages.to(self.device)
         self.forget_aps()
         self._cache.pop("selection", None)
+
+
+def _changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two nested config dicts."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        out: list[str] = []
+        for key in sorted(set(a) | set(b), key=str):
+            out += _changed_keys(a.get(key), b.get(key), f"{prefix}.{key}" if prefix else str(key))
+        return out
+    same = a == b or (isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)) and list(a) == list(b))
+    return [] if same else [prefix]
 
 
 class _TrainContext:
