@@ -65,6 +65,8 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"`{where}` must be a number (got {value!r}).")
+        if value != value:  # NaN: a number no setting can mean
+            raise ConfigError(f"`{where}` must be a number (got .nan).")
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
@@ -98,6 +100,16 @@ def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
             f"unknown key(s) {', '.join(repr(k) for k in unknown)} in {where}; "
             f"valid keys: {', '.join(sorted(fields))}."
         )
+    required = [
+        name for name, f in fields.items()
+        if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING and name not in data
+    ]  # fmt: skip
+    if required:
+        where = f"`{prefix}`" if prefix else cls.__name__
+        raise ConfigError(
+            f"{where} is missing required key(s) {', '.join(repr(k) for k in required)}; "
+            f"give {', '.join(required)} (valid keys: {', '.join(sorted(fields))})."
+        )
     kwargs = {
         name: _coerce(hints[name], value, f"{prefix}.{name}" if prefix else name)
         for name, value in data.items()
@@ -116,15 +128,69 @@ def to_dict(obj: Any) -> Any:
     return obj
 
 
-def load_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping, turning I/O and syntax problems into :class:`ConfigError`."""
+class StrictLoader(yaml.SafeLoader):
+    """PyYAML's safe loader that refuses a key given twice in one mapping (PyYAML keeps the last silently)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                hash(key)
+            except TypeError:
+                line = key_node.start_mark.line + 1
+                raise ConfigError(f"line {line}: a key must be a plain value (got {key!r}).") from None
+            if key in seen:
+                raise ConfigError(
+                    f"line {key_node.start_mark.line + 1}: key {key!r} appears twice in the same mapping "
+                    f"(first on line {seen[key]}); keep one."
+                )
+            seen[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep=deep)
+
+
+def parse_yaml(text: str) -> Any:
+    """YAML text → Python values, with :class:`StrictLoader` (safe tags only, no duplicate keys)."""
+    return yaml.load(text, Loader=StrictLoader)
+
+
+def read_text_file(path: str | Path, what: str = "file") -> str:
+    """UTF-8 text of a file; a missing file, a folder, no permission or another encoding is a :class:`ConfigError`."""
     path = Path(path)
-    if not path.is_file():
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a folder, not a {what}; give the {what} itself.")
+    if not path.exists():
         raise ConfigError(f"{path}: file not found.")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = path.read_bytes()
+    except PermissionError:
+        raise ConfigError(f"{path}: cannot read the {what} (permission denied); make it readable.") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the {what} ({exc.strerror or type(exc).__name__}).") from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise ConfigError(
+            f"{path} line {line}: byte 0x{data[exc.start]:02x} is not UTF-8 text; save the file as UTF-8."
+        ) from None
+    if "\x00" in text:
+        raise ConfigError(f"{path}: holds NUL bytes; this is not a text file.")
+    return text
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping, turning I/O, encoding and syntax problems and duplicate keys into :class:`ConfigError`."""
+    path = Path(path)
+    text = read_text_file(path, "YAML file")
+    try:
+        data = parse_yaml(text)
+    except ConfigError as exc:
+        raise ConfigError(f"{path} {exc}") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc}).") from None
+    except (ValueError, TypeError, OverflowError, RecursionError) as exc:  # e.g. a timestamp out of range
+        raise ConfigError(f"{path}: a value cannot be read ({exc}).") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -134,8 +200,9 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
 
 def load_config(cls: type[T], path: str | Path) -> T:
     """Load dataclass ``cls`` from a YAML file with strict keys."""
+    data = load_yaml(path)
     try:
-        return from_dict(cls, load_yaml(path))
+        return from_dict(cls, data)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
 

@@ -180,7 +180,7 @@ CASES: list[tuple[str, Callable[[Path], None], list[str]]] = [
     ("broken-yaml", lambda root: (root / "scenario.yaml").write_text("name: [unclosed\ngrids: g.csv\n"),
      ["ConfigError: ", "scenario.yaml: not valid YAML"]),
     ("tx-power-in-watts-or-mw", set_cell(C1, 2, "tx_power_dbm", 20000.0),
-     ["cells_round1.csv row 2 (line 3): `tx_power_dbm` = 20000.0 is outside -30…60 dBm"]),
+     ["cells_round1.csv row 2 (line 3): `tx_power_dbm` = 20000.0 is outside the plausible -20…40 dBm"]),
     ("lat-out-of-range", lambda root: [scenario_yaml(lambda d: d.update(origin={"lat": 48.1, "lon": 11.6}))(root),
                                        to_lat_lon(G)(root), set_cell(G, 2, "lat", 148.1)(root)],
      ["grids.csv row 2 (line 3): `lat` = 148.1 must lie in −90…90°"]),

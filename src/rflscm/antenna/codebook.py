@@ -37,9 +37,14 @@ class SSBCodebook:
 
     def __post_init__(self) -> None:
         if not self.azimuths_deg or not self.tilts_deg:
-            raise ConfigError("an SSB codebook needs at least one azimuth and one tilt.")
-        if self.active_h < 1 or self.active_v < 1:
-            raise ConfigError(f"SSB sub-array must be at least 1 × 1 (got {self.active_h} × {self.active_v}).")
+            raise ConfigError("an SSB codebook needs at least one azimuth and one tilt (`azimuths_deg`, `tilts_deg`).")
+        _check_angles("azimuths_deg", self.azimuths_deg, 180.0, "azimuth in the antenna frame, positive to the left")
+        _check_angles("tilts_deg", self.tilts_deg, 90.0, "tilt, positive down")
+        if not 1 <= self.active_h <= MAX_ELEMENTS or not 1 <= self.active_v <= MAX_ELEMENTS:
+            raise ConfigError(
+                f"`active_h` × `active_v` = {self.active_h} × {self.active_v}: the SSB sub-array needs "
+                f"1…{MAX_ELEMENTS} elements per axis."
+            )
 
     @property
     def num_beams(self) -> int:
@@ -83,10 +88,32 @@ class DFTCodebook:
     beams_v: tuple[int, ...] = (0, 1, 2, 3)
 
     def __post_init__(self) -> None:
-        if min(self.n1, self.n2, self.o1, self.o2) < 1:
-            raise ConfigError(f"DFT codebook needs N1, N2, O1, O2 >= 1 (got {self.n1}, {self.n2}, {self.o1}, {self.o2}).")
+        if min(self.n1, self.n2, self.o1, self.o2) < 1 or max(self.n1, self.n2) > MAX_ELEMENTS:
+            raise ConfigError(
+                f"a DFT codebook needs N1, N2 in 1…{MAX_ELEMENTS} and O1, O2 >= 1 "
+                f"(got n1={self.n1}, n2={self.n2}, o1={self.o1}, o2={self.o2})."
+            )
+        if max(self.o1, self.o2) > MAX_OVERSAMPLING:
+            raise ConfigError(
+                f"`o1`, `o2` = {self.o1}, {self.o2}: oversampling factors are 1…{MAX_OVERSAMPLING} "
+                "(TS 38.214 uses 1 or 4)."
+            )
         if not self.beams_h or not self.beams_v:
             raise ConfigError("a DFT codebook needs at least one horizontal and one vertical beam index.")
+        axes = (("beams_h", self.beams_h, self.o1 * self.n1), ("beams_v", self.beams_v, self.o2 * self.n2))
+        for key, beams, size in axes:
+            bad = [b for b in beams if abs(b) >= size]
+            if bad:
+                raise ConfigError(
+                    f"`{key}` = {bad[0]} is beyond the {size} DFT beams (O × N = {size}); indices lie in "
+                    f"−{size - 1}…{size - 1}."
+                )
+            aliased = [b for i, b in enumerate(beams) if any((b - c) % size == 0 for c in beams[:i])]
+            if aliased:
+                raise ConfigError(
+                    f"`{key}` lists the beam {aliased[0]} twice (indices equal modulo O × N = {size} are the same "
+                    "beam); drop the duplicate."
+                )
 
     @property
     def num_beams(self) -> int:
@@ -106,6 +133,21 @@ class DFTCodebook:
         return torch.as_tensor(w, dtype=torch.complex128)
 
 
+MAX_ELEMENTS = 1024
+"""Largest number of array elements per axis (as the cells tables' ``array_nh``/``array_nv``)."""
+MAX_OVERSAMPLING = 16
+
+
+def _check_angles(key: str, angles: tuple[float, ...], limit: float, meaning: str) -> None:
+    """Finite angles within ±``limit``°, none listed twice."""
+    for value in angles:
+        if not np.isfinite(value) or abs(value) > limit:
+            raise ConfigError(f"`{key}` = {value!r} is outside −{limit:g}…{limit:g}° ({meaning}).")
+    seen = [a for i, a in enumerate(angles) if a in angles[:i]]
+    if seen:
+        raise ConfigError(f"`{key}` lists {seen[0]!r} twice, which makes duplicate beams; drop the duplicate.")
+
+
 Codebook = SSBCodebook | DFTCodebook
 _CODEBOOKS: dict[str, type] = {"ssb": SSBCodebook, "dft": DFTCodebook}
 
@@ -117,7 +159,11 @@ def codebook_from_dict(spec: dict[str, Any], where: str = "codebook") -> Codeboo
     kind = spec["type"]
     if kind not in _CODEBOOKS:
         raise ConfigError(f"`{where}.type` must be one of {', '.join(sorted(_CODEBOOKS))} (got {kind!r}).")
-    return from_dict(_CODEBOOKS[kind], spec, prefix=where)
+    try:
+        return from_dict(_CODEBOOKS[kind], spec, prefix=where)
+    except ConfigError as exc:
+        text = str(exc)
+        raise ConfigError(text if f"`{where}" in text else f"`{where}`: {text}") from None
 
 
 def electrical_tilt_taper(array: ArrayGeometry, wavelength_m: float, elec_tilt_deg: float) -> torch.Tensor:

@@ -21,8 +21,10 @@ _DBD_TO_DBI = 2.15
 def _parse_gain(tokens: list[str], where: str) -> float:
     try:
         value = float(tokens[1])
+        if not -20.0 <= value <= 50.0:  # also refuses nan and inf
+            raise ValueError
     except (IndexError, ValueError):
-        raise DataError(f"{where}: GAIN needs a number, e.g. `GAIN 17.5 dBi` (got {' '.join(tokens)!r}).") from None
+        raise DataError(f"{where}: GAIN needs a number in −20…50 dBi, e.g. `GAIN 17.5 dBi` (got {' '.join(tokens)!r}).") from None
     unit = tokens[2].lower() if len(tokens) > 2 else "dbi"
     if unit not in ("dbi", "dbd"):
         raise DataError(f"{where}: GAIN unit must be dBi or dBd (got {tokens[2]!r}).")
@@ -45,6 +47,9 @@ def _read_block(lines: list[str], start: int, count: int, label: str, path: Path
                 f"{path} line {lineno}: expected `<angle_deg> <loss_db>` in the {label} block "
                 f"(got {lines[start + k].strip()!r})."
             ) from None
+    if not np.isfinite(rows).all():
+        bad = int(np.flatnonzero(~np.isfinite(rows).all(axis=1))[0])
+        raise DataError(f"{path} line {start + bad + 1}: {label} row holds a value that is not a finite number.")
     expected = np.arange(count) * (360.0 / count)
     if not np.allclose(rows[:, 0], expected, atol=1e-6):
         bad = int(np.argmax(~np.isclose(rows[:, 0], expected, atol=1e-6)))
@@ -63,9 +68,14 @@ def _read_block(lines: list[str], start: int, count: int, label: str, path: Path
 def read_msi(path: str | Path) -> MeasuredElement:
     """Read a Planet/MSI pattern file into a :class:`MeasuredElement`."""
     path = Path(path)
+    if path.is_dir():
+        raise DataError(f"{path}: is a folder, not an antenna pattern file.")
     if not path.is_file():
         raise DataError(f"{path}: antenna pattern file not found.")
-    lines = path.read_text(errors="replace").splitlines()
+    try:
+        lines = path.read_bytes().decode("utf-8", errors="replace").splitlines()  # comments may be in any encoding
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read the antenna pattern file ({exc.strerror or type(exc).__name__}).") from None
     name, gain = path.stem, None
     blocks: dict[str, np.ndarray] = {}
     i = 0

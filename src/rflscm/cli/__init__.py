@@ -57,7 +57,8 @@ def main() -> None:
     try:
         app(standalone_mode=False)
     except RflscmError as exc:
-        print(f"{type(exc).__name__}: {exc}", file=sys.stderr)
+        message = " ".join(str(exc).split())  # one line, whatever text from a file the message quotes
+        print(f"{type(exc).__name__}: {message}", file=sys.stderr)
         sys.exit(2)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)

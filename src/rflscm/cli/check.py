@@ -10,7 +10,7 @@ from rich.table import Table
 
 from rflscm.cli import app
 from rflscm.data import ASPRS_CLASSES, Scenario, load_scenario
-from rflscm.data.summary import cells_per_carrier, measurement_stats, notes
+from rflscm.data.summary import cells_per_carrier, measurement_stats, notes, table_rows
 
 
 @app.command()
@@ -40,6 +40,8 @@ def _print_summary(sc: Scenario, console: Console) -> None:
     console.print(f"  grids: {len(sc.grid_ids())}")
     books = ", ".join(f"{name} ({cb.type}, {cb.num_beams} beams)" for name, cb in meta.codebooks.items())
     console.print(f"  codebooks: {books}")
+    rows = ", ".join(f"{name} {n:,}" for name, n in table_rows(sc).items())
+    console.print(f"  rows read: {rows} (none rejected)", soft_wrap=True)
     _print_measurements(sc, console)
     _print_point_cloud(sc, console)
     for note in notes(sc):

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import random
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -19,6 +22,50 @@ ThreadsOption = typer.Option(
     help=f"CPU threads torch uses inside one operation (default: ${THREADS_ENV} if set, else torch's own "
     "default). On a busy machine 1 can be many times faster than more.",
 )  # fmt: skip
+
+
+def output_file(path: Path, option: str) -> Path:
+    """Check an output file option before any work is done: a folder or an unwritable place is a
+    :class:`ConfigError` (not a traceback after minutes of training).  Creates the parent folder."""
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{option} {path}: is a folder; give a file name (e.g. {path / 'out'}…).")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        raise ConfigError(f"{option} {path}: cannot create its folder ({reason}).") from None
+    if not os.access(path.parent, os.W_OK):
+        raise ConfigError(f"{option} {path}: its folder is not writable.")
+    return path
+
+
+def output_folder(path: Path, option: str) -> Path:
+    """Like :func:`output_file` for an option naming a folder (created if needed)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{option} {path}: is a file; give a folder.")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        raise ConfigError(f"{option} {path}: cannot create the folder ({reason}).") from None
+    return path
+
+
+def json_text(value: object) -> str:
+    """JSON with every NaN or ±inf written as ``null`` (``json.dumps`` would write ``NaN``, which is not JSON)."""
+
+    def clean(v: object) -> object:
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [clean(x) for x in v]
+        return v
+
+    return json.dumps(clean(value), indent=2, allow_nan=False)
 
 
 def resolve_device(name: str) -> torch.device:

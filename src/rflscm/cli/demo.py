@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -11,7 +10,15 @@ from rich.console import Console
 from rich.table import Table
 
 from rflscm.cli import app
-from rflscm.cli.common import DeviceOption, SeedOption, budget_note, resolve_device, seed_everything
+from rflscm.cli.common import (
+    DeviceOption,
+    SeedOption,
+    budget_note,
+    json_text,
+    output_folder,
+    resolve_device,
+    seed_everything,
+)
 
 ROWS = [
     ("SSB MAE, all cells [dB]", ("ssb", "all")),
@@ -62,7 +69,7 @@ def demo(
     console = Console()
     dev = resolve_device(device)
     scen = load_scenario(scenario or default_scenario_path())
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out, "--out")
     console.print(f"scenario [bold]{scen.meta.name}[/bold]: {len(scen.cell_ids())} cells, {len(scen.grid_ids())} grids; device {dev}")
     results: dict[str, dict] = {}
     for name, preset in (("wnomp", None), ("rflscm", config)):
@@ -78,7 +85,7 @@ def demo(
         with console.status(f"evaluating {name}…"):
             evaluation = run_evaluation(model, scen, AdjustProtocol(), oracle="auto")
         metrics = evaluation.metrics
-        (out / f"{name}.json").write_text(json.dumps(metrics, indent=2))
+        (out / f"{name}.json").write_text(json_text(metrics))
         write_report(evaluation, scen, model, out / f"report-{name}")
         results[name] = metrics
     console.print(demo_table(results, f"Antenna adjustment on {scen.meta.name}: round-2 RSRP predicted from round 1"))

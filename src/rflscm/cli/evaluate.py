@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import typer
@@ -11,7 +10,15 @@ from rich.markup import escape
 from rich.table import Table
 
 from rflscm.cli import app
-from rflscm.cli.common import DeviceOption, SeedOption, resolve_device, seed_everything
+from rflscm.cli.common import (
+    DeviceOption,
+    SeedOption,
+    json_text,
+    output_file,
+    output_folder,
+    resolve_device,
+    seed_everything,
+)
 from rflscm.errors import ConfigError
 
 
@@ -37,6 +44,8 @@ def evaluate(
 
     if protocol is not None and protocol not in PROTOCOLS:
         raise ConfigError(f"--protocol {protocol!r} is unknown; choose one of: {', '.join(PROTOCOLS)}.")
+    json_out = None if json_out is None else output_file(json_out, "--json")
+    report = None if report is None else output_folder(report, "--report")
     seed_everything(seed)
     dev = resolve_device(device)
     sc = load_scenario(scenario)
@@ -56,8 +65,7 @@ def evaluate(
     if metrics["unsupported"]:
         console.print(f"[yellow]note:[/yellow] {escape(metrics['unsupported'])}")
     if json_out is not None:
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(metrics, indent=2))
+        json_out.write_text(json_text(metrics))
         console.print(f"wrote {json_out}")
     if report is not None:
         path = write_report(evaluation, sc, model, report)

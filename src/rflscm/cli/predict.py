@@ -11,7 +11,7 @@ import typer
 from rich.console import Console
 
 from rflscm.cli import app
-from rflscm.cli.common import DeviceOption, SeedOption, resolve_device, seed_everything
+from rflscm.cli.common import DeviceOption, SeedOption, output_file, resolve_device, seed_everything
 from rflscm.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -24,7 +24,7 @@ def _id_list(text: str | None, option: str) -> np.ndarray | None:
         return None
     try:
         return np.array([int(v) for v in text.split(",") if v.strip()], dtype=np.int64)
-    except ValueError:
+    except (ValueError, OverflowError):
         raise ConfigError(f"{option} takes comma-separated integer ids (got {text!r}).") from None
 
 
@@ -62,9 +62,16 @@ def long_form(round: int, beam_type: str, pairs: pd.DataFrame, rsrp_dbm: np.ndar
 
 
 def _export_aps(model: LSCMModel, scenario: Scenario, cells: np.ndarray, grids: np.ndarray, path: Path) -> int:
+    options = (("--aps-cells", cells, scenario.cell_ids()), ("--aps-grids", grids, scenario.grid_ids()))
+    for option, ids, known in options:
+        unknown = np.setdiff1d(ids, known)
+        if unknown.size or not ids.size:
+            shown = ", ".join(map(str, known[:10])) + (", …" if len(known) > 10 else "")
+            what = f"has unknown id(s) {', '.join(map(str, unknown[:5]))}" if unknown.size else "is empty"
+            raise ConfigError(f"{option} {what}; ids of scenario {scenario.meta.name!r}: {shown}.")
     cell_ids, grid_ids = (a.ravel() for a in np.meshgrid(cells, grids, indexing="ij"))
     xyz = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
-    aps = model.aps(cell_ids, grid_ids, xyz).detach().cpu().double().numpy()
+    aps = model.checked_aps(cell_ids, grid_ids, xyz).detach().cpu().double().numpy()
     pair, bins = np.nonzero(aps > 0)
     el, az = model.angle_grid.bin_angles()
     table = pd.DataFrame(
@@ -102,6 +109,14 @@ def predict(
     from rflscm.eval.cache import APSCache
     from rflscm.models import load_model
 
+    output_file(out, "--out")
+    cells, grids = _id_list(aps_cells, "--aps-cells"), _id_list(aps_grids, "--aps-grids")
+    if (cells is None) != (grids is None):
+        raise ConfigError("--aps-cells and --aps-grids go together.")
+    if cells is not None:
+        output_file(aps_out, "--aps-out")
+    if attenuation_map is not None:
+        output_file(attenuation_map, "--attenuation-map")
     seed_everything(seed)
     dev = resolve_device(device)
     console = Console(stderr=True)

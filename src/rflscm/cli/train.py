@@ -9,7 +9,7 @@ import typer
 from rich.console import Console
 
 from rflscm.cli import app
-from rflscm.cli.common import DeviceOption, SeedOption, budget_note, resolve_device, seed_everything
+from rflscm.cli.common import DeviceOption, SeedOption, budget_note, output_file, resolve_device, seed_everything
 from rflscm.errors import ConfigError
 
 
@@ -50,6 +50,7 @@ def train(
     if model not in MODEL_REGISTRY:
         valid = ", ".join(sorted(MODEL_REGISTRY))
         raise ConfigError(f"unknown model {model!r}; choose one of: {valid}.")
+    output_file(out, "--out")
     if resume and not out.is_file():
         raise ConfigError(f"--resume needs an existing checkpoint at {out}; train without --resume first.")
     seed_everything(seed)

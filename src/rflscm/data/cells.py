@@ -39,6 +39,7 @@ from rflscm.antenna import ArrayGeometry, ElementPattern, TR38901Element, read_m
 from rflscm.data.columns import (
     TableRef,
     check_not_empty,
+    check_unknown_columns,
     clean_column_names,
     duplicate_rows,
     float_column,
@@ -50,7 +51,7 @@ from rflscm.data.columns import (
     str_column,
 )
 from rflscm.data.meta import ScenarioMeta, frequency_unit_hint
-from rflscm.data.positions import XYZ, finish_table, position_columns
+from rflscm.data.positions import XYZ, finish_table, known_columns, position_columns
 from rflscm.errors import ConfigError, DataError
 
 CELL_COLUMNS = tuple(
@@ -59,7 +60,12 @@ CELL_COLUMNS = tuple(
 """Columns of a normalised cells table, in order (extra user columns follow)."""
 REQUIRED = ["cell_id", "site_id", "azimuth_deg", "mech_tilt_deg", "elec_tilt_deg", "freq_hz", "ssb_codebook", "csi_codebook"]
 DEFAULT_ELEMENT = "tr38901"
-TX_POWER_RANGE_DBM = (-30.0, 60.0)
+TX_POWER_RANGE_DBM = (-20.0, 40.0)
+"""Plausible RS power per resource element (EPRE) [dBm]: small cells ≈ 0…10, macro cells ≈ 10…25 (TS 38.104
+output powers spread over the subcarriers); values outside are a unit mistake (W, mW or total power)."""
+_CODEBOOK_TYPE = {"ssb_codebook": "ssb", "csi_codebook": "dft"}
+MAX_ARRAY_ELEMENTS = 4096
+"""Most antenna elements of one cell (array_nh × array_nv): 64 × 64; massive-MIMO panels have a few hundred."""
 MAX_SPACING_WL = 2.0
 """Element spacings above this many wavelengths are taken for a unit mistake (wavelengths given as metres)."""
 
@@ -83,6 +89,7 @@ def normalise_cells(
     df = clean_column_names(df, ref)
     check_not_empty(df, ref, "one row per cell")
     xyz = position_columns(df, ref, REQUIRED, meta.origin)
+    check_unknown_columns(df, ref, known_columns(df, CELL_COLUMNS))
     out = pd.DataFrame({"cell_id": int_column(df, ref, "cell_id"), "site_id": int_column(df, ref, "site_id")})
     out[list(XYZ)] = xyz
     _angles(df, ref, out)
@@ -125,7 +132,10 @@ def _radio(df: pd.DataFrame, ref: TableRef, out: pd.DataFrame, meta: ScenarioMet
     out["freq_hz"] = carriers[np.argmax(match, axis=1)]
     power = float_column(df, ref, "tx_power_dbm", default=15.0)
     lo, hi = TX_POWER_RANGE_DBM
-    problem = f"is outside {lo:g}…{hi:g} dBm (the RS power per resource element, EPRE, in dBm; typically 10…25)"
+    problem = (
+        f"is outside the plausible {lo:g}…{hi:g} dBm (the RS power per resource element, EPRE, in dBm; typically "
+        "10…25; total transmit power or W/mW?)"
+    )
     raise_rows(ref, (power < lo) | (power > hi), "tx_power_dbm", df.get("tx_power_dbm", power), problem)
     out["tx_power_dbm"] = power
 
@@ -135,6 +145,9 @@ def _array(df: pd.DataFrame, ref: TableRef, out: pd.DataFrame) -> None:
         n = int_column(df, ref, name, default=default)
         raise_rows(ref, (n < 1) | (n > 1024), name, df.get(name, n), "must be a number of elements in 1…1024")
         out[name] = n
+    total = out["array_nh"].to_numpy() * out["array_nv"].to_numpy()
+    problem = f"× `array_nv` is more than {MAX_ARRAY_ELEMENTS} elements (the largest array rflscm models)"
+    raise_rows(ref, total > MAX_ARRAY_ELEMENTS, "array_nh", df.get("array_nh", out["array_nh"]), problem)
     wavelength = wavelength_of(1.0) / out["freq_hz"].to_numpy()  # [num_cells] m
     for name, default_wl in (("spacing_h_m", 0.5), ("spacing_v_m", 0.7)):
         spacing = float_column(df, ref, name, default=default_wl * wavelength)
@@ -155,6 +168,14 @@ def _codebooks(df: pd.DataFrame, ref: TableRef, out: pd.DataFrame, meta: Scenari
         known = np.isin(names, list(meta.codebooks))
         problem = f"is not a codebook of scenario.yaml `codebooks`; valid: {valid}"
         raise_rows(ref, ~known, column, df[column], problem)
+        wanted = _CODEBOOK_TYPE[column]
+        kinds = np.array([meta.codebooks[n].type for n in names], dtype=object)
+        others = ", ".join(n for n, cb in meta.codebooks.items() if cb.type == wanted) or "none"
+        problem = (
+            f"is a `type: {'dft' if wanted == 'ssb' else 'ssb'}` codebook in scenario.yaml, but `{column}` needs a "
+            f"`type: {wanted}` codebook (of this kind: {others}); swapped `ssb_codebook` and `csi_codebook`?"
+        )
+        raise_rows(ref, kinds != wanted, column, df[column], problem)
         out[column] = pd.array(names, dtype="str")
         combos = pd.DataFrame({"name": names, "nh": out["array_nh"], "nv": out["array_nv"]})
         for row in combos.drop_duplicates().itertuples():  # few distinct (codebook, array) pairs
@@ -176,6 +197,10 @@ def _elements(df: pd.DataFrame, ref: TableRef, out: pd.DataFrame, root: Path) ->
             continue
         first = int(np.flatnonzero(names == name)[0])
         path = root / name
+        if path.is_dir():
+            raise DataError(
+                f"{ref.row(first)}: `element` = {name!r} is a folder ({path}); give a Planet/MSI pattern file."
+            )
         if not path.is_file():
             raise DataError(
                 f"{ref.row(first)}: `element` = {name!r}: file not found ({path}); give a Planet/MSI pattern file "

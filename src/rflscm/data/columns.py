@@ -13,7 +13,7 @@ match the file.
 from __future__ import annotations
 
 import difflib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -32,10 +32,15 @@ class TableRef:
 
     name: str
     csv: bool = False
+    lines: np.ndarray | None = field(default=None, compare=False)
+    """int64 ``[num_rows]`` text-editor line of each CSV row when it is not ``row + 1`` (blank lines)."""
 
     def label(self, pos: int) -> str:
-        """``"row N"`` (plus ``"(line N+1)"`` for CSV) for 0-based position ``pos`` in file order."""
-        return f"row {pos + 1} (line {pos + 2})" if self.csv else f"row {pos + 1}"
+        """``"row N"`` (plus ``"(line L)"`` for CSV) for 0-based position ``pos`` in file order."""
+        if not self.csv:
+            return f"row {pos + 1}"
+        line = int(self.lines[pos]) if self.lines is not None and pos < len(self.lines) else pos + 2
+        return f"row {pos + 1} (line {line})"
 
     def row(self, pos: int) -> str:
         """``"<name> row N"`` for 0-based position ``pos`` in file order."""
@@ -128,8 +133,9 @@ def require_columns(df: pd.DataFrame, ref: TableRef, required: list[str], requir
         if close:
             hints.append(f"`{close[0]}` → `{name}`?")
     hint = f" Rename {', '.join(hints)}" if hints else ""
-    if len(df.columns) == 1 and ";" in str(df.columns[0]):
-        hint = " The header looks ';'-separated; save the file as comma-separated CSV."
+    for separator, label in ((";", "';'"), ("\t", "tab"), ("|", "'|'")):
+        if len(df.columns) == 1 and separator in str(df.columns[0]):
+            hint = f" The header looks {label}-separated; save the file as comma-separated CSV."
     found = ", ".join(f"`{c}`" for c in df.columns) or "none"
     raise DataError(
         f"{ref.name}: missing column(s) {', '.join(f'`{c}`' for c in missing)}; "
@@ -138,15 +144,25 @@ def require_columns(df: pd.DataFrame, ref: TableRef, required: list[str], requir
 
 
 def _as_float(series: pd.Series, ref: TableRef, column: str) -> np.ndarray:
-    """Float64 values ``[num_rows]`` of a column; text that is not a number is an error."""
+    """Float64 values ``[num_rows]`` of a column; text that is not a number is an error (all such rows counted)."""
+    kind = series.dtype.kind if isinstance(series.dtype, np.dtype) else ""
     if pd.api.types.is_bool_dtype(series.dtype):
         raise_rows(ref, np.ones(len(series), bool), column, series, "is true/false; a number is needed")
+    if kind and kind in "mMcV":  # dates, durations, complex numbers, raw bytes: not plain numbers
+        problem = f"has type {series.dtype}; a plain number is needed"
+        raise_rows(ref, np.ones(len(series), bool), column, series, problem)
     if pd.api.types.is_numeric_dtype(series.dtype):
         return series.to_numpy(dtype=np.float64, na_value=np.nan)
+    if series.dtype == object:  # Python objects (lists, bytes, …) from Parquet: their text form is judged
+        series = series.map(lambda v: v if v is None or isinstance(v, (str, int, float, np.number)) else repr(v))
     coerced = pd.to_numeric(series, errors="coerce")
     text = series.astype("string").str.strip()
     bad = (coerced.isna() & text.notna() & (text != "")).to_numpy(dtype=bool, na_value=False)
-    raise_rows(ref, bad, column, series, "is not a number; write plain numbers (a dot as decimal separator, no units)")
+    problem = (
+        "is not a number; write plain numbers (a dot as decimal separator, no units) and leave the field empty "
+        "where there is no value (not N/A, null or NaN)"
+    )
+    raise_rows(ref, bad, column, series, problem)
     return coerced.to_numpy(dtype=np.float64, na_value=np.nan)
 
 
@@ -173,15 +189,27 @@ def float_column(
     return values
 
 
+MAX_INT = 2**53
+"""Largest integer (ids, counts) a table may hold: every integer up to it is exact as a float64."""
+
+
 def int_column(df: pd.DataFrame, ref: TableRef, column: str, *, default: int | None = None) -> np.ndarray:
-    """An integer column as int64 ``[num_rows]`` (``3.0`` is accepted, ``3.5`` and empty values are not)."""
+    """An integer column as int64 ``[num_rows]`` (``3.0`` is accepted, ``3.5``, empty values and integers
+    beyond ±2^53 are not)."""
     series = df[column] if column in df.columns else None
-    if series is not None and isinstance(series.dtype, np.dtype) and series.dtype.kind in "iu":
-        return series.to_numpy(dtype=np.int64)
+    if series is not None and isinstance(series.dtype, np.dtype) and series.dtype.kind == "i":
+        values = series.to_numpy(dtype=np.int64)
+        raise_rows(ref, np.abs(values) > MAX_INT, column, series, _TOO_BIG)
+        return values
     values = float_column(df, ref, column, default=None if default is None else float(default))
     fractional = values != np.round(values)
-    raise_rows(ref, fractional, column, df.get(column, values), "is not a whole number; give an integer")
+    raw = df[column] if column in df.columns else values
+    raise_rows(ref, fractional, column, raw, "is not a whole number; give an integer")
+    raise_rows(ref, np.abs(values) > MAX_INT, column, raw, _TOO_BIG)
     return values.astype(np.int64)
+
+
+_TOO_BIG = f"is too large; integers here must lie within ±{MAX_INT} (2^53)"
 
 
 def str_column(df: pd.DataFrame, ref: TableRef, column: str, *, default: str | None = None) -> np.ndarray:
@@ -193,7 +221,10 @@ def str_column(df: pd.DataFrame, ref: TableRef, column: str, *, default: str | N
         if default is None:
             raise DataError(f"{ref.name}: missing column `{column}`.")
         return np.full(len(df), default, dtype=object)
-    codes, uniques = pd.factorize(df[column], use_na_sentinel=True)
+    series = df[column]
+    if series.dtype == object:  # unhashable objects (lists from Parquet) are judged by their text
+        series = series.map(lambda v: v if v is None or isinstance(v, (str, int, float, np.number)) else repr(v))
+    codes, uniques = pd.factorize(series, use_na_sentinel=True)
     texts = np.array([_text_of(u) for u in uniques] + [""], dtype=object)  # code −1 → ""
     values = texts[codes]
     empty = values == ""
@@ -237,3 +268,24 @@ def duplicate_rows(
         f"{ref.row(later)}: {label} = {shown} duplicates {ref.label(first)}; "
         f"{fix}. {int(dup.sum())} duplicate row(s) in all."
     )
+
+
+def check_unknown_columns(df: pd.DataFrame, ref: TableRef, known: list[str] | tuple[str, ...]) -> list[str]:
+    """Columns of ``df`` that rflscm does not use (returned, for ``check`` to list as ignored).
+
+    A column that is not known but looks like a known column that is absent (same name in another case,
+    or a close spelling) is an error with a did-you-mean: otherwise the known column would silently take
+    its default.
+    """
+    present = {str(c) for c in df.columns}
+    absent = [k for k in known if k not in present]
+    unknown = [str(c) for c in df.columns if str(c) not in known]
+    for name in unknown:
+        same_case = [k for k in absent if k.lower() == name.lower().replace(" ", "_")]
+        close = same_case or difflib.get_close_matches(name, absent, n=1, cutoff=0.8)
+        if close:
+            raise DataError(
+                f"{ref.name}: column `{name}` is not a column rflscm knows; did you mean `{close[0]}`? Rename it "
+                f"(as written, it would be ignored and `{close[0]}` would take its default)."
+            )
+    return unknown

@@ -20,11 +20,12 @@ import yaml
 from rflscm.config import load_yaml
 from rflscm.data.cells import DEFAULT_ELEMENT, normalise_cells
 from rflscm.data.columns import TableRef
-from rflscm.data.io import read_table, table_kind, write_table
+from rflscm.data.io import LINE_NUMBERS, read_table, table_kind, write_table
 from rflscm.data.measurements import empty_measurements, normalise_measurements
 from rflscm.data.meta import ScenarioMeta, meta_from_dict
+from rflscm.data.plausibility import check_overlap
 from rflscm.data.pointcloud import read_point_cloud, write_point_cloud
-from rflscm.data.positions import normalise_grids
+from rflscm.data.positions import XYZ, normalise_grids
 from rflscm.data.scenario import Scenario
 from rflscm.errors import ConfigError, DataError
 
@@ -67,12 +68,17 @@ def _referenced(root: Path, name: str, key: str, yaml_name: str) -> Path:
         raise DataError(
             f"{yaml_name}: `{key}` = {name!r}: not found ({path}); file names are relative to the scenario folder."
         )
+    if key != "truth" and path.is_dir():
+        raise DataError(f"{yaml_name}: `{key}` = {name!r} is a folder ({path}); give the file itself.")
+    if key == "truth" and not path.is_dir():
+        raise DataError(f"{yaml_name}: `truth` = {name!r} is a file ({path}); give the truth folder.")
     return path
 
 
 def _read(root: Path, name: str, key: str, yaml_name: str) -> tuple[pd.DataFrame, TableRef]:
     path = _referenced(root, name, key, yaml_name)
-    return read_table(path), TableRef(name, csv=table_kind(path) == "csv")
+    df = read_table(path)
+    return df, TableRef(name, csv=table_kind(path) == "csv", lines=df.attrs.get(LINE_NUMBERS))
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -105,6 +111,11 @@ def load_scenario(path: str | Path) -> Scenario:
         point_cloud = read_point_cloud(_referenced(root, meta.point_cloud, "point_cloud", yaml_name))
     if meta.truth is not None:
         _referenced(root, meta.truth, "truth", yaml_name)
+    parts: list[tuple[Any, np.ndarray]] = [(meta.rounds[1], cells[1][list(XYZ)].to_numpy(np.float64))]
+    parts.append((meta.grids, grids[list(XYZ)].to_numpy(np.float64)))
+    if point_cloud is not None:
+        parts.append((meta.point_cloud, point_cloud.xyz))
+    check_overlap(parts)
     scenario = Scenario(root, meta, cells, grids, measurements, point_cloud)
     scenario._elements.update(elements)
     return scenario

@@ -23,6 +23,7 @@ import pandas as pd
 from rflscm.data.columns import (
     TableRef,
     check_not_empty,
+    check_unknown_columns,
     clean_column_names,
     duplicate_rows,
     float_column,
@@ -82,6 +83,7 @@ def normalise_measurements(
     df = clean_column_names(df, ref)
     check_not_empty(df, ref, "one row per (round, cell, grid, beam)")
     require_columns(df, ref, list(MEASUREMENT_COLUMNS))
+    check_unknown_columns(df, ref, MEASUREMENT_COLUMNS)
     out, r_idx, c_idx, g_idx = _ids(df, ref, meta, cells, grid_ids, grids_name)
     t_idx = _beam_types(df, ref)
     out["beam_type"] = pd.array(np.asarray(BEAM_TYPES, dtype=object)[t_idx], dtype="str")

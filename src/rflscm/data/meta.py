@@ -35,6 +35,10 @@ RSRP_MIN_DBM = -156.0
 """Lowest reportable RSRP [dBm] (TS 38.133 RSRP report mapping)."""
 RSRP_MAX_DBM = -31.0
 """Highest reportable RSRP [dBm] (TS 38.133 RSRP report mapping)."""
+MAX_FREQUENCY_HZ = 3e11
+"""Highest carrier accepted [Hz] (300 GHz: beyond any 5G/6G band; a larger value is a unit mistake)."""
+MAX_ROUND = 2**31 - 1
+"""Largest round number (it must fit the measurements table's integer column)."""
 
 
 @dataclass(frozen=True)
@@ -164,8 +168,9 @@ def _frequencies(value: Any) -> tuple[float, ...]:
     for i, item in enumerate(items):
         freq = _number(item, f"frequencies_hz[{i}]")
         hint = frequency_unit_hint(freq)
-        if freq <= 0 or hint:
-            raise ConfigError(f"`frequencies_hz[{i}]` = {item!r} {hint or 'must be > 0 Hz'}")
+        if not 0 < freq <= MAX_FREQUENCY_HZ or hint:
+            allowed = f"must be a carrier in Hz, 0 < f ≤ {MAX_FREQUENCY_HZ:.0e} Hz."
+            raise ConfigError(f"`frequencies_hz[{i}]` = {item!r} {hint or allowed}")
         out.append(freq)
     if len(set(out)) != len(out):
         raise ConfigError(f"`frequencies_hz` lists a carrier twice ({fmt_list(fmt_number(f) for f in out)}).")
@@ -187,8 +192,8 @@ def _rounds(value: Any) -> dict[int, str]:
         raise ConfigError("`rounds` must map round numbers to {cells: FILE}, e.g. {1: {cells: cells.csv}}.")
     rounds: dict[int, str] = {}
     for key, spec in value.items():
-        if isinstance(key, bool) or not isinstance(key, int) or key < 1:
-            raise ConfigError(f"`rounds` keys must be round numbers 1, 2, … (got {key!r}).")
+        if isinstance(key, bool) or not isinstance(key, int) or not 1 <= key <= MAX_ROUND:
+            raise ConfigError(f"`rounds` keys must be round numbers 1, 2, … up to {MAX_ROUND} (got {key!r}).")
         if isinstance(spec, str):
             spec = {"cells": spec}
         if not isinstance(spec, dict) or set(spec) != {"cells"}:

@@ -20,6 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
+from rflscm.data.plausibility import (
+    COORDINATE_FIX,
+    HEIGHT_FIX,
+    HEIGHT_RANGE_M,
+    MAX_HORIZONTAL_M,
+    height_problem,
+    horizontal_problem,
+)
 from rflscm.errors import DataError
 
 POINT_CLOUD_SUFFIXES = (".ply", ".las", ".laz", ".npy")
@@ -91,6 +99,8 @@ def read_point_cloud(path: str | Path) -> PointCloud:
     """
     path = Path(path)
     suffix = _suffix(path)
+    if path.is_dir():
+        raise DataError(f"{path}: is a folder, not a point cloud file.")
     if not path.is_file():
         raise DataError(f"{path}: point cloud file not found.")
     reader = {".ply": _read_ply, ".las": _read_las, ".laz": _read_las, ".npy": _read_npy}[suffix]
@@ -111,6 +121,15 @@ def read_point_cloud(path: str | Path) -> PointCloud:
             f"{path.name} point {first + 1}: coordinates {pc.xyz[first].tolist()} are not finite; "
             f"remove such points ({int(bad.sum())} in all)."
         )
+    for bad, fix in ((horizontal_problem(pc.xyz), COORDINATE_FIX), (height_problem(pc.xyz), HEIGHT_FIX)):
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            lo, hi = HEIGHT_RANGE_M
+            raise DataError(
+                f"{path.name} point {first + 1}: coordinates {pc.xyz[first].tolist()} are implausible "
+                f"(|x|, |y| at most {MAX_HORIZONTAL_M / 1e3:g} km, z in {lo:g}…{hi:g} m); {fix}. "
+                f"{int(bad.sum())} point(s) in all."
+            )
     return pc
 
 

@@ -14,6 +14,7 @@ import pandas as pd
 from rflscm.data.columns import (
     TableRef,
     check_not_empty,
+    check_unknown_columns,
     clean_column_names,
     duplicate_rows,
     float_column,
@@ -22,6 +23,14 @@ from rflscm.data.columns import (
     require_columns,
 )
 from rflscm.data.geo import Origin, geodetic_to_enu
+from rflscm.data.plausibility import (
+    COORDINATE_FIX,
+    HEIGHT_FIX,
+    HEIGHT_RANGE_M,
+    MAX_HORIZONTAL_M,
+    height_problem,
+    horizontal_problem,
+)
 from rflscm.errors import DataError
 
 XYZ = ("x", "y", "z")
@@ -47,14 +56,33 @@ def position_columns(df: pd.DataFrame, ref: TableRef, required: list[str], origi
         )
     if not has_geo:
         require_columns(df, ref, list(required[:1]) + list(XYZ) + list(required[1:]), _required_text(required))
-        return np.stack([float_column(df, ref, c) for c in XYZ], axis=-1)
+        xyz = np.stack([float_column(df, ref, c) for c in XYZ], axis=-1)
+        _plausible(df, ref, xyz, geo=False)
+        return xyz
     require_columns(df, ref, list(required[:1]) + list(GEO) + list(required[1:]), _required_text(required))
     if origin is None:
         raise DataError(
             f"{ref.name}: gives lat/lon/height_m but scenario.yaml has no `origin`; add "
             "`origin: {lat: …, lon: …, height_m: 0}` (the centre of the local frame) or give x/y/z in metres."
         )
-    return _project(df, ref, origin)
+    xyz = _project(df, ref, origin)
+    _plausible(df, ref, xyz, geo=True)
+    return xyz
+
+
+def _plausible(df: pd.DataFrame, ref: TableRef, xyz: np.ndarray, geo: bool) -> None:
+    """Per-row coordinate limits of :mod:`rflscm.data.plausibility`."""
+    far = horizontal_problem(xyz)
+    if far.any():
+        column = "lat" if geo else ("x" if np.abs(xyz[np.flatnonzero(far)[0], 0]) > MAX_HORIZONTAL_M else "y")
+        raise_rows(
+            ref, far, column, df[column], f"puts the point more than {MAX_HORIZONTAL_M / 1e3:g} km from the frame's "
+            f"origin; {COORDINATE_FIX}",
+        )
+    column = "height_m" if geo else "z"
+    lo, hi = HEIGHT_RANGE_M
+    problem = f"is outside the plausible {lo:g}…{hi:g} m; {HEIGHT_FIX}"
+    raise_rows(ref, height_problem(xyz), column, df[column], problem)
 
 
 def _required_text(required: list[str]) -> str:
@@ -82,10 +110,18 @@ def normalise_grids(df: pd.DataFrame, ref: TableRef, origin: Origin | None) -> p
     check_not_empty(df, ref, "one row per grid: grid_id and the grid centre's position")
     require_columns(df, ref, ["grid_id"], "grid_id, " + POSITION_TEXT)
     xyz = position_columns(df, ref, ["grid_id"], origin)
+    check_unknown_columns(df, ref, known_columns(df, GRID_COLUMNS))
     out = pd.DataFrame({"grid_id": int_column(df, ref, "grid_id")})
     out[list(XYZ)] = xyz
     duplicate_rows(ref, out, ["grid_id"], "every grid needs its own id")
     return finish_table(out, df, ["grid_id"])
+
+
+def known_columns(df: pd.DataFrame, columns: tuple[str, ...]) -> list[str]:
+    """``columns`` of a normalised table with x/y/z replaced by lat/lon/height_m when ``df`` is geographic."""
+    if any(c in df.columns for c in GEO):
+        return [c for c in columns if c not in XYZ] + list(GEO)
+    return list(columns)
 
 
 def finish_table(out: pd.DataFrame, raw: pd.DataFrame, sort_by: list[str] | None) -> pd.DataFrame:

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from rflscm.data.measurements import BEAM_TYPES
+from rflscm.data.cells import CELL_COLUMNS
+from rflscm.data.measurements import BEAM_TYPES, MEASUREMENT_COLUMNS
+from rflscm.data.positions import GRID_COLUMNS
 from rflscm.data.scenario import Scenario
 
 
@@ -50,12 +52,40 @@ def measurement_stats(scenario: Scenario) -> pd.DataFrame:
     return stats[columns]
 
 
+def table_rows(scenario: Scenario) -> dict[str, int]:
+    """Rows read per table file (file name as in scenario.yaml → rows); every row of a file that loads is read."""
+    meta = scenario.meta
+    rows = {name: len(scenario.cells[r]) for r, name in meta.rounds.items()}
+    rows[meta.grids] = len(scenario.grids)
+    if meta.measurements is not None:
+        rows[meta.measurements] = len(scenario.measurements)
+    return rows
+
+
+def ignored_columns(scenario: Scenario) -> dict[str, list[str]]:
+    """Columns of each table file that rflscm does not use (kept in the tables, but ignored)."""
+    meta = scenario.meta
+    tables = [(meta.rounds[r], df, CELL_COLUMNS) for r, df in scenario.cells.items()]
+    tables.append((meta.grids, scenario.grids, GRID_COLUMNS))
+    if meta.measurements is not None:
+        tables.append((meta.measurements, scenario.measurements, MEASUREMENT_COLUMNS))
+    out = {}
+    for name, df, known in tables:
+        extra = [str(c) for c in df.columns if c not in known]
+        if extra:
+            out[name] = extra
+    return out
+
+
 def notes(scenario: Scenario) -> list[str]:
-    """Things worth knowing that are not errors (cells or grids without data, values under r_th)."""
-    out = []
+    """Things worth knowing that are not errors (unused columns, cells or grids without data, values under r_th)."""
+    out = [
+        f"{name}: column(s) {', '.join(f'`{c}`' for c in columns)} are not used by rflscm (ignored)"
+        for name, columns in ignored_columns(scenario).items()
+    ]
     m = scenario.measurements
     if len(m) == 0:
-        return ["no measurements: usable for predictions only"]
+        return [*out, "no measurements: usable for predictions only"]
     round1 = m[(m["round"] == 1).to_numpy()]
     silent = np.setdiff1d(scenario.cell_ids(), round1["cell_id"].unique())
     if silent.size:

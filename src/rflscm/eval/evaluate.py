@@ -358,7 +358,7 @@ def _aps_metrics(
 
 def _aps_chunk(model: LSCMModel, cells: np.ndarray, grids: np.ndarray) -> np.ndarray:
     with torch.no_grad():
-        return model.aps(cells, grids).detach().float().cpu().numpy()
+        return model.checked_aps(cells, grids).detach().float().cpu().numpy()
 
 
 def _counts(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, Any]:

@@ -11,11 +11,22 @@ Evaluation only ever calls this contract:
   configuration through the sensing matrix (r = A′ x), shared by all models;
 * :meth:`LSCMModel.save` / :func:`load_model` write and read a single
   checkpoint file holding the config, the weights and the scenario fingerprint.
+
+Checkpoints (format ``rflscm-checkpoint/2``) are safe to open and checked (issue 14): they hold only
+tensors, numbers, text and lists/dicts of them, read with ``torch.load(weights_only=True)`` so a file
+never runs code; numpy arrays travel as tensors and any other value as a JSON string (see
+:func:`to_plain`); a SHA-256 over the content, written at save, is verified at load; weights that are
+not finite are refused, and so is every non-finite APS a model answers (:meth:`LSCMModel.checked_aps`).
 """
 
 from __future__ import annotations
 
 import abc
+import hashlib
+import json
+import os
+import pickle
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,13 +36,15 @@ import numpy as np
 import pandas as pd
 import torch
 
-from rflscm.errors import CheckpointError, UnsupportedError
+from rflscm.errors import CheckpointError, DataError, RflscmError, UnsupportedError
 from rflscm.geometry import AngleGrid
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
 
 MIN_POWER_MW = 1e-30  # floor before taking dB of a predicted RSRP
+CHECKPOINT_FORMAT = "rflscm-checkpoint/2"
+_NDARRAY, _JSON = "__ndarray__", "__json__"
 
 __all__ = [
     "MIN_POWER_MW",
@@ -54,6 +67,10 @@ class TrainingPlan:
     """long ``[P]``: indices of the training pairs (the model's own numbering)."""
     groups: torch.Tensor | None = None
     """long ``[P]``: a group key per pair (batches come in runs of ``pairs_per_cell`` of one group), or None."""
+
+
+class NonFiniteError(RflscmError):
+    """A model produced NaN or infinite values (damaged checkpoint, diverged training)."""
 
 
 class LSCMModel(abc.ABC):
@@ -107,6 +124,21 @@ class LSCMModel(abc.ABC):
         Raises :class:`UnsupportedError` where the model has no answer."""
 
     # --- prediction, shared --------------------------------------------------------------------
+    def checked_aps(
+        self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None
+    ) -> torch.Tensor:
+        """:meth:`aps`, refusing an answer that is not finite and ≥ 0 (never write NaN or drop beams silently)."""
+        x = self.aps(cell_ids, grid_ids, grid_xyz)
+        bad = ~torch.isfinite(x) | (x < 0)
+        if bool(bad.any()):
+            pair = int(torch.nonzero(bad.any(1))[0, 0])
+            raise NonFiniteError(
+                f"the {self.name} model answered a non-finite or negative APS for (cell {int(cell_ids[pair])}, grid "
+                f"{int(grid_ids[pair])}) ({int(bad.any(1).sum())} of {len(x)} pairs); its checkpoint is damaged or "
+                "its training diverged: retrain it with the `train` command."
+            )
+        return x
+
     def predict_rsrp(
         self, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, chunk: int = 4096
     ) -> np.ndarray:
@@ -123,7 +155,7 @@ class LSCMModel(abc.ABC):
             for start in range(0, len(rows), chunk):
                 sel = rows[start : start + chunk]
                 with torch.no_grad():
-                    x = self.aps(cell_ids[sel], grid_ids[sel], grid_xyz[sel])  # [pairs, bins]
+                    x = self.checked_aps(cell_ids[sel], grid_ids[sel], grid_xyz[sel])  # [pairs, bins]
                     power_mw = (x.to(a.dtype) @ a.T).clamp_min(MIN_POWER_MW)
                 out[sel, : a.shape[0]] = 10.0 * np.log10(power_mw.cpu().double().numpy())
         return out
@@ -138,25 +170,141 @@ class LSCMModel(abc.ABC):
     def from_checkpoint(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> LSCMModel:
         """Inverse of :meth:`state_dict_for_checkpoint`."""
 
+    def check_loaded(self) -> None:  # noqa: B027 - an optional hook, not abstract
+        """Called by :func:`load_model` after :meth:`from_checkpoint` (and the angle grid) are in place:
+        subclasses check that what they read is consistent (index ranges, shapes) and raise
+        :class:`CheckpointError` otherwise.  The default checks nothing."""
+
     def save(self, path: str | Path) -> Path:
-        """Write a single checkpoint file atomically (temp file + rename)."""
+        """Write a single checkpoint file atomically (temp file, fsync, rename); see the module docstring."""
         from rflscm import __version__
 
         path = Path(path)
+        if path.is_dir():
+            example = path / "model.ckpt"
+            raise CheckpointError(f"{path}: is a folder; give the checkpoint a file name (e.g. {example}).")
         path.parent.mkdir(parents=True, exist_ok=True)
-        payload = {
-            "format": "rflscm-checkpoint/1",
+        payload = to_plain({
             "rflscm_version": __version__,
             "model": self.name,
             "fingerprint": self.fingerprint,
             "angle_grid": self.angle_grid.to_dict(),
             "run_info": self.run_info,
             "state": self.state_dict_for_checkpoint(),
-        }
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(payload, tmp)
+        })  # fmt: skip
+        tmp = partial_save_path(path)
+        tmp.unlink(missing_ok=True)  # a partial file left by a save that was killed
+        with open(tmp, "wb") as f:
+            torch.save({"format": CHECKPOINT_FORMAT, "sha256": content_hash(payload), "payload": payload}, f)
+            f.flush()
+            os.fsync(f.fileno())
         tmp.replace(path)
         return path
+
+
+def partial_save_path(path: str | Path) -> Path:
+    """The temporary file :meth:`LSCMModel.save` writes before renaming it to ``path``."""
+    path = Path(path)
+    return path.with_name(path.name + ".tmp")
+
+
+def discard_partial_save(path: str | Path | None) -> None:
+    """Remove the temporary file of a save that was interrupted (kill -9, full disk) before it was renamed."""
+    if path is not None:
+        partial_save_path(path).unlink(missing_ok=True)
+
+
+def to_plain(value: Any) -> Any:
+    """``value`` as tensors, numbers, str, None, lists and str/int-keyed dicts only (what
+    ``torch.load(weights_only=True)`` reads): a numpy array becomes ``{"__ndarray__": tensor}``, a numpy
+    scalar a number, a tuple a list, and anything else ``{"__json__": text}``.  :func:`from_plain` inverts it."""
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, np.ndarray):
+        try:
+            return {_NDARRAY: torch.from_numpy(np.ascontiguousarray(value).copy())}
+        except TypeError:  # text or object arrays, dtypes torch has no tensor for
+            return {_JSON: json.dumps(value.tolist(), default=str)}
+    if isinstance(value, np.generic):
+        return value.item()
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, dict):
+        return {(k if isinstance(k, (str, int)) else str(k)): to_plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_plain(v) for v in value]
+    return {_JSON: json.dumps(value, default=str)}
+
+
+def from_plain(value: Any) -> Any:
+    """Inverse of :func:`to_plain` (lists stay lists)."""
+    if isinstance(value, dict):
+        if len(value) == 1 and _NDARRAY in value:
+            return value[_NDARRAY].numpy()
+        if len(value) == 1 and _JSON in value:
+            return json.loads(value[_JSON])
+        return {k: from_plain(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [from_plain(v) for v in value]
+    return value
+
+
+def content_hash(value: Any) -> str:
+    """SHA-256 (hex) of a plain value: every key, number, text, and every tensor's dtype, shape and bytes, in a
+    fixed order, so it does not depend on how pickle lays the file out."""
+    h = hashlib.sha256()
+    _hash_into(h, value)
+    return h.hexdigest()
+
+
+def _hash_into(h: Any, value: Any) -> None:
+    if isinstance(value, torch.Tensor):
+        t = value.detach().cpu().contiguous()
+        h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    elif isinstance(value, dict):
+        h.update(f"D{len(value)}".encode())
+        for key in sorted(value, key=repr):
+            h.update(f"K{key!r}".encode())
+            _hash_into(h, value[key])
+    elif isinstance(value, (list, tuple)):
+        h.update(f"L{len(value)}".encode())
+        for item in value:
+            _hash_into(h, item)
+    else:
+        h.update(f"V{type(value).__name__}:{value!r}".encode())
+
+
+def _first_non_finite(value: Any, where: str = "") -> str | None:
+    """Key path of the first floating-point tensor holding NaN or ±inf (``None`` when all are finite)."""
+    if isinstance(value, torch.Tensor):
+        if value.is_floating_point() or value.is_complex():
+            return None if bool(torch.isfinite(value).all()) else where
+        return None
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    for key, item in items:
+        if key == _NDARRAY:
+            found = _first_non_finite(item, where)
+        else:
+            found = _first_non_finite(item, f"{where}.{key}" if where else str(key))
+        if found is not None:
+            return found
+    return None
+
+
+def require_round1_reports(scenario: Any, model_name: str) -> int:
+    """Number of reported (non-empty) round-1 RSRP values; none is a :class:`DataError` (every model learns
+    from round 1, so fitting on nothing would give a model that answers nothing or noise)."""
+    m = scenario.measurements
+    round1 = (m["round"] == 1).to_numpy()
+    reported = int(np.isfinite(m["rsrp_dbm"].to_numpy(dtype=np.float64)[round1]).sum())
+    if reported == 0:
+        raise DataError(
+            f"scenario {scenario.meta.name!r} has no reported round-1 RSRP ({int(round1.sum())} round-1 rows, all "
+            f"empty); {model_name} learns from round 1: add round-1 measurements "
+            f"({scenario.meta.measurements or 'none'})."
+        )
+    return reported
 
 
 MODEL_REGISTRY: dict[str, type[LSCMModel]] = {}
@@ -169,16 +317,66 @@ def register_model(cls: type[LSCMModel]) -> type[LSCMModel]:
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Read a checkpoint file's payload, with clear errors for missing or foreign files."""
+    """Read and verify a checkpoint file's payload (``format`` … ``state``, numpy arrays restored).
+
+    Raises:
+        CheckpointError: missing file, a folder, unreadable, not an rflscm checkpoint, holds Python objects
+            other than plain data (refused unread), its content does not match its SHA-256, or holds
+            non-finite weights.
+    """
     path = Path(path)
+    if path.is_dir():
+        raise CheckpointError(f"{path}: is a folder, not a checkpoint file; give the .ckpt file.")
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file not found.")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
+        with open(path, "rb") as f:
+            f.read(4)
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot read the checkpoint ({exc.strerror or type(exc).__name__}).") from None
+    if not zipfile.is_zipfile(path):
+        raise CheckpointError(
+            f"{path}: not an rflscm checkpoint (not a PyTorch archive; damaged, truncated or another kind of file)."
+        )
+    try:
+        archive = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if "unsupported global" in str(exc).lower() or "unsupported class" in str(exc).lower():
+            raise CheckpointError(
+                f"{path}: refused: the file holds Python objects other than tensors and plain data, which could run "
+                "code when loaded; rflscm checkpoints never do (a file from elsewhere, or from an rflscm before "
+                "checkpoint format 2: retrain it with the `train` command)."
+            ) from None
+        raise CheckpointError(f"{path}: not a readable rflscm checkpoint ({first}).") from None
+    except PermissionError:
+        raise CheckpointError(f"{path}: cannot read the checkpoint (permission denied).") from None
     except Exception as exc:
-        raise CheckpointError(f"{path}: not a readable rflscm checkpoint ({type(exc).__name__}: {exc}).") from None
-    if not isinstance(payload, dict) or payload.get("format") != "rflscm-checkpoint/1":
-        raise CheckpointError(f"{path}: not an rflscm checkpoint (no `rflscm-checkpoint/1` header).")
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CheckpointError(
+            f"{path}: not a readable rflscm checkpoint (damaged, truncated or another kind of file: {first[:200]})."
+        ) from None
+    if not isinstance(archive, dict) or archive.get("format") not in (CHECKPOINT_FORMAT, "rflscm-checkpoint/1"):
+        raise CheckpointError(f"{path}: not an rflscm checkpoint (no `{CHECKPOINT_FORMAT}` header).")
+    if archive["format"] != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: written by an older rflscm (format 1); retrain it with the `train` command.")
+    payload = archive.get("payload")
+    if not isinstance(payload, dict) or archive.get("sha256") != content_hash(payload):
+        raise CheckpointError(
+            f"{path}: the content does not match the SHA-256 written when it was saved (the file is damaged or was "
+            "edited); restore it or retrain with the `train` command."
+        )
+    bad = _first_non_finite(payload.get("state"))
+    if bad is not None:
+        raise CheckpointError(
+            f"{path}: holds non-finite values (NaN or inf) in `{bad}`; training diverged or the file was damaged: "
+            "retrain with the `train` command."
+        )
+    payload = from_plain(payload)
+    missing = [k for k in ("model", "fingerprint", "angle_grid", "state") if k not in payload]
+    if missing:
+        raise CheckpointError(f"{path}: incomplete checkpoint (no {', '.join(missing)}); retrain it.")
+    payload["format"] = CHECKPOINT_FORMAT
     return payload
 
 
@@ -187,7 +385,7 @@ def load_model(path: str | Path, scenario: Scenario | None = None, device: torch
     import rflscm.models  # noqa: F401  (fills the registry)
 
     payload = read_checkpoint(path)
-    name = payload["model"]
+    name = str(payload["model"])
     if name not in MODEL_REGISTRY:
         raise CheckpointError(f"{path}: unknown model {name!r}; known: {', '.join(sorted(MODEL_REGISTRY))}.")
     if scenario is not None and payload["fingerprint"] != scenario.fingerprint():
@@ -195,8 +393,18 @@ def load_model(path: str | Path, scenario: Scenario | None = None, device: torch
             f"{path}: this checkpoint was trained on another scenario (fingerprint {str(payload['fingerprint'])[:12]}…, "
             f"scenario {scenario.meta.name!r} has {scenario.fingerprint()[:12]}…); retrain it on this scenario."
         )
-    model = MODEL_REGISTRY[name].from_checkpoint(payload["state"], device=device)
-    model.angle_grid = AngleGrid.from_dict(payload["angle_grid"])
-    model.fingerprint = payload["fingerprint"]
-    model.run_info = dict(payload.get("run_info", {}))
+    try:  # last-resort guard over reading a file: the hash passed, so this is a consistent but foreign layout
+        model = MODEL_REGISTRY[name].from_checkpoint(payload["state"], device=device)
+        model.angle_grid = AngleGrid.from_dict(payload["angle_grid"])
+        model.fingerprint = payload["fingerprint"]
+        model.run_info = dict(payload.get("run_info") or {})
+        model.check_loaded()
+    except RflscmError as exc:
+        raise CheckpointError(f"{path}: {exc}") from None
+    except (KeyError, IndexError, TypeError, ValueError, RuntimeError, AttributeError) as exc:
+        raise CheckpointError(
+            f"{path}: the checkpoint's content does not fit the {name!r} model of this rflscm version "
+            f"({type(exc).__name__}: {str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ''}); "
+            "retrain it with the `train` command."
+        ) from None
     return model

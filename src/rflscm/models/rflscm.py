@@ -57,6 +57,7 @@ from rflscm.models.rflscm_render import APSRenderer
 from rflscm.models.rflscm_scene import (
     SceneInfo,
     building_targets,
+    check_scene_box,
     make_frame,
     make_prior,
     make_surfaces,
@@ -155,6 +156,7 @@ class RFLSCM(LSCMModel):
         wavelengths = np.array([scenario.wavelength_m(int(c)) for c in cell_ids])
         dist = np.linalg.norm(data.grid_xyz.double().numpy() - cell_xyz[data.cell_index.numpy()], axis=1)
         lo, hi = scene_box(scenario, cfg.render.step_m)
+        check_scene_box(cfg, lo, hi)
         grids = scenario.grids
         self.scene = SceneInfo(
             cell_ids, cell_xyz, wavelengths, grids["grid_id"].to_numpy(np.int64), grids[["x", "y", "z"]].to_numpy(np.float64),
@@ -189,15 +191,29 @@ class RFLSCM(LSCMModel):
 
     def resume_from(self, payload: dict[str, Any], path: str | Path) -> dict[str, Any]:
         """Load weights and step from the checkpoint ``payload`` of ``path`` (it must hold this model of this
-        scenario with the same config but for ``train.steps``); returns the trainer state saved with it."""
+        scenario with the same config); returns the trainer state saved with it."""
         state = payload["state"]
-        if payload["model"] != self.name or payload["fingerprint"] != self.fingerprint:
-            raise CheckpointError(f"{path}: cannot resume: it holds a {payload['model']!r} model of another scenario.")
+        if payload["model"] != self.name:
+            raise CheckpointError(
+                f"{path}: cannot resume: it holds a {payload['model']!r} model, not {self.name!r}; train {self.name} "
+                "into another file, or without --resume to overwrite it."
+            )
+        if payload["fingerprint"] != self.fingerprint:
+            raise CheckpointError(f"{path}: cannot resume: it was trained on another scenario (or other data).")
         ours, theirs = to_dict(self.config), dict(state["config"])
-        ours["train"] = {**ours["train"], "steps": None}
-        theirs["train"] = {**theirs["train"], "steps": None}
+        steps_now, steps_then = ours["train"]["steps"], dict(theirs.get("train") or {}).get("steps")
+        if steps_now != steps_then:
+            raise CheckpointError(
+                f"{path}: cannot resume: it was trained towards `train.steps` = {steps_then}, this run asks for "
+                f"{steps_now}; the learning-rate schedule (lr_decay ** (step / steps)) depends on it. Resume with "
+                f"`train.steps: {steps_then}`, or train afresh without --resume."
+            )
         if ours != theirs:
-            raise CheckpointError(f"{path}: cannot resume: the checkpoint was trained with another config.")
+            keys = _changed_keys(ours, theirs)
+            raise CheckpointError(
+                f"{path}: cannot resume: the checkpoint was trained with another config (changed: "
+                f"{', '.join(keys[:5]) or 'layout'}); resume with its config or train afresh without --resume."
+            )
         if state.get("train_state") is None:
             raise CheckpointError(f"{path}: cannot resume: the checkpoint holds no optimizer state.")
         self._load_stage_weights(state["stages"])
@@ -459,6 +475,17 @@ class RFLSCM(LSCMModel):
         self.stages.to(self.device)
         if self._train is not None:
             self._train.selection = None
+
+
+def _changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two nested config dicts."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        out: list[str] = []
+        for key in sorted(set(a) | set(b), key=str):
+            out += _changed_keys(a.get(key), b.get(key), f"{prefix}.{key}" if prefix else str(key))
+        return out
+    same = a == b or (isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)) and list(a) == list(b))
+    return [] if same else [prefix]
 
 
 @dataclass

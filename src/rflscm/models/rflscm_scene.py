@@ -12,11 +12,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from rflscm.errors import ConfigError
+from rflscm.errors import ConfigError, DataError, UnsupportedError
 from rflscm.fields import PointPrior, density_grid
 from rflscm.fields.point_prior import grid_span
 from rflscm.fields.surfaces import SurfaceOrientation, structure_grid
-from rflscm.models.base import UnsupportedError
 from rflscm.models.radiance import SceneFrame
 from rflscm.models.rflscm_config import RFLSCMConfig
 from rflscm.render import num_samples_for
@@ -99,6 +98,47 @@ def scene_box(scenario: Scenario, margin_m: float) -> tuple[np.ndarray, np.ndarr
     pts = np.concatenate(parts)
     lo, hi = pts.min(0) - margin_m, pts.max(0) + margin_m
     return lo, hi
+
+
+MAX_VOXELS = 100_000_000
+"""Most grid points a voxelised scene quantity (point-cloud prior, surface orientation) may have (~400 MB)."""
+MAX_SAMPLES_PER_RAY = 50_000
+"""Most samples along one ray (scene diagonal / ``render.step_m``)."""
+
+
+def check_scene_box(cfg: Any, lo: np.ndarray, hi: np.ndarray) -> None:
+    """Refuse a scene box that cannot be voxelised (``DataError`` naming the extent and the voxel size).
+
+    ``rflscm check`` refuses implausible coordinates already; this is the model's own guard for a scene
+    that passes those limits but is still too large for the configured voxel sizes.
+    """
+    extent = np.asarray(hi, np.float64) - np.asarray(lo, np.float64)
+    size = " × ".join(f"{e:.4g}" for e in extent) + " m"
+    if not np.isfinite(extent).all():
+        raise DataError(f"the scene box (cells, grids and point cloud) is not finite ({size}); run `rflscm check`.")
+    hint = (
+        "are the cells, grids and point cloud in the same coordinate frame and unit (run `rflscm check`)? "
+        "Otherwise raise"
+    )
+    grids = []
+    if getattr(cfg, "prior", None) is not None and cfg.prior.enabled:
+        grids.append(("model.prior.voxel_m", cfg.prior.voxel_m))
+    decoder = getattr(cfg, "decoder", None)
+    if decoder is not None and getattr(decoder, "specular_powers", None):
+        grids.append(("model.decoder.specular_voxel_m", decoder.specular_voxel_m))
+    for key, voxel_m in grids:
+        count = float(np.prod(np.maximum(np.ceil(extent / voxel_m) + 1, 2)))
+        if count > MAX_VOXELS:
+            raise DataError(
+                f"the scene box is {size}: at `{key}` = {voxel_m:g} m that is {count:.3g} voxels, more than the "
+                f"{MAX_VOXELS:.0e} a model can hold; {hint} `{key}`."
+            )
+    samples = float(np.linalg.norm(extent)) / cfg.render.step_m
+    if cfg.render.num_samples is None and samples > MAX_SAMPLES_PER_RAY:
+        raise DataError(
+            f"the scene box is {size}: at `model.render.step_m` = {cfg.render.step_m:g} m a ray needs "
+            f"{samples:.3g} samples, more than {MAX_SAMPLES_PER_RAY}; {hint} `model.render.step_m`."
+        )
 
 
 def make_frame(cfg: RFLSCMConfig, lo: np.ndarray, hi: np.ndarray, cell_xyz: np.ndarray, wavelengths: np.ndarray,

@@ -26,9 +26,9 @@ import pandas as pd
 import torch
 
 from rflscm.config import from_dict, load_yaml, to_dict
-from rflscm.errors import ConfigError
+from rflscm.errors import CheckpointError, ConfigError
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import LSCMModel, UnsupportedError, register_model
+from rflscm.models.base import LSCMModel, UnsupportedError, register_model, require_round1_reports
 from rflscm.models.wnomp_solver import wnomp_solve
 
 if TYPE_CHECKING:
@@ -137,6 +137,7 @@ class WNOMPModel(LSCMModel):
     ) -> dict[str, float]:
         """Solve every (cell, grid) pair of the round-1 measurements; ``resume`` is meaningless here."""
         start = time.perf_counter()
+        require_round1_reports(scenario, "WNOMP")
         pairs, rsrp_dbm, beams_of_cell = round1_problems(scenario)
         threshold_mw = 10.0 ** (scenario.meta.rsrp_threshold_dbm / 10.0) if self.config.use_threshold_constraint else None
         cell_of_pair = pairs["cell_id"].to_numpy()
@@ -211,6 +212,26 @@ class WNOMPModel(LSCMModel):
             "indices": self.indices,
             "values": self.values,
         }
+
+    def check_loaded(self) -> None:
+        """Pairs, indices and values agree in length and every stored bin index lies on the angle grid."""
+        n, k = len(self.cell_ids), self.config.k_max
+        shapes = (len(self.grid_ids), tuple(self.indices.shape), tuple(self.values.shape))
+        if shapes != (n, (n, k), (n, k)):
+            raise CheckpointError(
+                f"the WNOMP arrays do not agree ({n} cells, {shapes[0]} grids, indices {shapes[1]}, values "
+                f"{shapes[2]}, k_max {k}); the file is damaged: retrain it."
+            )
+        bins = self.angle_grid.num_bins
+        bad = (self.indices < -1) | (self.indices >= bins)
+        if bool(bad.any()):
+            value = int(self.indices[bad][0])
+            raise CheckpointError(
+                f"a stored APS bin index ({value}) lies outside the angle grid's 0…{bins - 1} (−1 = unused) in "
+                f"{int(bad.sum())} place(s); the file is damaged: retrain it."
+            )
+        if bool((self.values < 0).any()):
+            raise CheckpointError("stored APS path gains are negative; the file is damaged: retrain it.")
 
     @classmethod
     def from_checkpoint(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> WNOMPModel:

@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from rflscm.errors import ConfigError
-from rflscm.models.base import LSCMModel, TrainingPlan, read_checkpoint
+from rflscm.models.base import LSCMModel, TrainingPlan, discard_partial_save, read_checkpoint
 from rflscm.models.rflscm_config import TrainConfig
 
 if TYPE_CHECKING:
@@ -90,6 +90,7 @@ def fit(
         model.fingerprint = scenario.fingerprint()
     if not isinstance(model, Trainable):
         return model.fit(scenario, progress=progress, callback=callback, checkpoint_path=checkpoint_path, resume=resume)
+    discard_partial_save(checkpoint_path)  # a save killed half-way (kill -9) leaves its temporary file behind
     plan = model.prepare(scenario)
     trainer = Trainer(model, model.train_config, plan.pairs, groups=plan.groups)
     if resume and checkpoint_path is not None and Path(checkpoint_path).is_file():

@@ -49,5 +49,23 @@ def test_missing_and_broken_files(tmp_path: Path) -> None:
     with pytest.raises(DataError, match=r"empty\.csv is empty"):
         read_table(tmp_path / "empty.csv")
     (tmp_path / "broken.parquet").write_bytes(b"not parquet at all")
-    with pytest.raises(DataError, match=r"broken\.parquet: not a readable parquet file"):
+    with pytest.raises(DataError, match=r"broken\.parquet: not a readable Parquet file"):
         read_table(tmp_path / "broken.parquet")
+
+
+def test_strict_csv_reading(tmp_path) -> None:
+    """Issue 14: only an empty field is missing; quoted fields may span lines; line numbers survive blank lines."""
+    path = tmp_path / "t.csv"
+    path.write_text('a,b,c\n1,N/A,\n\n2,"x\ny",3\n')
+    df = read_table(path)
+    assert len(df) == 2 and df["b"].tolist() == ["N/A", "x\ny"] and df["c"].isna().tolist() == [True, False]
+    assert df.attrs["line_numbers"].tolist() == [2, 4]
+    path.write_text("a,b\n1,2\n3\n")
+    with pytest.raises(DataError, match=r"t.csv line 3: 1 field\(s\) where the header has 2; the row is cut short"):
+        read_table(path)
+    path.write_text("a,b\n1,2\n3")
+    with pytest.raises(DataError, match=r"t.csv line 3: 1 field\(s\) where the header has 2; the file ends in the"):
+        read_table(path)
+    path.write_text("a,a\n1,2\n")
+    with pytest.raises(DataError, match="column `a` appears twice"):
+        read_table(path)
