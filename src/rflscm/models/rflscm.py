@@ -445,7 +445,8 @@ class RFLSCM(LSCMModel):
 
     @classmethod
     def from_checkpoint(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> RFLSCM:
-        model = cls(from_dict(cls.config_class, state["config"]), AngleGrid.from_dict(state["angle_grid"]), device)
+        config: Any = from_dict(cls.config_class, _without_removed_options(state["config"]))
+        model = cls(config, AngleGrid.from_dict(state["angle_grid"]), device)
         if state["scene"] is None:
             raise CheckpointError("this checkpoint holds an unfitted model.")
         model.scene = SceneInfo.from_dict(state["scene"])
@@ -459,6 +460,7 @@ class RFLSCM(LSCMModel):
         return model
 
     def _load_stage_weights(self, weights: dict[str, torch.Tensor]) -> None:
+        weights = {_current_key(k): v for k, v in weights.items()}
         for name, module in self.stages.named_modules():
             if isinstance(module, TensorVM):
                 nx, ny, nz = (int(weights[f"{name}.lines.{a}"].shape[2]) for a in range(3))
@@ -475,6 +477,33 @@ class RFLSCM(LSCMModel):
         self.stages.to(self.device)
         if self._train is not None:
             self._train.selection = None
+
+
+_REMOVED_OPTIONS = {("decoder", "grid_code_dim"): 0, ("decoder", "grid_code_neighbours"): None,
+                    ("render", "coherent"): True, ("hitam", "coarse_bins"): "block"}
+"""Options removed in issue 11 → the one value this version implements (None: any)."""
+
+
+def _without_removed_options(config: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint's config without the removed options, if they hold the value still implemented."""
+    config = {k: dict(v) if isinstance(v, dict) else v for k, v in config.items()}
+    for (section, key), kept in _REMOVED_OPTIONS.items():
+        if isinstance(config.get(section), dict) and key in config[section]:
+            value = config[section].pop(key)
+            if kept is not None and value != kept:
+                raise CheckpointError(f"the checkpoint uses `{section}.{key}: {value}`, an option this version no longer has.")
+    return config
+
+
+_OLD_KEYS = ((".delta_field.net.", ".fields."), (".delta_field.", ".fields.delta_vm."), (".feature_field.", ".fields.feature_vm."))
+"""Stage weight names before the field seam (issue 11) → now: NeRF²'s shared trunk, RF-LSCM's two VM tensors."""
+
+
+def _current_key(key: str) -> str:
+    for old, new in _OLD_KEYS:
+        if old in key:
+            return key.replace(old, new, 1)
+    return key
 
 
 def _changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
