@@ -20,6 +20,7 @@ from rflscm.eval.evaluate import run_evaluation
 from rflscm.geometry import AngleGrid
 from rflscm.models import MODEL_REGISTRY
 from rflscm.sim import default_scenario_path
+from rflscm.train import fit
 
 
 def replay(scen, beam_type: str, pairs: pd.DataFrame, width: int) -> np.ndarray:
@@ -42,7 +43,7 @@ def mae(pred: np.ndarray, measured: np.ndarray, rows: np.ndarray, keep: np.ndarr
 def main() -> None:
     scen = load_scenario(default_scenario_path())
     model = MODEL_REGISTRY["wnomp"].build(None, AngleGrid(), "cpu")
-    model.fit(scen, progress=False)
+    fit(model, scen, progress=False)
     ev = run_evaluation(model, scen, max_aps_pairs=10)
     print("MAE [dB] on round 2, SSB / CSI-RS; replay = the round-1 measurement of the same beam")
     print(f"{'rows':<40}{'beams':>8}{'replay':>9}{'WNOMP':>9}{'oracle':>9}{'0.8×WNOMP':>11}")

@@ -23,3 +23,8 @@ class DataError(RflscmError):
 
 class CheckpointError(RflscmError):
     """A checkpoint cannot be loaded or does not belong to the scenario."""
+
+
+class UnsupportedError(RflscmError):
+    """A model cannot answer this request (e.g. WNOMP asked about a grid it never saw, the oracle about a
+    pair the simulation did not trace).  Re-exported by :mod:`rflscm.models`."""

@@ -93,10 +93,13 @@ def test_b1_adjust(tmp_path: Path, scenario_dir: Path) -> None:
     res = run_b1(ctx_for(tmp_path, scenario_dir), tiny_size())
     check_common(res, tmp_path)
     assert set(res["models"]) == {"rflscm", "nerf2", "wnomp"}
-    for name, entry in res["models"].items():
+    for entry in res["models"].values():
         assert set(entry["mae_db"]) == {"ssb", "csi"} and set(entry["mae_db"]["ssb"]) == {"all", "changed"}
         assert entry["mae_db"]["ssb"]["all"] is not None and entry["train_time_s"] > 0
-        assert entry["peak_memory_mb"] is None or entry["peak_memory_mb"] > 0
+        # on Linux the probe samples the RSS: a process holding torch and a scenario is ≥ 50 MB, and the
+        # peak can never lie below its own increase over the start
+        assert entry["memory_kind"] == "cpu_rss" and entry["peak_memory_mb"] > 50
+        assert entry["peak_memory_mb"] >= entry["memory_increase_mb"] >= 0
     for name in ("rflscm", "nerf2"):
         tp = res["models"][name]["throughput"]
         assert tp["ray_samples_per_s"] > 0 and res["models"][name]["parameters"] > 0
@@ -115,7 +118,10 @@ def test_b2_convergence_two_seeds(tmp_path: Path, scenario_dir: Path) -> None:
         assert len(curve["time_s"]) == len(curve["mae_mean_db"]) == len(curve["mae_std_db"])
         assert np.all(np.diff(curve["time_s"]) >= 0)
     assert res["target_mae_db"] is not None and set(res["hitam_speedup"]) == {"rflscm", "nerf2"}
-    assert any(v["reached"] for v in res["variants"].values())  # the best variant reaches its own target
+    for entry in res["variants"].values():  # a seed that reached the target did so within its training time
+        assert 0 <= entry["reached"] <= 2
+        if entry["reached"]:
+            assert 0 <= entry["time_to_target_s"]["mean"] <= max(c[-1][0] for c in entry["raw_curves"]) + 1e-9
 
 
 def test_b3_multifreq(tmp_path: Path, scenario_dir: Path) -> None:
@@ -145,9 +151,28 @@ def test_b5_alpha_p(tmp_path: Path, scenario_dir: Path) -> None:
 
     res = run_b5(ctx_for(tmp_path, scenario_dir), tiny_size())
     check_common(res, tmp_path)
-    assert set(res["sweep"]) == {"0", "0.5"} and res["best_alpha"]["ssb"] in (0.0, 0.5)
-    rate = res["sweep"]["0"]["missing_above_threshold"]
-    assert rate is None or 0.0 <= rate <= 1.0
+    assert set(res["sweep"]) == {"0", "0.5"}
+    # α_P reaches the loss: the two runs differ (same seed, same data)
+    assert res["sweep"]["0"]["mae_db"]["ssb"]["all"] != res["sweep"]["0.5"]["mae_db"]["ssb"]["all"]
+    # the tiny scenario has beams missing in round 2, so the false-report rate is defined
+    assert res["sweep"]["0"]["missing_above_threshold"] is not None
+
+
+def test_false_report_rate_counts_missing_beams_predicted_above_the_threshold(tmp_path: Path, scenario_dir: Path) -> None:
+    from rflscm.bench.b05_alpha_p import false_report_rate
+
+    data = load_bench_data(ctx_for(tmp_path, scenario_dir), tiny_size())
+    threshold = data.scenario.meta.rsrp_threshold_dbm
+
+    class Constant:
+        def __init__(self, dbm: float) -> None:
+            self.dbm = dbm
+
+        def predict_rsrp(self, scenario, round, beam_type, pairs):
+            return np.full((len(pairs), 64), self.dbm)
+
+    assert false_report_rate(Constant(threshold + 10.0), data) == 1.0
+    assert false_report_rate(Constant(threshold - 10.0), data) == 0.0
 
 
 def test_b6_unseen(tmp_path: Path, scenario_dir: Path) -> None:

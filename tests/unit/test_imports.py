@@ -25,8 +25,14 @@ def test_package_imports_first_in_a_fresh_interpreter(module: str) -> None:
     assert run.returncode == 0, run.stderr
 
 
-def test_train_does_not_import_the_models() -> None:
-    # the models import the trainer, so the trainer must not need them at import time
-    run = python("import sys, rflscm.train; print(sorted(m for m in sys.modules if m.startswith('rflscm.models')))")
+def test_models_cannot_reach_the_simulator_or_its_truth() -> None:
+    # the oracle is an evaluation device (rflscm.eval.oracle): importing the models loads nothing of rflscm.sim
+    run = python("import rflscm.models, sys; assert not [m for m in sys.modules if m.startswith('rflscm.sim')]")
+    assert run.returncode == 0, run.stderr
+
+
+def test_models_do_not_import_the_trainer() -> None:
+    # layering: the trainer drives the models, never the reverse
+    run = python("import sys, rflscm.models; print(sorted(m for m in sys.modules if m.startswith('rflscm.train')))")
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == "[]"

@@ -126,8 +126,8 @@ class DFTCodebook:
             )
         h = np.arange(self.n1)
         v = np.arange(self.n2)
-        m, l = np.meshgrid(np.asarray(self.beams_v), np.asarray(self.beams_h), indexing="ij")
-        ph = np.exp(-2j * np.pi * np.outer(l.ravel(), h) / (self.o1 * self.n1))  # [beams, h]
+        m, l_ = np.meshgrid(np.asarray(self.beams_v), np.asarray(self.beams_h), indexing="ij")
+        ph = np.exp(-2j * np.pi * np.outer(l_.ravel(), h) / (self.o1 * self.n1))  # [beams, h]
         pv = np.exp(2j * np.pi * np.outer(m.ravel(), v) / (self.o2 * self.n2))  # [beams, v]
         w = ph[:, :, None] * pv[:, None, :] / np.sqrt(self.n1 * self.n2)
         return torch.as_tensor(w, dtype=torch.complex128)

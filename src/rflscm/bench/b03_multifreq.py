@@ -51,7 +51,7 @@ def run_b3(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
             protocol = MultiFreqProtocol(train_percent=p, with_other_carriers=other)
             runs = [train_and_evaluate(data, "rflscm", protocol, EXTRA[size.name], s, ctx.device) for s in seeds]
             agg = aggregate([record(r) for r in runs])
-            carrier_cells, train_grids, test_grids = protocol.split(data.scenario)
+            _, train_grids, test_grids = protocol.split(data.scenario)
             arms[arm][_key(p)] = {
                 "mae_db": {bt: agg["mean"]["mae_db"][bt]["all"] for bt in ("ssb", "csi")},
                 "mae_std_db": {bt: agg["std"]["mae_db"][bt]["all"] for bt in ("ssb", "csi")},

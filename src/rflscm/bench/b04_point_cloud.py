@@ -95,7 +95,7 @@ def attenuation_map(model: Any, resolution_m: float = 4.0, heights: int = 12) ->
     pts = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), -1).reshape(-1, 3)
     points = torch.as_tensor(pts, dtype=torch.float32, device=model.device)
     stage = model.stages["fine"]
-    loss = stage.medium.loss_db(stage.delta_field(points))
+    loss = stage.medium.loss_db(stage.fields.delta(stage.fields.encode(points)))
     if model.prior is not None:
         loss = loss * model.prior(points)
     return loss.view(len(xs), len(ys), len(zs)).amax(-1).T.cpu().numpy()

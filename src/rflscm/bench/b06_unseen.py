@@ -17,7 +17,7 @@ angles, 1500 steps of 32 pairs) on 2 CPU cores; ``full`` = the whole scenario an
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -27,6 +27,9 @@ from rflscm.bench.harness import BenchSize, bench_size, load_bench_data, train_a
 from rflscm.bench.measure import aps_recovery
 from rflscm.bench.report import aggregate, header, new_figure, save_figure, seeds_of
 from rflscm.eval import UnseenProtocol
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 MODELS = ("rflscm", "nerf2", "wnomp")
 HOLDOUT = 0.2
@@ -69,7 +72,7 @@ def run_b6(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
     return out
 
 
-def reported_pairs(scenario: Any) -> pd.DataFrame:
+def reported_pairs(scenario: Scenario) -> pd.DataFrame:
     """(cell_id, grid_id) pairs with at least one reported round-1 beam (as the evaluation's test pairs)."""
     m = scenario.measurements
     rows = m[((m["round"] == 1) & m["rsrp_dbm"].notna()).to_numpy()]

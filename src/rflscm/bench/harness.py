@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -28,7 +28,9 @@ from rflscm.bench.measure import MemoryProbe
 from rflscm.config import load_yaml, to_dict
 from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import LSCMModel
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 FIELD_MODELS = ("rflscm", "nerf2")
 
@@ -52,9 +54,6 @@ class BenchSize:
     """Model name → nested config overrides laid over the model's preset ``name``."""
     preset: str = "quick"
     """Model preset the overrides are laid over (``quick`` or ``full``)."""
-    memo_aps: bool = True
-    """Render each test pair's APS once per evaluation (evaluation asks per beam type and again for
-    the APS metrics); off at full size, where the dense APS of every pair would not fit in memory."""
 
     def grid(self) -> AngleGrid:
         return AngleGrid(*self.angle_grid)
@@ -86,7 +85,7 @@ def quick_size() -> BenchSize:
 def full_size() -> BenchSize:
     """The paper-like setting for a GPU: the whole scenario and the models' ``full`` presets unchanged."""
     return BenchSize(name="full", max_sites=None, max_grids=None, crop_margin_m=None, angle_grid=(91, 72, -90.0, 2.0),
-                     overrides={"rflscm": {}, "nerf2": {}, "wnomp": {}}, preset="full", memo_aps=False)  # fmt: skip
+                     overrides={"rflscm": {}, "nerf2": {}, "wnomp": {}}, preset="full")  # fmt: skip
 
 
 def tiny_size() -> BenchSize:
@@ -145,7 +144,7 @@ class BenchData:
     """The full scenario, the benchmark's sub-scenario of it, and the oracle fitted on the sub-scenario."""
 
     full: Any
-    scenario: Any
+    scenario: Scenario
     oracle: Any | None
     size: BenchSize
     info: dict[str, Any]
@@ -179,10 +178,9 @@ def load_bench_data(ctx: BenchContext, size: BenchSize) -> BenchData:
     sub, info = sub_scenario(full, size)
     oracle = None
     if full.meta.truth is not None:
-        from rflscm.sim.truth import OracleModel
+        from rflscm.eval.oracle import OracleModel
 
-        oracle = OracleModel(size.grid(), ctx.device)
-        oracle.fit(sub, progress=False)
+        oracle = OracleModel.for_scenario(sub, size.grid(), ctx.device)
     info.update(scenario=str(path), source=source, name=full.meta.name, oracle=oracle is not None)
     return BenchData(full, sub, oracle, size, info)
 
@@ -271,7 +269,7 @@ class RunResult:
     history: list[dict[str, float]]
     config: dict[str, Any]
     judged: Any = None
-    """The model evaluation saw (a :class:`MemoAPS` view holding the rendered test APS, or the model)."""
+    """The model as evaluation saw it: an :class:`~rflscm.eval.cache.APSCache` holding the rendered test APS."""
 
 
 def build_model(data: BenchData, name: str, extra: dict[str, Any] | None = None, seed: int = 0, device: str = "cpu") -> Any:
@@ -298,6 +296,7 @@ def train_and_evaluate(
     :class:`_StopTraining`; the model keeps the weights of the last completed step).
     """
     from rflscm.eval import AdjustProtocol, fit_with_protocol, run_evaluation
+    from rflscm.eval.cache import APSCache
 
     protocol = protocol or AdjustProtocol()
     torch.manual_seed(seed)
@@ -328,7 +327,7 @@ def train_and_evaluate(
         wall = time.perf_counter() - t0 - excluded[0]
     model.run_info["fit"] = {k: float(v) for k, v in summary.items()}
     metrics = {}
-    judged = MemoAPS(model) if data.size.memo_aps else model
+    judged = APSCache(model)
     if evaluate_model:
         metrics = run_evaluation(judged, data.scenario, protocol, oracle=data.oracle).metrics
     return RunResult(model, metrics, {k: float(v) for k, v in summary.items()}, wall, mem.result(),
@@ -337,47 +336,3 @@ def train_and_evaluate(
 
 class _StopTraining(Exception):
     """Raised from the training callback when a run's time budget is spent."""
-
-
-class MemoAPS(LSCMModel):
-    """Evaluation view of a fitted model that renders the APS of each (cell, grid) pair once.
-
-    :func:`rflscm.eval.run_evaluation` asks for the APS of a pair once per beam type and again for the
-    APS metrics; a field model renders it each time.  Everything else is the wrapped model's.
-    """
-
-    def __init__(self, inner: LSCMModel) -> None:
-        super().__init__(inner.angle_grid, inner.device)
-        self.inner = inner
-        self.name = inner.name  # type: ignore[misc]
-        self.supports_unseen_grids = inner.supports_unseen_grids  # type: ignore[misc]
-        self.fingerprint, self.run_info = inner.fingerprint, inner.run_info
-        self._memo: dict[tuple[int, int], torch.Tensor] = {}
-
-    def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
-        keys = list(zip(np.asarray(cell_ids).tolist(), np.asarray(grid_ids).tolist()))
-        todo = np.array([i for i, k in enumerate(keys) if k not in self._memo], dtype=np.int64)
-        if todo.size:
-            xyz = None if grid_xyz is None else np.asarray(grid_xyz)[todo]
-            rows = self.inner.aps(np.asarray(cell_ids)[todo], np.asarray(grid_ids)[todo], xyz).detach().cpu()
-            for i, row in zip(todo.tolist(), rows):
-                self._memo[keys[i]] = row
-        if not keys:
-            return torch.zeros(0, self.angle_grid.num_bins, device=self.device)
-        return torch.stack([self._memo[k] for k in keys]).to(self.device)
-
-    # the contract's learning and persistence belong to the wrapped model
-    @classmethod
-    def build(cls, config: Any, angle_grid: AngleGrid, device: Any) -> LSCMModel:  # pragma: no cover
-        raise NotImplementedError("MemoAPS wraps a fitted model")
-
-    def fit(self, scenario: Any, progress: bool = True, callback: Any = None, checkpoint_path: Any = None,
-            resume: bool = False) -> dict[str, float]:  # pragma: no cover  # fmt: skip
-        raise NotImplementedError("MemoAPS wraps a fitted model")
-
-    def state_dict_for_checkpoint(self) -> dict[str, Any]:  # pragma: no cover
-        return self.inner.state_dict_for_checkpoint()
-
-    @classmethod
-    def from_checkpoint(cls, state: dict[str, Any], device: Any = "cpu") -> LSCMModel:  # pragma: no cover
-        raise NotImplementedError("MemoAPS wraps a fitted model")

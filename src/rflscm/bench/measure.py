@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+
 # --- memory and throughput ----------------------------------------------------------------------------
 def _rss_mb() -> float | None:
     try:
@@ -29,7 +30,8 @@ class MemoryProbe:
 
     def __init__(self, device: str) -> None:
         self.cuda = str(device).startswith("cuda")
-        self.before = self.peak = None
+        self.before: float | None = None
+        self.peak: float | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -63,7 +65,7 @@ class MemoryProbe:
         if rss is not None and self.peak is not None:
             self.peak = max(self.peak, rss)
 
-    def result(self) -> dict[str, float | None]:
+    def result(self) -> dict[str, Any]:
         kind = "cuda_max_allocated" if self.cuda else "cpu_rss"
         inc = None if self.peak is None or self.before is None else max(self.peak - self.before, 0.0)
         return {"kind": kind, "peak_mb": self.peak, "increase_mb": inc}

@@ -3,6 +3,7 @@ over seeds, and figures."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -85,7 +86,7 @@ def new_figure(ncols: int = 1, width: float = 5.5) -> tuple[Any, Any]:
     return fig, axes[0]
 
 
-def mean_std(values: list[float | None]) -> dict[str, float | None]:
+def mean_std(values: Sequence[float | None]) -> dict[str, float | None]:
     """Mean and (population) standard deviation of the finite values, ``None`` when there are none."""
     arr = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=np.float64)
     if arr.size == 0:

@@ -20,7 +20,7 @@ def run(ctx: BenchContext) -> dict[str, Any]:
     results: dict[str, Any] = {"num_beams": 40, "num_bins": grid.num_bins, "num_elements": antenna.array.num_elements}
     for dtype in (torch.float32, torch.float64):
 
-        def both() -> None:
+        def both(dtype: torch.dtype = dtype) -> None:
             sensing_matrix(antenna, SSBCodebook(), grid, wl, dtype=dtype, device=ctx.device)
             sensing_matrix(antenna, DFTCodebook(), grid, wl, dtype=dtype, device=ctx.device)
 

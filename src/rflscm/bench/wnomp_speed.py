@@ -34,7 +34,8 @@ def _angle_grid(num_bins: int) -> AngleGrid:
 def sensing_for(num_beams: int, grid: AngleGrid) -> torch.Tensor:
     """``A [num_beams, num_bins]``: SSB + CSI-RS rows of one cell, repeated with other azimuths past 40 beams."""
     wl = wavelength_of(3.5e9)
-    parts, azimuth = [], 120.0
+    parts: list[torch.Tensor] = []
+    azimuth = 120.0
     while sum(p.shape[0] for p in parts) < num_beams:
         antenna = CellAntenna(azimuth_deg=azimuth, mech_tilt_deg=4.0, elec_tilt_deg=2.0)
         parts += [sensing_matrix(antenna, SSBCodebook(), grid, wl), sensing_matrix(antenna, DFTCodebook(), grid, wl)]

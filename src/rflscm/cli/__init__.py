@@ -67,8 +67,8 @@ def main() -> None:
         sys.exit(1)
     except Exception as exc:  # click usage errors carry their own exit code
         if isinstance(exc, _click_exceptions()):
-            exc.show()
-            sys.exit(exc.exit_code)
+            exc.show()  # type: ignore[attr-defined]  # a ClickException
+            sys.exit(exc.exit_code)  # type: ignore[attr-defined]
         raise
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import platform
 import subprocess
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +40,7 @@ def _machine() -> dict[str, Any]:
         commit = ""
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     return {
-        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
+        "date": datetime.now(UTC).strftime("%Y-%m-%d"),
         "commit": commit or "unknown",
         "rflscm": __version__,
         "python": platform.python_version(),

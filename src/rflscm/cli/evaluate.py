@@ -56,8 +56,9 @@ def evaluate(
         evaluation = run_evaluation(model, sc, chosen, oracle="auto" if oracle else None)
     metrics = evaluation.metrics
     table = Table(title=f"{model.name} on {sc.meta.name} — {chosen.name} protocol, round {metrics['test_round']}")
-    for column, justify in (("metric", "left"), ("model", "right"), ("oracle", "right"), ("trivial", "right")):
-        table.add_column(column, justify=justify)
+    table.add_column("metric", justify="left")
+    for column in ("model", "oracle", "trivial"):
+        table.add_column(column, justify="right")
     for row in metric_rows(metrics):
         table.add_row(*(escape(cell) for cell in row))
     console.print(table)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -12,6 +13,10 @@ from rich.console import Console
 from rflscm.cli import app
 from rflscm.cli.common import DeviceOption, SeedOption, output_file, resolve_device, seed_everything
 from rflscm.errors import ConfigError
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
+    from rflscm.models.base import LSCMModel
 
 
 def _id_list(text: str | None, option: str) -> np.ndarray | None:
@@ -23,7 +28,7 @@ def _id_list(text: str | None, option: str) -> np.ndarray | None:
         raise ConfigError(f"{option} takes comma-separated integer ids (got {text!r}).") from None
 
 
-def prediction_pairs(scenario, model, which: str) -> pd.DataFrame:
+def prediction_pairs(scenario: Scenario, model, which: str) -> pd.DataFrame:
     """(cell_id, grid_id) pairs to predict: ``measured`` (any round) or ``all`` (every cell × grid)."""
     if which == "all":
         if not model.supports_unseen_grids:
@@ -56,7 +61,7 @@ def long_form(round: int, beam_type: str, pairs: pd.DataFrame, rsrp_dbm: np.ndar
     )
 
 
-def _export_aps(model, scenario, cells: np.ndarray, grids: np.ndarray, path: Path) -> int:
+def _export_aps(model: LSCMModel, scenario: Scenario, cells: np.ndarray, grids: np.ndarray, path: Path) -> int:
     options = (("--aps-cells", cells, scenario.cell_ids()), ("--aps-grids", grids, scenario.grid_ids()))
     for option, ids, known in options:
         unknown = np.setdiff1d(ids, known)
@@ -101,6 +106,7 @@ def predict(
 ) -> None:
     """Predict RSRP of every beam for a round's antenna configuration (also for grids without measurements)."""
     from rflscm.data import load_scenario, write_table
+    from rflscm.eval.cache import APSCache
     from rflscm.models import load_model
 
     output_file(out, "--out")
@@ -119,12 +125,16 @@ def predict(
         raise ConfigError(f"--round {round}: scenario {scen.meta.name!r} has rounds {', '.join(map(str, scen.rounds()))}.")
     model = load_model(checkpoint, scen, device=dev)
     selected = prediction_pairs(scen, model, pairs)
+    cached = APSCache(model)  # SSB and CSI-RS of a pair share its APS
     with console.status(f"predicting {len(selected)} (cell, grid) pairs with {model.name}…"):
-        tables = [long_form(round, bt, selected, model.predict_rsrp(scen, round, bt, selected), scen) for bt in ("ssb", "csi")]
+        tables = [long_form(round, bt, selected, cached.predict_rsrp(scen, round, bt, selected), scen) for bt in ("ssb", "csi")]
     out.parent.mkdir(parents=True, exist_ok=True)
     write_table(pd.concat(tables, ignore_index=True), out)
     console.print(f"wrote {out} ({sum(len(t) for t in tables)} beams)")
-    if cells is not None:
+    cells, grids = _id_list(aps_cells, "--aps-cells"), _id_list(aps_grids, "--aps-grids")
+    if (cells is None) != (grids is None):
+        raise ConfigError("--aps-cells and --aps-grids go together.")
+    if cells is not None and grids is not None:
         n = _export_aps(model, scen, cells, grids, aps_out)
         console.print(f"wrote {aps_out} ({n} non-zero bins)")
     if attenuation_map is not None:

@@ -6,6 +6,7 @@ import dataclasses
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import typer
 from rich.console import Console
@@ -75,23 +76,23 @@ def simulate(
     out: Path = typer.Option(..., "--out", help="Scenario folder to write (must be new or empty; see --force)."),
     backend: str = typer.Option("procedural", "--backend", help="Ray tracer: procedural (built in) or sionna."),
     scene: str | None = typer.Option(None, "--scene", help="Scene: procedural city|small|ground|free_space; "
-                                     "sionna munich|etoile|… (default: city / munich)."),  # fmt: skip
+                                     "sionna munich|etoile|… (default: city / munich)."),
     sites: int | None = typer.Option(None, "--sites", min=1, help="Number of sites (default 7; 3 sectors each)."),
     carriers: str | None = typer.Option(None, "--carriers", help="Carriers in Hz, comma separated; the first is "
-                                        "the primary (default 3.5e9,2.1e9)."),  # fmt: skip
+                                        "the primary (default 3.5e9,2.1e9)."),
     grids: int | None = typer.Option(None, "--grids", min=1, help="Maximum number of 10 m grids (default 800)."),
     config: Path | None = typer.Option(None, "--config", help="SimulationConfig YAML; options given here override it."),
     force: bool = typer.Option(False, "--force", help="Replace --out if it is an existing scenario folder."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar while tracing."),
     device: str = DeviceOption,
     seed: int | None = typer.Option(None, "--seed", help="Random seed (default: the config's, else 0); "
-                                    "the same seed gives the same scenario."),  # fmt: skip
+                                    "the same seed gives the same scenario."),
 ) -> None:
     """Trace a scene once per (site, carrier) and write a complete scenario with truth/ (SPEC §6)."""
     from rflscm.sim import SimulationConfig, build_scenario, make_backend
 
     cfg = load_config(SimulationConfig, config) if config is not None else SimulationConfig()
-    overrides = {"num_sites": sites, "max_grids": grids, "seed": seed,
+    overrides: dict[str, Any] = {"num_sites": sites, "max_grids": grids, "seed": seed,
                  "carriers_hz": parse_carriers(carriers) if carriers is not None else None}  # fmt: skip
     cfg = dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     _check_backend(backend, scene)

@@ -47,8 +47,8 @@ def train(
     from rflscm.models import MODEL_REGISTRY
 
     console = Console(stderr=True)
-    if model not in MODEL_REGISTRY or model == "oracle":
-        valid = ", ".join(sorted(k for k in MODEL_REGISTRY if k != "oracle"))
+    if model not in MODEL_REGISTRY:
+        valid = ", ".join(sorted(MODEL_REGISTRY))
         raise ConfigError(f"unknown model {model!r}; choose one of: {valid}.")
     output_file(out, "--out")
     if resume and not out.is_file():

@@ -55,11 +55,10 @@ from rflscm.data.positions import XYZ, finish_table, known_columns, position_col
 from rflscm.errors import ConfigError, DataError
 
 CELL_COLUMNS = tuple(
-    "cell_id site_id x y z azimuth_deg mech_tilt_deg elec_tilt_deg freq_hz tx_power_dbm array_nh array_nv "
-    "spacing_h_m spacing_v_m ssb_codebook csi_codebook element".split()
+    ["cell_id", "site_id", "x", "y", "z", "azimuth_deg", "mech_tilt_deg", "elec_tilt_deg", "freq_hz", "tx_power_dbm", "array_nh", "array_nv", "spacing_h_m", "spacing_v_m", "ssb_codebook", "csi_codebook", "element"]
 )
 """Columns of a normalised cells table, in order (extra user columns follow)."""
-REQUIRED = "cell_id site_id azimuth_deg mech_tilt_deg elec_tilt_deg freq_hz ssb_codebook csi_codebook".split()
+REQUIRED = ["cell_id", "site_id", "azimuth_deg", "mech_tilt_deg", "elec_tilt_deg", "freq_hz", "ssb_codebook", "csi_codebook"]
 DEFAULT_ELEMENT = "tr38901"
 TX_POWER_RANGE_DBM = (-20.0, 40.0)
 """Plausible RS power per resource element (EPRE) [dBm]: small cells ≈ 0…10, macro cells ≈ 10…25 (TS 38.104
@@ -129,7 +128,7 @@ def _radio(df: pd.DataFrame, ref: TableRef, out: pd.DataFrame, meta: ScenarioMet
         f"is not a carrier of scenario.yaml `frequencies_hz` ({fmt_list(fmt_number(f) for f in carriers)}); "
         "add it there or correct the value"
     )
-    raise_rows(ref, ~match.any(axis=1), "freq_hz", df["freq_hz"], problem)
+    raise_rows(ref, np.asarray(~match.any(axis=1)), "freq_hz", df["freq_hz"], problem)
     out["freq_hz"] = carriers[np.argmax(match, axis=1)]
     power = float_column(df, ref, "tx_power_dbm", default=15.0)
     lo, hi = TX_POWER_RANGE_DBM

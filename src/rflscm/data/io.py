@@ -95,7 +95,7 @@ def read_table(path: str | Path) -> pd.DataFrame:
         return _read_csv(data, path.name)
     try:
         df = pd.read_parquet(io.BytesIO(data))
-    except Exception as exc:  # noqa: BLE001 - pyarrow raises many types; any failure is a damaged file
+    except Exception as exc:
         raise DataError(f"{path.name}: not a readable Parquet file ({_first_line(exc)}).") from None
     names = [str(c) for c in df.columns]
     duplicated = sorted({n for n in names if names.count(n) > 1})

@@ -23,8 +23,8 @@ from rflscm.data.columns import TableRef
 from rflscm.data.io import LINE_NUMBERS, read_table, table_kind, write_table
 from rflscm.data.measurements import empty_measurements, normalise_measurements
 from rflscm.data.meta import ScenarioMeta, meta_from_dict
-from rflscm.data.pointcloud import read_point_cloud, write_point_cloud
 from rflscm.data.plausibility import check_overlap
+from rflscm.data.pointcloud import read_point_cloud, write_point_cloud
 from rflscm.data.positions import XYZ, normalise_grids
 from rflscm.data.scenario import Scenario
 from rflscm.errors import ConfigError, DataError
@@ -92,7 +92,8 @@ def load_scenario(path: str | Path) -> Scenario:
     root, yaml_path = locate_scenario(path)
     meta = load_meta(yaml_path)
     yaml_name = yaml_path.name
-    cells, elements = {}, {}
+    cells: dict[int, pd.DataFrame] = {}
+    elements: dict[str, Any] = {}
     for rnd, name in meta.rounds.items():
         df, ref = _read(root, name, f"rounds.{rnd}.cells", yaml_name)
         round1 = None if rnd == 1 else (cells[1], meta.rounds[1])
@@ -110,7 +111,7 @@ def load_scenario(path: str | Path) -> Scenario:
         point_cloud = read_point_cloud(_referenced(root, meta.point_cloud, "point_cloud", yaml_name))
     if meta.truth is not None:
         _referenced(root, meta.truth, "truth", yaml_name)
-    parts = [(meta.rounds[1], cells[1][list(XYZ)].to_numpy(np.float64))]
+    parts: list[tuple[Any, np.ndarray]] = [(meta.rounds[1], cells[1][list(XYZ)].to_numpy(np.float64))]
     parts.append((meta.grids, grids[list(XYZ)].to_numpy(np.float64)))
     if point_cloud is not None:
         parts.append((meta.point_cloud, point_cloud.xyz))

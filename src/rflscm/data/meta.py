@@ -189,7 +189,7 @@ def _codebooks(value: Any) -> dict[str, Codebook]:
 
 def _rounds(value: Any) -> dict[int, str]:
     if not isinstance(value, dict):
-        raise ConfigError(f"`rounds` must map round numbers to {{cells: FILE}}, e.g. {{1: {{cells: cells.csv}}}}.")
+        raise ConfigError("`rounds` must map round numbers to {cells: FILE}, e.g. {1: {cells: cells.csv}}.")
     rounds: dict[int, str] = {}
     for key, spec in value.items():
         if isinstance(key, bool) or not isinstance(key, int) or not 1 <= key <= MAX_ROUND:

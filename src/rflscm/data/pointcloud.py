@@ -108,7 +108,7 @@ def read_point_cloud(path: str | Path) -> PointCloud:
         xyz, classes = reader(path)
     except DataError:
         raise
-    except Exception as exc:  # noqa: BLE001 - any reader failure is a bad file, reported on one line
+    except Exception as exc:
         message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise DataError(f"{path.name}: not a readable {suffix[1:].upper()} point cloud ({message}).") from None
     pc = PointCloud(xyz, classes)

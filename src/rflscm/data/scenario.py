@@ -250,7 +250,7 @@ def _beam_type(beam_type: str) -> str:
     return text
 
 
-def _hash_table(digest: "hashlib._Hash", label: str, table: pd.DataFrame, columns: tuple[str, ...]) -> None:
+def _hash_table(digest: hashlib._Hash, label: str, table: pd.DataFrame, columns: tuple[str, ...]) -> None:
     """Feed a table's standard columns into ``digest`` in a dtype-canonical byte form."""
     digest.update(f"{label}:{len(table)}".encode())
     for column in columns:

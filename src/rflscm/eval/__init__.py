@@ -1,6 +1,7 @@
 """Evaluation (SPEC §5): protocols, metrics, the evaluate entry point and the report."""
 
 from rflscm.eval.evaluate import Evaluation, evaluate, resolve_protocol, run_evaluation
+from rflscm.eval.oracle import OracleModel
 from rflscm.eval.protocols import (
     PROTOCOLS,
     AdjustProtocol,
@@ -19,6 +20,7 @@ __all__ = [
     "AdjustProtocol",
     "Evaluation",
     "MultiFreqProtocol",
+    "OracleModel",
     "TestSet",
     "UnseenProtocol",
     "evaluate",

@@ -45,19 +45,24 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import pandas as pd
 import torch
 
+from rflscm.data import BEAM_TYPES
 from rflscm.errors import ConfigError, DataError
 from rflscm.eval import metrics as M
-from rflscm.geometry import AngleGrid
+from rflscm.eval.cache import APSCache
+from rflscm.eval.oracle import OracleModel
 from rflscm.eval.protocols import AdjustProtocol, Protocol, protocol_from_dict, protocol_to_dict
+from rflscm.geometry import AngleGrid
 from rflscm.models.base import LSCMModel, UnsupportedError
 
-BEAM_TYPES = ("ssb", "csi")
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
+
 MAX_APS_PAIRS = 2000
 
 
@@ -119,7 +124,7 @@ def resolve_protocol(model: LSCMModel, protocol: Protocol | str | None) -> Proto
     return protocol if isinstance(protocol, AdjustProtocol) else AdjustProtocol()
 
 
-def evaluate(model: LSCMModel, scenario: Any, protocol: Protocol | None = None, **options: Any) -> dict[str, Any]:
+def evaluate(model: LSCMModel, scenario: Scenario, protocol: Protocol | None = None, **options: Any) -> dict[str, Any]:
     """Evaluate ``model`` on ``scenario`` under ``protocol`` (default: the one stored at training, else
     ``adjust``); returns the nested metrics dict documented in the module docstring.  ``options`` go to
     :func:`run_evaluation`."""
@@ -128,7 +133,7 @@ def evaluate(model: LSCMModel, scenario: Any, protocol: Protocol | None = None, 
 
 def run_evaluation(
     model: LSCMModel,
-    scenario: Any,
+    scenario: Scenario,
     protocol: Protocol | None = None,
     oracle: LSCMModel | str | None = "auto",
     top_k: int = 5,
@@ -137,12 +142,13 @@ def run_evaluation(
     """Like :func:`evaluate`, keeping the predictions for the report.
 
     Args:
-        oracle: ``"auto"`` (fit :class:`~rflscm.sim.truth.OracleModel` when the scenario has ground
+        oracle: ``"auto"`` (build :class:`~rflscm.eval.oracle.OracleModel` when the scenario has ground
             truth), an already fitted model, or ``None`` (no oracle, no APS metrics).
         top_k: bins per APS compared by the angular error.
         max_aps_pairs: APS metrics use at most this many test pairs (seeded subsample).
     """
     protocol = resolve_protocol(model, protocol)
+    model = APSCache.of(model)  # the APS of a test pair is asked per beam type and again for the APS metrics
     timing: dict[str, float] = {}
     train = protocol.training_scenario(scenario)
     test = protocol.test_set(scenario)
@@ -175,7 +181,7 @@ def run_evaluation(
     return evaluation
 
 
-def _oracle(scenario: Any, model: LSCMModel, oracle: LSCMModel | str | None) -> LSCMModel | None:
+def _oracle(scenario: Scenario, model: LSCMModel, oracle: LSCMModel | str | None) -> LSCMModel | None:
     if oracle is None or isinstance(oracle, LSCMModel):
         return oracle
     if oracle != "auto":
@@ -183,25 +189,19 @@ def _oracle(scenario: Any, model: LSCMModel, oracle: LSCMModel | str | None) -> 
     if scenario.meta.truth is None:
         return None
     try:
-        from rflscm.sim.truth import OracleModel
-    except ImportError:  # pragma: no cover - the simulator is part of the package
-        return None
-    try:
-        fitted = OracleModel(model.angle_grid, model.device)
-        fitted.fit(scenario, progress=False)
+        return OracleModel.for_scenario(scenario, model.angle_grid, model.device)
     except (DataError, UnsupportedError):
         return None
-    return fitted
 
 
-def _trained_pairs(train: Any) -> pd.MultiIndex:
+def _trained_pairs(train: Scenario) -> pd.MultiIndex:
     """(cell_id, grid_id) pairs with at least one reported round-1 beam in the training data."""
     m = train.measurements
     rows = m[((m["round"] == 1) & m["rsrp_dbm"].notna()).to_numpy()]
     return pd.MultiIndex.from_frame(rows[["cell_id", "grid_id"]].drop_duplicates())
 
 
-def _predict(model: LSCMModel, scenario: Any, round: int, beam_type: str, pairs: pd.DataFrame, width: int) -> np.ndarray:
+def _predict(model: LSCMModel, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, width: int) -> np.ndarray:
     out = np.full((len(pairs), width), np.nan)
     if len(pairs):
         pred = model.predict_rsrp(scenario, round, beam_type, pairs.reset_index(drop=True))
@@ -213,7 +213,7 @@ class _SensingCache:
     """A scenario view that keeps the last few sensing matrices on an :class:`AngleGrid`, so that the
     model and the oracle, predicting one cell after the other, share them."""
 
-    def __init__(self, scenario: Any, size: int = 4) -> None:
+    def __init__(self, scenario: Scenario, size: int = 4) -> None:
         self._scenario = scenario
         self._size = size
         self._cache: dict[tuple, torch.Tensor] = {}
@@ -234,7 +234,7 @@ class _SensingCache:
 
 
 def _predict_where_possible(
-    model: LSCMModel, scenario: Any, round: int, beam_type: str, pairs: pd.DataFrame, width: int, ask: np.ndarray
+    model: LSCMModel, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, width: int, ask: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, str | None]:
     """Predictions of the ``ask`` rows of one cell's pairs; :class:`UnsupportedError` leaves them NaN.
 
@@ -249,7 +249,7 @@ def _predict_where_possible(
 
 
 def _predict_beam_type(
-    model: LSCMModel, oracle: LSCMModel | None, scenario: Any, train: Any, round: int, beam_type: str,
+    model: LSCMModel, oracle: LSCMModel | None, scenario: Scenario, train: Scenario, round: int, beam_type: str,
     pairs: pd.DataFrame, measured: np.ndarray, seen_index: pd.MultiIndex,
 ) -> tuple[BeamResult, str | None]:
     """Model, oracle and trivial predictions of one beam type's test pairs."""
@@ -261,13 +261,13 @@ def _predict_beam_type(
     oracle_pred = None if oracle is None else np.full((len(pairs), width), np.nan)
     why = None
     cells = pairs["cell_id"].to_numpy()
-    view = _SensingCache(scenario)
+    view = cast("Scenario", _SensingCache(scenario))  # the scenario, with its sensing matrices kept
     for cell in np.unique(cells):  # cell by cell: model and oracle share the sensing matrices
         rows = np.flatnonzero(cells == cell)
         sub = pairs.iloc[rows].reset_index(drop=True)
         p, ok, refusal = _predict_where_possible(model, view, round, beam_type, sub, width, ask[rows])
         pred[rows], answered[rows], why = p, ok, why or refusal
-        if oracle_pred is not None:
+        if oracle is not None and oracle_pred is not None:
             oracle_pred[rows] = _predict_where_possible(oracle, view, round, beam_type, sub, width, np.ones(len(rows), bool))[0]
     trivial = M.trivial_prediction(train, beam_type, pairs, width) if len(pairs) else np.zeros((0, width))
     res = BeamResult(pairs, measured, pred, trivial, oracle_pred, seen, answered, np.zeros(len(pairs), dtype=bool))
@@ -378,7 +378,7 @@ def _counts(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, Any]
 
 
 def _assemble(
-    model: LSCMModel, scenario: Any, protocol: Protocol, test_round: int, beams: dict[str, BeamResult],
+    model: LSCMModel, scenario: Scenario, protocol: Protocol, test_round: int, beams: dict[str, BeamResult],
     changed: np.ndarray, aps: dict[str, Any], unsupported: str | None, timing: dict[str, float],
 ) -> dict[str, Any]:
     maes = _mae_blocks(beams, any_changed=len(changed) > 0)

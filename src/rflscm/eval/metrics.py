@@ -8,13 +8,16 @@ where NaN marks a beam that was not reported (measured) or not predicted.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 import torch
 
 from rflscm.geometry import AngleGrid
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 # --- RSRP errors ------------------------------------------------------------------------------------
 def abs_error_db(pred_dbm: np.ndarray, meas_dbm: np.ndarray) -> np.ndarray:
@@ -39,7 +42,7 @@ def count_finite(values: np.ndarray, rows: np.ndarray | None = None) -> int:
 
 
 # --- changed cells -------------------------------------------------------------------------------------
-def changed_cells(scenario: Any, round_a: int = 1, round_b: int = 2) -> np.ndarray:
+def changed_cells(scenario: Scenario, round_a: int = 1, round_b: int = 2) -> np.ndarray:
     """Sorted ids of the cells whose antenna configuration differs between two rounds.
 
     A cell is *changed* when its antenna (azimuth, tilts, array, element, power) or its SSB or
@@ -51,7 +54,7 @@ def changed_cells(scenario: Any, round_a: int = 1, round_b: int = 2) -> np.ndarr
     return np.asarray(changed, dtype=np.int64)
 
 
-def _cell_config(scenario: Any, cell_id: int, round: int) -> tuple[str, ...]:
+def _cell_config(scenario: Scenario, cell_id: int, round: int) -> tuple[str, ...]:
     # repr() of the frozen dataclasses: robust where a measured element pattern holds arrays.
     antenna = scenario.antenna(int(cell_id), round)
     fields = {f.name: getattr(antenna, f.name) for f in dataclasses.fields(antenna) if f.name != "element"}
@@ -65,7 +68,7 @@ def _cell_config(scenario: Any, cell_id: int, round: int) -> tuple[str, ...]:
 
 
 # --- trivial baseline -------------------------------------------------------------------------------------
-def trivial_prediction(train_scenario: Any, beam_type: str, pairs: pd.DataFrame, num_beams: int) -> np.ndarray:
+def trivial_prediction(train_scenario: Scenario, beam_type: str, pairs: pd.DataFrame, num_beams: int) -> np.ndarray:
     """The trivial baseline ``[num_pairs, num_beams]`` [dBm]: every beam of a pair gets the mean reported
     round-1 RSRP (in dB) of that pair and beam type in the training data; a pair absent from training gets
     its cell's mean, a cell absent from training the overall mean."""

@@ -12,11 +12,11 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.patches import Patch  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.patches import Patch
 
-from rflscm.geometry import AngleGrid  # noqa: E402
+from rflscm.geometry import AngleGrid
 
 DPI = 110
 COVERAGE_CMAP = "viridis"

@@ -26,15 +26,20 @@ protocol       train → test
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import pandas as pd
 
 from rflscm.config import from_dict, to_dict
+from rflscm.data import BEAM_TYPES
 from rflscm.errors import ConfigError, DataError
+from rflscm.train import fit
 
-BEAM_TYPES = ("ssb", "csi")
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
+    from rflscm.models.base import LSCMModel
+
 
 
 @dataclass
@@ -52,7 +57,7 @@ class TestSet:
     tables: dict[str, tuple[pd.DataFrame, np.ndarray]]
 
 
-def _round1_rows(scenario: Any) -> pd.DataFrame:
+def _round1_rows(scenario: Scenario) -> pd.DataFrame:
     m = scenario.measurements
     return m[(m["round"] == 1).to_numpy()]
 
@@ -62,7 +67,7 @@ def _measured_grids(rows: pd.DataFrame) -> np.ndarray:
     return np.unique(rows.loc[rows["rsrp_dbm"].notna().to_numpy(), "grid_id"].to_numpy(np.int64))
 
 
-def _test_tables(scenario: Any, round: int, keep: Any = None) -> dict[str, tuple[pd.DataFrame, np.ndarray]]:
+def _test_tables(scenario: Scenario, round: int, keep: Any = None) -> dict[str, tuple[pd.DataFrame, np.ndarray]]:
     """Per beam type, the pairs of ``round`` (filtered by ``keep(pairs) -> bool mask``) with a reported beam."""
     tables = {}
     for beam_type in BEAM_TYPES:
@@ -81,10 +86,10 @@ class AdjustProtocol:
     name: Literal["adjust"] = "adjust"
     test_round: int = 2
 
-    def training_scenario(self, scenario: Any) -> Any:
+    def training_scenario(self, scenario: Scenario) -> Scenario:
         return scenario.with_measurements(_round1_rows(scenario), validate=False)
 
-    def test_set(self, scenario: Any) -> TestSet:
+    def test_set(self, scenario: Scenario) -> TestSet:
         if self.test_round not in scenario.cells:
             raise DataError(
                 f"the adjust protocol tests on round {self.test_round}, but scenario {scenario.meta.name!r} has rounds "
@@ -96,7 +101,7 @@ class AdjustProtocol:
         return TestSet(self.test_round, tables)
 
 
-def split_grids(scenario: Any, fraction: float, seed: int) -> np.ndarray:
+def split_grids(scenario: Scenario, fraction: float, seed: int) -> np.ndarray:
     """A seeded ``fraction`` of the grids measured in round 1 (sorted ids), at least one when fraction > 0."""
     grids = _measured_grids(_round1_rows(scenario))
     num = int(round(fraction * len(grids)))
@@ -118,15 +123,15 @@ class UnseenProtocol:
         if not 0.0 < self.fraction < 1.0:
             raise ConfigError(f"`protocol.fraction` must lie in (0, 1) (got {self.fraction}).")
 
-    def held_out(self, scenario: Any) -> np.ndarray:
+    def held_out(self, scenario: Scenario) -> np.ndarray:
         return split_grids(scenario, self.fraction, self.seed)
 
-    def training_scenario(self, scenario: Any) -> Any:
+    def training_scenario(self, scenario: Scenario) -> Scenario:
         rows = _round1_rows(scenario)
         keep = ~rows["grid_id"].isin(self.held_out(scenario)).to_numpy()
         return scenario.with_measurements(rows[keep], validate=False)
 
-    def test_set(self, scenario: Any) -> TestSet:
+    def test_set(self, scenario: Scenario) -> TestSet:
         held = self.held_out(scenario)
         return TestSet(1, _test_tables(scenario, 1, lambda pairs: pairs["grid_id"].isin(held).to_numpy()))
 
@@ -159,7 +164,7 @@ class MultiFreqProtocol:
                 f"test set; got {self.train_percent})."
             )
 
-    def carrier(self, scenario: Any) -> float:
+    def carrier(self, scenario: Scenario) -> float:
         freqs = np.unique(scenario.cells[1]["freq_hz"].to_numpy(np.float64))
         if len(freqs) < 2:
             raise DataError(
@@ -173,7 +178,7 @@ class MultiFreqProtocol:
             raise ConfigError(f"`protocol.carrier_hz` = {self.carrier_hz:g} is not a carrier of the scenario ({listed}).")
         return float(freqs[np.isclose(freqs, self.carrier_hz)][0])
 
-    def split(self, scenario: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def split(self, scenario: Scenario) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(carrier_cells, train_grids, test_grids)`` (sorted ids)."""
         cells = scenario.cells[1]
         on_carrier = cells.loc[np.isclose(cells["freq_hz"].to_numpy(np.float64), self.carrier(scenario)), "cell_id"]
@@ -186,7 +191,7 @@ class MultiFreqProtocol:
         test, pool = order[:num_test], order[num_test:]
         return carrier_cells, np.sort(pool[:num_train]), np.sort(test)
 
-    def training_scenario(self, scenario: Any) -> Any:
+    def training_scenario(self, scenario: Scenario) -> Scenario:
         carrier_cells, train, _ = self.split(scenario)
         rows = _round1_rows(scenario)
         on = rows["cell_id"].isin(carrier_cells).to_numpy()
@@ -195,7 +200,7 @@ class MultiFreqProtocol:
             keep |= ~on
         return scenario.with_measurements(rows[keep], validate=False)
 
-    def test_set(self, scenario: Any) -> TestSet:
+    def test_set(self, scenario: Scenario) -> TestSet:
         carrier_cells, _, test = self.split(scenario)
 
         def keep(pairs: pd.DataFrame) -> np.ndarray:
@@ -227,14 +232,15 @@ def protocol_from_dict(data: dict[str, Any]) -> Protocol:
     return from_dict(PROTOCOLS[data["name"]], data, prefix="protocol")
 
 
-def fit_with_protocol(model: Any, scenario: Any, protocol: Protocol | None = None, **fit_kwargs: Any) -> dict[str, float]:
+def fit_with_protocol(model: LSCMModel, scenario: Scenario, protocol: Protocol | None = None, **fit_kwargs: Any) -> dict[str, float]:
     """Fit ``model`` on ``protocol.training_scenario(scenario)`` and record the split.
 
     Sets ``model.fingerprint`` to the *full* scenario's (so that ``load_model(ckpt, scenario)``
-    accepts the scenario the split was drawn from) and ``model.run_info["protocol"]``, then calls
-    ``model.fit`` with ``fit_kwargs`` (``progress``, ``checkpoint_path``, …).
+    accepts the scenario the split was drawn from; :func:`rflscm.train.fit` keeps it) and
+    ``model.run_info["protocol"]``, then calls :func:`rflscm.train.fit` with ``fit_kwargs``
+    (``progress``, ``checkpoint_path``, …).
     """
     protocol = protocol or AdjustProtocol()
     model.fingerprint = scenario.fingerprint()
     model.run_info["protocol"] = protocol_to_dict(protocol)
-    return model.fit(protocol.training_scenario(scenario), **fit_kwargs)
+    return fit(model, protocol.training_scenario(scenario), **fit_kwargs)

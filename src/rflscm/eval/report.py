@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -12,6 +12,9 @@ import pandas as pd
 from rflscm.eval import plots
 from rflscm.eval.evaluate import BeamResult, Evaluation
 from rflscm.geometry import engineering_to_internal
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 APS_EXAMPLES = 3
 
@@ -69,7 +72,7 @@ def _best_beam_per_grid(res: BeamResult) -> pd.DataFrame:
     return best.reset_index()
 
 
-def _coverage_figure(evaluation: Evaluation, scenario: Any, out: Path, title: str) -> tuple[Path | None, str]:
+def _coverage_figure(evaluation: Evaluation, scenario: Scenario, out: Path, title: str) -> tuple[Path | None, str]:
     beam_type = "ssb" if evaluation.beams["ssb"].scored.any() else "csi"
     res = evaluation.beams[beam_type]
     if not res.scored.any():
@@ -102,8 +105,8 @@ def _signed_errors(evaluation: Evaluation) -> dict[str, dict[str, np.ndarray]]:
     return out
 
 
-def _aps_figure(evaluation: Evaluation, scenario: Any, model: Any, out: Path) -> Path | None:
-    if evaluation.aps_pairs is None or not len(evaluation.aps_pairs):
+def _aps_figure(evaluation: Evaluation, scenario: Scenario, model: Any, out: Path) -> Path | None:
+    if evaluation.aps_pairs is None or not len(evaluation.aps_pairs) or evaluation.aps_true is None or evaluation.aps_est is None:
         return None
     power = evaluation.aps_true.astype(np.float64).sum(1)
     order = np.argsort(-power)
@@ -118,7 +121,7 @@ def _aps_figure(evaluation: Evaluation, scenario: Any, model: Any, out: Path) ->
     )
 
 
-def write_report(evaluation: Evaluation, scenario: Any, model: Any, out_dir: str | Path) -> Path:
+def write_report(evaluation: Evaluation, scenario: Scenario, model: Any, out_dir: str | Path) -> Path:
     """Write ``report.md``, ``metrics.json`` and the PNG figures into ``out_dir``; returns the Markdown path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,6 @@
 * :mod:`~rflscm.fields.fdam` — FDAM δ(μ, ε, λ) and the passive medium parameterisation;
 * :mod:`~rflscm.fields.point_prior` — the point-cloud prior Φ;
 * :mod:`~rflscm.fields.surfaces` — the scan's surface orientation (the decoder's specular cue);
-* :mod:`~rflscm.fields.grid_codes` — optional learned per-grid codes (the decoder's conditioning);
 * :mod:`~rflscm.fields.mlp`, :mod:`~rflscm.fields.encoding` — the radiance decoder's parts.
 """
 

@@ -23,7 +23,8 @@ def grid_span(box_lo: np.ndarray, box_hi: np.ndarray, voxel_m: float) -> tuple[n
     ``box_hi`` (at least 2 points per axis): point (i, j, k) sits at ``lo + (i, j, k)·voxel_m``."""
     lo = np.asarray(box_lo, np.float64)
     shape = np.maximum(np.ceil((np.asarray(box_hi, np.float64) - lo) / voxel_m).astype(int) + 1, 2)
-    return lo, lo + (shape - 1) * voxel_m, tuple(int(n) for n in shape)
+    nx, ny, nz = (int(n) for n in shape)
+    return lo, lo + (shape - 1) * voxel_m, (nx, ny, nz)
 
 
 def density_grid(
@@ -60,6 +61,10 @@ class PointPrior(nn.Module):
         threshold: D_th; Φ = 1 where the interpolated density exceeds it.
         beta: β ≪ 1; Φ = β·D below the threshold.
     """
+
+    density_grid: torch.Tensor
+    box_lo: torch.Tensor
+    box_hi: torch.Tensor
 
     def __init__(self, density: torch.Tensor, box_lo: torch.Tensor, box_hi: torch.Tensor, threshold: float, beta: float) -> None:
         super().__init__()

@@ -63,6 +63,10 @@ def structure_grid(
 class SurfaceOrientation(nn.Module):
     """T(p) ``[S, 6]`` interpolated from a :func:`structure_grid` (buffers only)."""
 
+    grid: torch.Tensor
+    box_lo: torch.Tensor
+    box_hi: torch.Tensor
+
     def __init__(self, grid: torch.Tensor, box_lo: torch.Tensor, box_hi: torch.Tensor) -> None:
         super().__init__()
         g = torch.as_tensor(grid, dtype=torch.float32)  # [nx, ny, nz, 6]

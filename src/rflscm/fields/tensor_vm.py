@@ -49,6 +49,9 @@ class TensorVM(nn.Module):
         init_scale: standard deviation of the initial vector and matrix entries.
     """
 
+    box_lo: torch.Tensor
+    box_hi: torch.Tensor
+
     def __init__(
         self,
         box_lo: torch.Tensor,

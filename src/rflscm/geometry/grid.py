@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 import torch
@@ -35,6 +36,21 @@ class AngleGrid:
             raise ConfigError(
                 f"AngleGrid elevations must lie in −90…+90° (got {self.el_min_deg}…{top}° in {self.el_step_deg}° steps)."
             )
+
+    def to_dict(self) -> dict[str, int | float]:
+        """``{"num_el", "num_az", "el_min_deg", "el_step_deg"}``: how checkpoints and ``scenario.yaml`` store a grid."""
+        return {"num_el": self.num_el, "num_az": self.num_az, "el_min_deg": self.el_min_deg, "el_step_deg": self.el_step_deg}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | list[Any] | tuple[Any, ...]) -> AngleGrid:
+        """Inverse of :meth:`to_dict`; also reads the bare ``[num_el, num_az, el_min_deg, el_step_deg]`` of
+        checkpoints written before it."""
+        if isinstance(data, (list, tuple)):
+            num_el, num_az, el_min, el_step = data
+            data = {"num_el": num_el, "num_az": num_az, "el_min_deg": el_min, "el_step_deg": el_step}
+        if not isinstance(data, dict) or set(data) != {"num_el", "num_az", "el_min_deg", "el_step_deg"}:
+            raise ConfigError(f"an angle grid needs num_el, num_az, el_min_deg and el_step_deg (got {data!r}).")
+        return cls(int(data["num_el"]), int(data["num_az"]), float(data["el_min_deg"]), float(data["el_step_deg"]))
 
     @classmethod
     def full_sphere(cls, num_el: int, num_az: int) -> AngleGrid:

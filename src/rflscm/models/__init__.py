@@ -1,9 +1,10 @@
 """Channel models behind one contract (:mod:`rflscm.models.base`)."""
 
+from rflscm.models import (
+    nerf2,  # noqa: F401  (registers "nerf2")
+    wnomp,  # noqa: F401  (registers "wnomp")
+)
 from rflscm.models.base import MODEL_REGISTRY, LSCMModel, UnsupportedError, load_model, register_model
 from rflscm.models.rflscm import RFLSCM  # noqa: F401  (registers "rflscm")
-from rflscm.models import wnomp  # noqa: F401,E402  (registers "wnomp")
-from rflscm.models import nerf2  # noqa: F401,E402  (registers "nerf2")
-from rflscm.sim import truth  # noqa: F401,E402  (registers "oracle", the evaluation floor)
 
 __all__ = ["MODEL_REGISTRY", "LSCMModel", "UnsupportedError", "load_model", "register_model"]

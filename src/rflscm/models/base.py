@@ -2,8 +2,9 @@
 
 Evaluation only ever calls this contract:
 
-* :meth:`LSCMModel.fit` learns from a scenario's **round-1** measurements (never
-  round 2, never ``truth/``), optionally restricted to a subset of grids;
+* the trainer's ``fit`` (package ``train``) learns from a scenario's **round-1** measurements (never round 2,
+  never ``truth/``), optionally restricted to a subset of grids: iterative models through the
+  trainer, closed-form ones through :meth:`LSCMModel.fit`;
 * :meth:`LSCMModel.aps` returns the APS of (cell, grid) pairs on the model's
   :class:`~rflscm.geometry.AngleGrid` in linear path-power gain (world frame);
 * :meth:`LSCMModel.predict_rsrp` turns APS into RSRP [dBm] for *any* antenna
@@ -27,23 +28,45 @@ import os
 import pickle
 import zipfile
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 import pandas as pd
 import torch
 
-from rflscm.errors import CheckpointError, DataError, RflscmError
+from rflscm.errors import CheckpointError, DataError, RflscmError, UnsupportedError
 from rflscm.geometry import AngleGrid
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 MIN_POWER_MW = 1e-30  # floor before taking dB of a predicted RSRP
 CHECKPOINT_FORMAT = "rflscm-checkpoint/2"
 _NDARRAY, _JSON = "__ndarray__", "__json__"
 
+__all__ = [
+    "MIN_POWER_MW",
+    "MODEL_REGISTRY",
+    "LSCMModel",
+    "TrainingPlan",
+    "UnsupportedError",
+    "load_model",
+    "read_checkpoint",
+    "register_model",
+]
 
-class UnsupportedError(RflscmError):
-    """The model cannot answer this request (e.g. WNOMP asked about a grid it never saw)."""
+
+@dataclass
+class TrainingPlan:
+    """What an iteratively trained model's ``prepare`` hands the trainer (the trainer's ``Trainable`` protocol):
+    the pairs to draw batches from and their group keys."""
+
+    pairs: torch.Tensor
+    """long ``[P]``: indices of the training pairs (the model's own numbering)."""
+    groups: torch.Tensor | None = None
+    """long ``[P]``: a group key per pair (batches come in runs of ``pairs_per_cell`` of one group), or None."""
 
 
 class NonFiniteError(RflscmError):
@@ -53,8 +76,9 @@ class NonFiniteError(RflscmError):
 class LSCMModel(abc.ABC):
     """Base class of all channel models.
 
-    Subclasses set :attr:`name` (the registry key) and implement :meth:`fit`,
-    :meth:`aps`, :meth:`state_dict_for_checkpoint` and :meth:`from_checkpoint`.
+    Subclasses set :attr:`name` (the registry key) and implement :meth:`build`, :meth:`aps`,
+    :meth:`state_dict_for_checkpoint` and :meth:`from_checkpoint`, and either :meth:`fit` (closed
+    form) or the the trainer's ``Trainable`` protocol methods (iterative).
     """
 
     name: ClassVar[str]
@@ -74,23 +98,23 @@ class LSCMModel(abc.ABC):
     def build(cls, config: str | Path | dict[str, Any] | None, angle_grid: AngleGrid, device: torch.device | str) -> LSCMModel:
         """A fresh model from a preset name (``"quick"``/``"full"``), a YAML path, a mapping or ``None`` (defaults)."""
 
-    @abc.abstractmethod
     def fit(
         self,
-        scenario: Any,
+        scenario: Scenario,
         progress: bool = True,
         callback: Callable[[dict[str, float]], None] | None = None,
         checkpoint_path: str | Path | None = None,
         resume: bool = False,
     ) -> dict[str, float]:
-        """Learn from the round-1 measurements of ``scenario``.
+        """Closed-form learning from the round-1 measurements of ``scenario`` (WNOMP overrides it).
 
-        Protocols (hold-outs, frequency subsets) hand in a scenario whose measurement
-        table is already filtered, so a model never needs to know about splits.
-        Iterative models write ``checkpoint_path`` atomically every few steps and, with
-        ``resume``, continue exactly from it.  ``callback`` receives periodic metrics.
-        Returns a summary (e.g. ``{"train_time_s": …, "final_loss": …}``).
+        Callers use the trainer's ``fit`` (package ``train``), which trains iterative models (RF-LSCM, NeRF²-LSCM:
+        the trainer's ``Trainable`` protocol) step by step and calls this method for the others.
+        Protocols (hold-outs, frequency subsets) hand in a scenario whose measurement table is
+        already filtered, so a model never needs to know about splits.  Returns a summary
+        (e.g. ``{"train_time_s": …}``).
         """
+        raise UnsupportedError(f"{self.name} is trained iteratively: use fit(model, scenario) from the train package.")
 
     @abc.abstractmethod
     def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
@@ -111,12 +135,12 @@ class LSCMModel(abc.ABC):
             raise NonFiniteError(
                 f"the {self.name} model answered a non-finite or negative APS for (cell {int(cell_ids[pair])}, grid "
                 f"{int(grid_ids[pair])}) ({int(bad.any(1).sum())} of {len(x)} pairs); its checkpoint is damaged or "
-                "its training diverged: retrain it with `rflscm train`."
+                "its training diverged: retrain it with the `train` command."
             )
         return x
 
     def predict_rsrp(
-        self, scenario: Any, round: int, beam_type: str, pairs: pd.DataFrame, chunk: int = 4096
+        self, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, chunk: int = 4096
     ) -> np.ndarray:
         """Predicted RSRP [dBm] ``[num_pairs, max_beams]`` (NaN past a cell's codebook size) under the
         antenna configuration of ``round`` for ``pairs`` (columns ``cell_id``, ``grid_id``)."""
@@ -146,7 +170,7 @@ class LSCMModel(abc.ABC):
     def from_checkpoint(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> LSCMModel:
         """Inverse of :meth:`state_dict_for_checkpoint`."""
 
-    def check_loaded(self) -> None:
+    def check_loaded(self) -> None:  # noqa: B027 - an optional hook, not abstract
         """Called by :func:`load_model` after :meth:`from_checkpoint` (and the angle grid) are in place:
         subclasses check that what they read is consistent (index ranges, shapes) and raise
         :class:`CheckpointError` otherwise.  The default checks nothing."""
@@ -164,7 +188,7 @@ class LSCMModel(abc.ABC):
             "rflscm_version": __version__,
             "model": self.name,
             "fingerprint": self.fingerprint,
-            "angle_grid": [self.angle_grid.num_el, self.angle_grid.num_az, self.angle_grid.el_min_deg, self.angle_grid.el_step_deg],
+            "angle_grid": self.angle_grid.to_dict(),
             "run_info": self.run_info,
             "state": self.state_dict_for_checkpoint(),
         })  # fmt: skip
@@ -322,12 +346,12 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
             raise CheckpointError(
                 f"{path}: refused: the file holds Python objects other than tensors and plain data, which could run "
                 "code when loaded; rflscm checkpoints never do (a file from elsewhere, or from an rflscm before "
-                "checkpoint format 2: retrain it with `rflscm train`)."
+                "checkpoint format 2: retrain it with the `train` command)."
             ) from None
         raise CheckpointError(f"{path}: not a readable rflscm checkpoint ({first}).") from None
     except PermissionError:
         raise CheckpointError(f"{path}: cannot read the checkpoint (permission denied).") from None
-    except Exception as exc:  # noqa: BLE001 - a damaged or foreign file fails in many ways; all are the file's fault
+    except Exception as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise CheckpointError(
             f"{path}: not a readable rflscm checkpoint (damaged, truncated or another kind of file: {first[:200]})."
@@ -335,18 +359,18 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     if not isinstance(archive, dict) or archive.get("format") not in (CHECKPOINT_FORMAT, "rflscm-checkpoint/1"):
         raise CheckpointError(f"{path}: not an rflscm checkpoint (no `{CHECKPOINT_FORMAT}` header).")
     if archive["format"] != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: written by an older rflscm (format 1); retrain it with `rflscm train`.")
+        raise CheckpointError(f"{path}: written by an older rflscm (format 1); retrain it with the `train` command.")
     payload = archive.get("payload")
     if not isinstance(payload, dict) or archive.get("sha256") != content_hash(payload):
         raise CheckpointError(
             f"{path}: the content does not match the SHA-256 written when it was saved (the file is damaged or was "
-            "edited); restore it or retrain with `rflscm train`."
+            "edited); restore it or retrain with the `train` command."
         )
     bad = _first_non_finite(payload.get("state"))
     if bad is not None:
         raise CheckpointError(
             f"{path}: holds non-finite values (NaN or inf) in `{bad}`; training diverged or the file was damaged: "
-            "retrain with `rflscm train`."
+            "retrain with the `train` command."
         )
     payload = from_plain(payload)
     missing = [k for k in ("model", "fingerprint", "angle_grid", "state") if k not in payload]
@@ -356,7 +380,7 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return payload
 
 
-def load_model(path: str | Path, scenario: Any | None = None, device: torch.device | str = "cpu") -> LSCMModel:
+def load_model(path: str | Path, scenario: Scenario | None = None, device: torch.device | str = "cpu") -> LSCMModel:
     """Load a checkpoint; with ``scenario``, refuse it unless it was fitted on that scenario's round-1 data."""
     import rflscm.models  # noqa: F401  (fills the registry)
 
@@ -367,12 +391,11 @@ def load_model(path: str | Path, scenario: Any | None = None, device: torch.devi
     if scenario is not None and payload["fingerprint"] != scenario.fingerprint():
         raise CheckpointError(
             f"{path}: this checkpoint was trained on another scenario (fingerprint {str(payload['fingerprint'])[:12]}…, "
-            f"scenario {scenario.meta.name!r} has {scenario.fingerprint()[:12]}…); retrain it with `rflscm train`."
+            f"scenario {scenario.meta.name!r} has {scenario.fingerprint()[:12]}…); retrain it on this scenario."
         )
     try:  # last-resort guard over reading a file: the hash passed, so this is a consistent but foreign layout
         model = MODEL_REGISTRY[name].from_checkpoint(payload["state"], device=device)
-        num_el, num_az, el_min, el_step = payload["angle_grid"]
-        model.angle_grid = AngleGrid(int(num_el), int(num_az), float(el_min), float(el_step))
+        model.angle_grid = AngleGrid.from_dict(payload["angle_grid"])
         model.fingerprint = payload["fingerprint"]
         model.run_info = dict(payload.get("run_info") or {})
         model.check_loaded()
@@ -382,6 +405,6 @@ def load_model(path: str | Path, scenario: Any | None = None, device: torch.devi
         raise CheckpointError(
             f"{path}: the checkpoint's content does not fit the {name!r} model of this rflscm version "
             f"({type(exc).__name__}: {str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ''}); "
-            "retrain it with `rflscm train`."
+            "retrain it with the `train` command."
         ) from None
     return model

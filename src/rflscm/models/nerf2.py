@@ -11,15 +11,15 @@ scene with two networks:
   conditioning (ray direction, grid position / offset, carrier) is RF-LSCM's decoder's
   (:class:`~rflscm.models.radiance.RadianceDecoder`), so only the widths differ.
 
-Everything else — ray sampling, the point-cloud prior, FDAM, the render integral, the loss,
-HiTAM, training, checkpoints — is inherited from :class:`~rflscm.models.rflscm.RFLSCM`.  Presets:
-``rflscm/configs/nerf2_{quick,full}.yaml`` (``full`` = the paper's sizes; ``quick`` shrinks the
-widths for 2 CPU cores).
+NeRF²-LSCM *is* :class:`~rflscm.models.rflscm.RFLSCM` with :class:`MLPFieldFactory` plugged into
+its one field seam (:class:`~rflscm.models.radiance.FieldFactory`): ray sampling, the point-cloud
+prior, FDAM, the decoder's conditioning, the render integral, the loss, HiTAM, training and
+checkpoints are RF-LSCM's.  Presets: ``rflscm/configs/nerf2_{quick,full}.yaml`` (``full`` = the
+paper's sizes; ``quick`` shrinks the widths for 2 CPU cores).
 
 The attenuation and the features come from one trunk, evaluated once per stored sample: the
-renderer asks the δ field for every stored sample and then the feature field for the live subset
-(Φ > 0), so the feature view looks the live samples up in the trunk's last output instead of
-running the 8 × 256 trunk twice (exact: a point not found there is evaluated afresh).
+trunk's last hidden layer is the :meth:`~rflscm.models.radiance.SceneFields.encode` code, from
+which the δ head and the feature layer read.
 """
 
 from __future__ import annotations
@@ -33,13 +33,11 @@ from torch import nn
 
 from rflscm.errors import ConfigError
 from rflscm.fields import MLP, encoded_dim, positional_encoding
+from rflscm.geometry import AngleGrid
 from rflscm.models.base import register_model
-from rflscm.models.radiance import SceneFrame
+from rflscm.models.radiance import SceneFields, SceneFrame
 from rflscm.models.rflscm import RFLSCM
 from rflscm.models.rflscm_config import DecoderConfig, HiTAMConfig, LossConfig, PriorConfig, RenderConfig, TrainConfig
-
-# odd 64-bit multipliers for hashing float32 bit patterns of positions (exactness is re-checked)
-_HASH = (0x9E3779B97F4A7C15 - 2**64, 0xC2B2AE3D27D4EB4F - 2**64, 0x165667B19E3779F9)
 
 
 @dataclass(frozen=True)
@@ -80,11 +78,6 @@ class NeRF2FieldConfig:
         if self.building_loss_db is not None and self.building_loss_db <= 0:
             raise ConfigError(f"`model.field.building_loss_db` must be > 0 or null (got {self.building_loss_db}).")
 
-    @property
-    def upsample_at(self) -> tuple[int, ...]:
-        """MLP fields have no resolution schedule (read by :meth:`RFLSCM.on_step_begin`)."""
-        return ()
-
 
 @dataclass(frozen=True)
 class NeRF2DecoderConfig(DecoderConfig):
@@ -121,15 +114,20 @@ class NeRF2Config:
     train: NeRF2TrainConfig = dataclasses.field(default_factory=NeRF2TrainConfig)
 
 
-class NeRF2Field(nn.Module):
+class NeRF2Field(SceneFields):
     """γ(p) → 8 × 256 (skip at 4) trunk → (raw δ ``[S, C_δ]``, features ``[S, feature_dim]``).
 
-    Positions are normalised to [−1, 1] over the scene box before the encoding.
+    The code of a point is the trunk's last hidden layer; positions are normalised to [−1, 1] over the
+    scene box before the encoding.
     """
+
+    box_lo: torch.Tensor
+    box_hi: torch.Tensor
 
     def __init__(self, cfg: NeRF2FieldConfig, frame: SceneFrame, delta_channels: int) -> None:
         super().__init__()
         self.cfg = cfg
+        self.feature_dim = cfg.feature_dim
         self.register_buffer("box_lo", torch.tensor(frame.box_lo, dtype=torch.float32))
         self.register_buffer("box_hi", torch.tensor(frame.box_hi, dtype=torch.float32))
         in_dim = encoded_dim(3, cfg.pos_freqs)
@@ -139,9 +137,8 @@ class NeRF2Field(nn.Module):
         with torch.no_grad():
             self.delta_head.weight.mul_(cfg.delta_init_scale)
             self.delta_head.bias.zero_()
-        self._last: tuple[torch.Tensor, torch.Tensor] | None = None
 
-    def hidden_of(self, points: torch.Tensor) -> torch.Tensor:
+    def encode(self, points: torch.Tensor) -> torch.Tensor:
         """Last hidden layer ``[S, hidden]`` of the trunk at world points ``[S, 3]`` [m]."""
         unit = 2.0 * (points.to(self.box_lo.dtype) - self.box_lo) / (self.box_hi - self.box_lo) - 1.0
         x = positional_encoding(unit, self.cfg.pos_freqs)
@@ -152,91 +149,40 @@ class NeRF2Field(nn.Module):
             h = torch.relu(layer(h))
         return h
 
-    def delta(self, points: torch.Tensor) -> torch.Tensor:
-        """Raw δ channels ``[S, C_δ]``; keeps the trunk output for :meth:`features`."""
-        h = self.hidden_of(points)
-        self._last = (points.detach(), h)
-        return self.delta_head(h)
+    def delta(self, code: torch.Tensor) -> torch.Tensor:
+        return self.delta_head(code)
 
-    def features(self, points: torch.Tensor) -> torch.Tensor:
-        """Features ``[S, feature_dim]``: trunk rows of the last :meth:`delta` call where the points match
-        exactly, a fresh trunk evaluation for the rest."""
-        last, self._last = self._last, None
-        if last is None or points.numel() == 0:
-            return self.trunk.out(self.hidden_of(points))
-        idx = _match_rows(last[0], points.detach())
-        found = idx >= 0
-        if bool(found.all()):
-            h = last[1][idx]
-        else:
-            h = points.new_empty(points.shape[0], last[1].shape[1])
-            h = h.index_put((found.nonzero().squeeze(1),), last[1][idx[found]])
-            h = h.index_put(((~found).nonzero().squeeze(1),), self.hidden_of(points[~found]))
-        return self.trunk.out(h)
+    def features(self, code: torch.Tensor) -> torch.Tensor:
+        return self.trunk.out(code)
+
+    def delta_module(self) -> nn.Module:
+        return self  # the trunk feeds both heads
 
 
-class _DeltaView(nn.Module):
-    """The δ field of a stage: ``[S, 3] → [S, C_δ]`` (owns the shared :class:`NeRF2Field`)."""
+class MLPFieldFactory:
+    """The :class:`~rflscm.models.radiance.FieldFactory` of NeRF²-LSCM: one :class:`NeRF2Field` per stage, the
+    decoder's head narrowed to ``head_hidden``, no resolution schedule."""
 
-    def __init__(self, field: NeRF2Field) -> None:
-        super().__init__()
-        self.net = field
+    upsample_at: tuple[int, ...] = ()
 
-    def forward(self, points: torch.Tensor) -> torch.Tensor:
-        return self.net.delta(points)
+    def __init__(self, cfg: NeRF2FieldConfig, head_hidden: int) -> None:
+        self.cfg, self.head_hidden = cfg, head_hidden
 
+    def __call__(self, frame: SceneFrame, delta_channels: int) -> NeRF2Field:
+        return NeRF2Field(self.cfg, frame, delta_channels)
 
-class _FeatureView(nn.Module):
-    """The feature field of a stage: ``[S, 3] → [S, feature_dim]`` (shares, but does not register, the net)."""
-
-    def __init__(self, field: NeRF2Field) -> None:
-        super().__init__()
-        object.__setattr__(self, "_net", field)  # not a submodule: its parameters live under the δ view
-
-    def forward(self, points: torch.Tensor) -> torch.Tensor:
-        return self._net.features(points)
-
-
-def _row_keys(points: torch.Tensor) -> torch.Tensor:
-    """int64 hash ``[S]`` of the float32 bit patterns of ``points [S, 3]``."""
-    bits = points.to(torch.float32).contiguous().view(torch.int32).to(torch.int64) & 0xFFFFFFFF
-    return bits[:, 0] * _HASH[0] ^ bits[:, 1] * _HASH[1] ^ bits[:, 2] * _HASH[2]
-
-
-def _match_rows(table: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
-    """For each row of ``query [L, 3]`` the index of an identical row of ``table [S, 3]``, −1 where none."""
-    keys = _row_keys(table)
-    order = torch.argsort(keys)
-    sorted_keys = keys[order]
-    qk = _row_keys(query)
-    pos = torch.searchsorted(sorted_keys, qk).clamp(max=max(keys.numel() - 1, 0))
-    idx = order[pos]
-    ok = (sorted_keys[pos] == qk) & (table[idx] == query).all(-1)
-    return torch.where(ok, idx, torch.full_like(idx, -1))
+    def resolution(self, frame: SceneFrame, level: int) -> None:
+        return None
 
 
 @register_model
 class NeRF2LSCM(RFLSCM):
-    """NeRF²-LSCM: RF-LSCM with NeRF²'s attenuation MLP and radiance head instead of VM tensors."""
+    """NeRF²-LSCM: RF-LSCM with NeRF²'s attenuation MLP and radiance head (:class:`MLPFieldFactory`) instead of VM
+    tensors; one parameter group, ``networks``."""
 
     name: ClassVar[str] = "nerf2"
     config_class: ClassVar[type] = NeRF2Config
     config_family: ClassVar[str] = "nerf2"
 
-    def build_fields(self, frame: SceneFrame) -> tuple[nn.Module, nn.Module]:
-        """``(δ view, feature view)`` of one shared :class:`NeRF2Field`."""
-        field = NeRF2Field(self.config.field, frame, self.medium(frame).num_channels)
-        return _DeltaView(field), _FeatureView(field)
-
-    def _build_stages(self, frame: SceneFrame, code_xyz: torch.Tensor | None = None) -> None:
-        """RF-LSCM's stages, with the decoder's layers after the first narrowed to ``head_hidden``
-        (NeRF²'s radiance head is 256 → 128 → 2; RF-LSCM's decoder keeps one width)."""
-        super()._build_stages(frame, code_xyz)
-        d = self.config.decoder
-        for stage in self.stages.values():
-            stage.decoder.mlp = MLP(d.hidden, 2, hidden=d.head_hidden, num_layers=d.layers - 1, out_scale=0.1)
-        self.stages.to(self.device)
-
-    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        """``{"networks": every parameter}`` (NeRF² has no tensor factors)."""
-        return {"networks": list(self.stages.parameters())}
+    def __init__(self, config: NeRF2Config, angle_grid: AngleGrid, device: torch.device | str = "cpu") -> None:
+        super().__init__(config, angle_grid, device, fields=MLPFieldFactory(config.field, config.decoder.head_hidden))  # type: ignore[arg-type]

@@ -1,23 +1,37 @@
 """One radiance-field APS model (a "stage": HiTAM has a coarse and a refinement one).
 
-A stage owns a δ field (raw channels → passive (μ, ε) → FDAM), a feature field 𝓜 and the
-radiance decoder 𝒬, and renders x̃ (normalised, x / x_ref) for a batch of rays, each ray
-conditioned on its grid position and carrier (paper eq. (18)).  The fields are plain modules
-``[S, 3] → [S, C]``, so a NeRF²-style stage swaps them for MLPs and keeps everything else.
+A stage owns its :class:`SceneFields` (raw δ channels → passive (μ, ε) → FDAM, and the feature
+field 𝓜), the radiance decoder 𝒬, and renders x̃ (normalised, x / x_ref) for a batch of rays,
+each ray conditioned on its grid position and carrier (paper eq. (18)).
+
+**The field seam.**  :class:`SceneFields` is the one place where a field representation plugs in:
+RF-LSCM's :class:`VMFields` (two VM tensors) or NeRF²'s MLP (:mod:`rflscm.models.nerf2`).  A model
+gets its fields from a :class:`FieldFactory` given at construction
+(:class:`~rflscm.models.rflscm.RFLSCM`'s ``fields`` argument); everything else — rays, prior,
+FDAM, decoder, HiTAM, losses, checkpoints — is shared.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import Protocol
 
 import torch
 from torch import nn
 
-from rflscm.fields import MLP, PassiveMedium, encoded_dim, fdam_attenuation, modulate, positional_encoding
-from rflscm.fields.grid_codes import GridCodes
+from rflscm.fields import (
+    MLP,
+    PassiveMedium,
+    TensorVM,
+    encoded_dim,
+    fdam_attenuation,
+    modulate,
+    positional_encoding,
+    resolution_for,
+)
 from rflscm.fields.surfaces import specularity
-from rflscm.models.rflscm_config import DecoderConfig, RenderConfig
+from rflscm.models.rflscm_config import DecoderConfig, FieldConfig, RenderConfig
 from rflscm.render import PackedSamples, accumulate_power, join_queries, transmittance
 
 
@@ -35,6 +49,97 @@ class SceneFrame:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+class SceneFields(nn.Module):
+    """The fields of a stage: raw δ channels (→ :class:`~rflscm.fields.PassiveMedium`) and features 𝓜.
+
+    A point set is first *encoded* once (:meth:`encode`); δ and 𝓜 are then read from that code, so a
+    representation whose two fields share a trunk (NeRF²) evaluates it once per sample.  The stage
+    asks δ of every stored sample and 𝓜 of the live ones (rows of the same code).
+    """
+
+    feature_dim: int
+
+    def encode(self, points: torch.Tensor) -> torch.Tensor:
+        """Per-point code ``[S, ·]`` of world points ``[S, 3]`` [m] (the points themselves by default)."""
+        return points
+
+    def delta(self, code: torch.Tensor) -> torch.Tensor:
+        """Raw δ channels ``[S, C_δ]`` of encoded points."""
+        raise NotImplementedError
+
+    def features(self, code: torch.Tensor) -> torch.Tensor:
+        """Features ``[S, feature_dim]`` of encoded points."""
+        raise NotImplementedError
+
+    def delta_module(self) -> nn.Module:
+        """The module whose parameters determine δ (fitted by the attenuation initialisation, and copied
+        from one stage to the other)."""
+        raise NotImplementedError
+
+
+class FieldFactory(Protocol):
+    """Builds a stage's :class:`SceneFields` for a scene frame; says how the decoder's head is sized and when
+    the fields' resolution grows."""
+
+    head_hidden: int | None
+    """Width of the decoder's layers after the first (None: the decoder's ``hidden``)."""
+    upsample_at: tuple[int, ...]
+    """Training steps at which :meth:`resolution` grows (empty: fixed)."""
+
+    def __call__(self, frame: SceneFrame, delta_channels: int) -> SceneFields: ...
+
+    def resolution(self, frame: SceneFrame, level: int) -> tuple[int, int, int] | None:
+        """Tensor resolution after ``level`` upsamplings (None: the fields have none)."""
+        ...
+
+
+class VMFields(SceneFields):
+    """RF-LSCM's fields: 𝒢_δ and 𝒢_R as two :class:`~rflscm.fields.TensorVM` over the scene box."""
+
+    def __init__(self, delta_vm: TensorVM, feature_vm: TensorVM) -> None:
+        super().__init__()
+        self.delta_vm, self.feature_vm = delta_vm, feature_vm
+        self.feature_dim = feature_vm.out_dim
+
+    def delta(self, code: torch.Tensor) -> torch.Tensor:
+        return self.delta_vm(code)
+
+    def features(self, code: torch.Tensor) -> torch.Tensor:
+        return self.feature_vm(code)
+
+    def delta_module(self) -> nn.Module:
+        return self.delta_vm
+
+
+class VMFieldFactory:
+    """:class:`FieldFactory` of :class:`VMFields` from RF-LSCM's ``field`` section."""
+
+    head_hidden: int | None = None
+
+    def __init__(self, cfg: FieldConfig) -> None:
+        self.cfg = cfg
+        self.upsample_at = tuple(cfg.upsample_at)
+
+    def voxel_m(self, level: int) -> float:
+        """Tensor spacing after ``level`` upsamplings (geometric from ``init_voxel_m`` to ``voxel_m``)."""
+        f = self.cfg
+        if not f.upsample_at or f.init_voxel_m is None:
+            return f.voxel_m
+        return f.init_voxel_m * (f.voxel_m / f.init_voxel_m) ** (level / len(f.upsample_at))
+
+    def resolution(self, frame: SceneFrame, level: int) -> tuple[int, int, int]:
+        lo, hi = torch.tensor(frame.box_lo), torch.tensor(frame.box_hi)
+        return resolution_for(lo, hi, self.voxel_m(level), self.cfg.max_resolution)
+
+    def __call__(self, frame: SceneFrame, delta_channels: int) -> VMFields:
+        f = self.cfg
+        lo, hi = torch.tensor(frame.box_lo), torch.tensor(frame.box_hi)
+        res = self.resolution(frame, 0)
+        delta = TensorVM(lo, hi, res, f.delta_rank, delta_channels, f.delta_basis, f.delta_init_scale)
+        features = TensorVM(lo, hi, res, f.feature_rank, f.feature_dim, f.feature_basis, f.init_scale)
+        return VMFields(delta, features)
 
 
 @dataclass
@@ -67,10 +172,13 @@ class RadianceDecoder(nn.Module):
     (Re R, Im R), times the spreading factors of :class:`~rflscm.models.rflscm_config.DecoderConfig`.
     """
 
+    box_lo: torch.Tensor
+    box_hi: torch.Tensor
+
     def __init__(self, cfg: DecoderConfig, feature_dim: int, frame: SceneFrame, step_m: float,
-                 code_xyz: torch.Tensor | None = None) -> None:  # fmt: skip
-        """``code_xyz [G, 3]``: the measured grids that own a code (``grid_code_dim`` > 0; when loading a
-        checkpoint any placeholder does, the table takes the checkpoint's size)."""
+                 head_hidden: int | None = None) -> None:  # fmt: skip
+        """``head_hidden``: width of the layers after the first (default ``cfg.hidden``; NeRF²'s radiance
+        head narrows to 128)."""
         super().__init__()
         self.cfg, self.frame, self.step_m = cfg, frame, step_m
         query_width = encoded_dim(3, cfg.dir_freqs) + encoded_dim(1, cfg.wavelength_freqs)
@@ -78,19 +186,13 @@ class RadianceDecoder(nn.Module):
             query_width += encoded_dim(3, cfg.grid_freqs)
         if cfg.grid_features:
             query_width += feature_dim
-        self.grid_codes = None
-        if cfg.grid_code_dim:
-            if code_xyz is None:
-                raise ValueError("a decoder with grid codes needs the positions of the measured grids")
-            self.grid_codes = GridCodes(code_xyz, cfg.grid_code_dim, cfg.grid_code_neighbours)
-            query_width += cfg.grid_code_dim
         self.sample_in = nn.Linear(feature_dim, cfg.hidden)
         self.query_in = nn.Linear(query_width, cfg.hidden, bias=False)
         self.pair_in = None
         if cfg.inputs in ("offset", "offset+grid"):
             width = 2 * encoded_dim(3, cfg.dir_freqs) + encoded_dim(3, cfg.pos_freqs) + len(cfg.specular_powers)
             self.pair_in = nn.Linear(width, cfg.hidden, bias=False)
-        self.mlp = MLP(cfg.hidden, 2, hidden=cfg.hidden, num_layers=cfg.layers - 1, out_scale=0.1)
+        self.mlp = MLP(cfg.hidden, 2, hidden=head_hidden or cfg.hidden, num_layers=cfg.layers - 1, out_scale=0.1)
         self.source_decay = nn.Parameter(torch.tensor(float(cfg.source_decay))) if cfg.source_decay else None
         self.register_buffer("box_lo", torch.tensor(frame.box_lo, dtype=torch.float32))
         self.register_buffer("box_hi", torch.tensor(frame.box_hi, dtype=torch.float32))
@@ -105,8 +207,6 @@ class RadianceDecoder(nn.Module):
             parts.append(positional_encoding(unit, cfg.grid_freqs))
         if grid_features is not None:
             parts.append(grid_features)
-        if self.grid_codes is not None:
-            parts.append(self.grid_codes(queries.grid_xyz))
         return torch.cat(parts, dim=-1)
 
     def _pair_inputs(self, to_grid: torch.Tensor, dist: torch.Tensor, along: torch.Tensor, miss: torch.Tensor,
@@ -171,14 +271,14 @@ class RadianceDecoder(nn.Module):
 
 
 class RadianceStage(nn.Module):
-    """δ field + FDAM, feature field 𝓜, decoder 𝒬 and the renderer for a batch of rays."""
+    """Fields (δ + FDAM, 𝓜), decoder 𝒬 and the renderer for a batch of rays."""
 
     def __init__(
-        self, delta_field: nn.Module, feature_field: nn.Module, medium: PassiveMedium,
-        decoder: RadianceDecoder, render_cfg: RenderConfig, surfaces: nn.Module | None = None,
+        self, fields: SceneFields, medium: PassiveMedium, decoder: RadianceDecoder, render_cfg: RenderConfig,
+        surfaces: nn.Module | None = None,
     ) -> None:  # fmt: skip
         super().__init__()
-        self.delta_field, self.feature_field, self.decoder = delta_field, feature_field, decoder
+        self.fields, self.decoder = fields, decoder
         self.medium, self.render_cfg = medium, render_cfg
         # the scan's surface orientation (shared by the stages and saved by the model, so not a submodule)
         self.surfaces_fn = surfaces.forward if surfaces is not None else None
@@ -194,7 +294,8 @@ class RadianceStage(nn.Module):
         ray, step = packed.ray, cfg.step_m
         along = packed.index.to(rays.direction.dtype) * step
         points = rays.origin[ray] + along[:, None] * rays.direction[ray]  # p = p_BS + q Δr ω  [S, 3]
-        mu, eps = self.medium(self.delta_field(points))
+        code = self.fields.encode(points)
+        mu, eps = self.medium(self.fields.delta(code))
         log_delta = fdam_attenuation(
             mu, eps, rays.wavelength_m[ray], step, log=True, first=packed.first, last=packed.last
         )  # FDAM needs the neighbours, so it runs on every stored sample
@@ -207,9 +308,9 @@ class RadianceStage(nn.Module):
             live, weight, ray_live = live[keep], weight[keep], ray_live[keep]
         join_query, join_sample = join_queries(queries.ray, ray_live, packed.num_rays)
         self.decoder_evals += int(join_query.numel())
-        features = self.feature_field(points[live])
-        grid_features = self.feature_field(queries.grid_xyz) if self.decoder.cfg.grid_features else None
+        features = self.fields.features(code[live])
+        grid_features = self.fields.features(self.fields.encode(queries.grid_xyz)) if self.decoder.cfg.grid_features else None
         wants_surface = self.surfaces_fn is not None and self.decoder.pair_in is not None and self.decoder.cfg.specular_powers
-        surface = self.surfaces_fn(points[live]) if wants_surface else None
+        surface = self.surfaces_fn(points[live]) if wants_surface and self.surfaces_fn is not None else None
         radiance = self.decoder(features, points[live], along[live], rays, queries, join_query, join_sample, grid_features, surface)
-        return accumulate_power(weight[join_sample] * radiance, join_query, queries.ray.numel(), cfg.coherent)
+        return accumulate_power(weight[join_sample] * radiance, join_query, queries.ray.numel())

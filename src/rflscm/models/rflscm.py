@@ -1,12 +1,15 @@
 """RF-LSCM: the radiance-field localized statistical channel model (paper §III–IV, SPEC §3).
 
-``RFLSCM`` implements the model contract (:mod:`rflscm.models.base`).  It owns the ray caches,
-HiTAM and the losses; each rendering stage (:class:`~rflscm.models.radiance.RadianceStage`) owns
-its fields and decoder.  The fields come from :meth:`RFLSCM.build_fields`, the one method a
-NeRF²-style model overrides (MLP fields instead of VM tensors) to reuse the rest.
+``RFLSCM`` implements the model contract (:mod:`rflscm.models.base`).  It owns HiTAM, the
+training data and the losses; it composes an :class:`~rflscm.models.rflscm_render.APSRenderer`
+(rays, visibility, HiTAM's selection; no parameters) over its rendering stages
+(:class:`~rflscm.models.radiance.RadianceStage`: fields and decoder).  The fields come from the
+:class:`~rflscm.models.radiance.FieldFactory` given at construction — the one seam through which
+NeRF²-LSCM plugs in MLP fields instead of VM tensors and reuses everything else.
 
 Units: the stages render the APS in the normalised unit x_ref = r_ref / a_ref (see
-:mod:`rflscm.train.data`); :meth:`aps` returns linear path gain.
+:mod:`rflscm.models.pairs`); :meth:`aps` returns linear path gain.  Training is driven from above by
+the trainer's ``fit`` (package ``train``) through the the trainer's ``Trainable`` protocol methods (``prepare``, ``training_losses``, …).
 
 Decisions where the paper is silent (each switchable in :mod:`~rflscm.models.rflscm_config`):
 
@@ -29,8 +32,9 @@ Decisions where the paper is silent (each switchable in :mod:`~rflscm.models.rfl
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, cast
 
 import numpy as np
 import torch
@@ -39,18 +43,21 @@ from torch import nn
 from rflscm.config import from_dict, to_dict
 from rflscm.data import BEAM_TYPES
 from rflscm.errors import CheckpointError
-from rflscm.fields import PassiveMedium, TensorVM, resolution_for
-from rflscm.fields.grid_codes import GridCodes
+from rflscm.fields import PassiveMedium, TensorVM
+from rflscm.fields.point_prior import PointPrior
+from rflscm.fields.surfaces import SurfaceOrientation
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import LSCMModel, discard_partial_save, read_checkpoint, register_model
+from rflscm.models.base import LSCMModel, TrainingPlan, register_model
 from rflscm.models.hitam import HiTAM
-from rflscm.models.radiance import RadianceDecoder, RadianceStage, SceneFrame
-from rflscm.models.rflscm_config import RFLSCMConfig, load_rflscm_config
-from rflscm.models.rflscm_render import RenderMixin
+from rflscm.models.losses import lscm_loss, mae_db
+from rflscm.models.pairs import PairData, build_pair_data, reference_power, stacked_sensing
+from rflscm.models.radiance import FieldFactory, RadianceDecoder, RadianceStage, SceneFrame, VMFieldFactory
+from rflscm.models.rflscm_config import RFLSCMConfig, TrainConfig, load_rflscm_config
+from rflscm.models.rflscm_render import APSRenderer
 from rflscm.models.rflscm_scene import (
-    check_scene_box,
     SceneInfo,
     building_targets,
+    check_scene_box,
     make_frame,
     make_prior,
     make_surfaces,
@@ -61,33 +68,40 @@ from rflscm.models.rflscm_scene import (
     surfaces_state,
     visible_bins,
 )
-from rflscm.train.data import build_pair_data, reference_power, stacked_sensing
-from rflscm.train.trainer import Trainer
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
+
+PAIR_CHUNK = 64  # pairs per inference chunk (A columns and APS rows stay small)
 
 
 @register_model
-class RFLSCM(RenderMixin, LSCMModel):
+class RFLSCM(LSCMModel):
     """RF-LSCM with VM-tensor fields, FDAM, the point-cloud prior and HiTAM."""
 
     name: ClassVar[str] = "rflscm"
     config_class: ClassVar[type] = RFLSCMConfig
     config_family: ClassVar[str] = "rflscm"
 
-    def __init__(self, config: RFLSCMConfig, angle_grid: AngleGrid, device: torch.device | str = "cpu") -> None:
+    def __init__(self, config: RFLSCMConfig, angle_grid: AngleGrid, device: torch.device | str = "cpu",
+                 fields: FieldFactory | None = None) -> None:  # fmt: skip
+        """``fields`` builds each stage's fields (default: RF-LSCM's VM tensors from ``config.field``)."""
         super().__init__(angle_grid, device)
         self.config = config
+        self.fields: FieldFactory = fields if fields is not None else VMFieldFactory(config.field)
         h = config.hitam
-        self.hitam = HiTAM(angle_grid, h.beta, h.top_k, h.coarse_bins, h.warmup_steps, h.ramp_steps) if h.enabled else None
+        self.hitam = HiTAM(angle_grid, h.beta, h.top_k, "block", h.warmup_steps, h.ramp_steps) if h.enabled else None
         self.scene: SceneInfo | None = None
-        self.prior: nn.Module | None = None
-        self.surfaces: nn.Module | None = None
+        self.prior: PointPrior | None = None
+        self.surfaces: SurfaceOrientation | None = None
         """The scan's surface orientation (decoder's specular cue), or None."""
         self.stages = nn.ModuleDict()
         self.step = 0
         """Training steps done."""
         self.train_state: dict[str, Any] | None = None
-        self._cache: dict[str, Any] = {}
-        self._train: Any = None
+        self.renderer: APSRenderer | None = None
+        """Built with the stages (fit or checkpoint)."""
+        self._train: _TrainContext | None = None
 
     @classmethod
     def build(cls, config: str | Path | dict[str, Any] | None = None, angle_grid: AngleGrid | None = None,
@@ -95,54 +109,38 @@ class RFLSCM(RenderMixin, LSCMModel):
         """A fresh model from a preset (``"quick"``, ``"full"``), a YAML path, a mapping or ``None``."""
         return cls(load_rflscm_config(config, cls.config_class, cls.config_family), angle_grid or AngleGrid(), device)
 
-    # --- construction (override build_fields to change the field type) -----------------------
-    def build_fields(self, frame: SceneFrame) -> tuple[nn.Module, nn.Module]:
-        """``(δ field, feature field)``: modules ``[S, 3] → [S, C_δ]`` and ``[S, 3] → [S, D_R]``."""
-        f = self.config.field
-        lo, hi = torch.tensor(frame.box_lo), torch.tensor(frame.box_hi)
-        res = resolution_for(lo, hi, self._voxel_m(0), f.max_resolution)
-        channels = self.medium(frame).num_channels
-        delta = TensorVM(lo, hi, res, f.delta_rank, channels, f.delta_basis, f.delta_init_scale)
-        features = TensorVM(lo, hi, res, f.feature_rank, f.feature_dim, f.feature_basis, f.init_scale)
-        return delta, features
-
+    # --- construction ---------------------------------------------------------------------------
     def medium(self, frame: SceneFrame) -> PassiveMedium:
         f = self.config.field
         return PassiveMedium(frame.reference_wavelength_m, self.config.render.step_m, f.learn_mu, f.init_loss_db)
 
-    def _voxel_m(self, level: int) -> float:
-        """Tensor spacing after ``level`` upsamplings (geometric from ``init_voxel_m`` to ``voxel_m``)."""
-        f = self.config.field
-        if not f.upsample_at:
-            return f.voxel_m
-        return f.init_voxel_m * (f.voxel_m / f.init_voxel_m) ** (level / len(f.upsample_at))
-
-    def _build_stages(self, frame: SceneFrame, code_xyz: torch.Tensor | None = None) -> None:
-        """Fresh stages; ``code_xyz [G, 3]`` are the measured grids that own a code (``decoder.grid_code_dim``)."""
-        if code_xyz is None:  # loading a checkpoint: the code table takes the checkpoint's size
-            code_xyz = torch.zeros(1, 3)
+    def _build_stages(self, frame: SceneFrame) -> None:
+        """Fresh stages (``coarse`` and ``fine`` with HiTAM, else ``fine``) and the renderer over them."""
 
         def stage() -> RadianceStage:
-            delta, features = self.build_fields(frame)
-            decoder = RadianceDecoder(self.config.decoder, self.config.field.feature_dim, frame, self.config.render.step_m, code_xyz)
-            return RadianceStage(delta, features, self.medium(frame), decoder, self.config.render, self.surfaces)
+            fields = self.fields(frame, self.medium(frame).num_channels)
+            cfg = self.config
+            decoder = RadianceDecoder(cfg.decoder, fields.feature_dim, frame, cfg.render.step_m, self.fields.head_hidden)
+            return RadianceStage(fields, self.medium(frame), decoder, cfg.render, self.surfaces)
 
         names = ("coarse", "fine") if self.hitam is not None else ("fine",)
         self.stages = nn.ModuleDict({n: stage() for n in names}).to(self.device)
+        assert self.scene is not None
+        self.renderer = APSRenderer(self.config, self.angle_grid, self.hitam, self.scene, self.prior, self.stages, self.device)
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        """``{"tensors": VM vectors, matrices and basis vectors and the grid codes, "networks": the decoders}``
+        """``{"tensors": VM vectors, matrices and basis vectors, "networks": the decoders}``
         (empty groups dropped)."""
         groups: dict[str, list[nn.Parameter]] = {"tensors": [], "networks": []}
         for module in self.stages.modules():
-            if isinstance(module, (TensorVM, GridCodes)):
+            if isinstance(module, TensorVM):
                 groups["tensors"].extend(module.parameters())
         tensor_ids = {id(p) for p in groups["tensors"]}
         groups["networks"] = [p for p in self.stages.parameters() if id(p) not in tensor_ids]
         return {k: v for k, v in groups.items() if v}
 
     # --- fitting ------------------------------------------------------------------------------
-    def _prepare(self, scenario: Any) -> None:
+    def _prepare(self, scenario: Scenario) -> None:
         """Scene facts, normalisation, prior, fresh stages and training data for ``scenario``."""
         cfg = self.config
         torch.manual_seed(cfg.train.seed)
@@ -168,37 +166,32 @@ class RFLSCM(RenderMixin, LSCMModel):
         self.prior = prior.to(self.device) if prior is not None else None
         surfaces = make_surfaces(cfg, scenario, lo, hi, seed=cfg.train.seed)
         self.surfaces = surfaces.to(self.device) if surfaces is not None else None
-        self._build_stages(self.scene.frame, torch.unique(data.grid_xyz, dim=0))
+        self._build_stages(self.scene.frame)
         targets = building_targets(cfg, scenario, prior, seed=cfg.train.seed) if prior is not None else None
         if targets is not None:
             self._init_attenuation(*targets)
-        self._cache.clear()
         a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
         self._train = _TrainContext(data.to(self.device), a_norm, a_coarse)
         self.step, self.train_state = 0, None
         if cfg.decoder.init_level_db is not None:
             self._calibrate_level(cfg.decoder.init_level_db)
 
-    def fit(self, scenario: Any, progress: bool = True, callback: Any = None,
-            checkpoint_path: str | Path | None = None, resume: bool = False) -> dict[str, float]:  # fmt: skip
-        """Train on the round-1 measurements of ``scenario`` (see :meth:`LSCMModel.fit`)."""
-        discard_partial_save(checkpoint_path)  # a save killed half-way (kill -9) leaves its temporary file behind
-        self._prepare(scenario)
-        self.fingerprint = scenario.fingerprint()
-        d = self._train.data
-        train_pairs = torch.nonzero(d.beam_mask.any(1)).squeeze(1).cpu()
-        trainer = Trainer(self, self.config.train, train_pairs, groups=d.cell_index.cpu()[train_pairs])
-        if resume and checkpoint_path is not None and Path(checkpoint_path).is_file():
-            self._resume_from(checkpoint_path, trainer)
-        evals0, time0 = self.decoder_evals(), trainer.elapsed_s
-        summary = trainer.run(progress=progress, callback=callback, checkpoint_path=checkpoint_path)
-        rate = (self.decoder_evals() - evals0) / max(trainer.elapsed_s - time0, 1e-9)
-        summary["decoder_evals_per_s"] = rate
-        self.run_info.update({"train": {k: float(v) for k, v in summary.items()}, "num_pairs": d.num_pairs})
-        return summary
+    @property
+    def train_config(self) -> TrainConfig:
+        return self.config.train
 
-    def _resume_from(self, path: str | Path, trainer: Trainer) -> None:
-        payload = read_checkpoint(path)
+    def prepare(self, scenario: Scenario) -> TrainingPlan:
+        """Fresh weights and training data for ``scenario``; the training pairs (those with a training beam),
+        grouped by cell (see the trainer's ``Trainable`` protocol)."""
+        self._prepare(scenario)
+        d = self._training().data
+        self.run_info["num_pairs"] = d.num_pairs
+        pairs = torch.nonzero(d.beam_mask.any(1)).squeeze(1).cpu()
+        return TrainingPlan(pairs, d.cell_index.cpu()[pairs])
+
+    def resume_from(self, payload: dict[str, Any], path: str | Path) -> dict[str, Any]:
+        """Load weights and step from the checkpoint ``payload`` of ``path`` (it must hold this model of this
+        scenario with the same config); returns the trainer state saved with it."""
         state = payload["state"]
         if payload["model"] != self.name:
             raise CheckpointError(
@@ -225,7 +218,7 @@ class RFLSCM(RenderMixin, LSCMModel):
             raise CheckpointError(f"{path}: cannot resume: the checkpoint holds no optimizer state.")
         self._load_stage_weights(state["stages"])
         self.step = int(state["step"])
-        trainer.load_state_dict(state["train_state"])
+        return state["train_state"]
 
     def _init_attenuation(self, points: torch.Tensor, share: torch.Tensor, steps: int = 100) -> None:
         """Fit the δ field so that its per-voxel loss is ``building_loss_db`` to the power ``share`` times
@@ -233,51 +226,215 @@ class RFLSCM(RenderMixin, LSCMModel):
         channels unchanged; every stage starts from the same fit."""
         f = self.config.field
         points, share = points.to(self.device), share.to(self.device)
+        assert f.building_loss_db is not None
         target = share * math.log(f.building_loss_db / f.init_loss_db)  # raw loss channel
-        stages = list(self.stages.values())
-        field = stages[0].delta_field
+        stages = self.all_stages()
+        fields = stages[0].fields
+        field = fields.delta_module()
         with torch.no_grad():
-            keep = field(points)[:, 1:]
+            keep = fields.delta(fields.encode(points))[:, 1:]
         opt = torch.optim.Adam(field.parameters(), lr=0.05)
         for _ in range(steps):
-            out = field(points)
+            out = fields.delta(fields.encode(points))
             loss = (out[:, 0] - target).square().mean() + (out[:, 1:] - keep).square().mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
         for stage in stages[1:]:
-            stage.delta_field.load_state_dict(field.state_dict())
+            stage.fields.delta_module().load_state_dict(field.state_dict())
 
     def on_step_begin(self, step: int) -> bool:
         """Upsample the tensors at ``upsample_at``; hand the coarse model to the refinement model at the
         end of the HiTAM warm-up.  True when parameters were replaced."""
         self.step = step
-        self.forget_aps()
-        f, h = self.config.field, self.config.hitam
+        h = self.config.hitam
         if self.hitam is not None and h.fine_init == "copy_coarse" and step == h.warmup_steps and step > 0:
             self.stages["fine"].load_state_dict(self.stages["coarse"].state_dict())
             self._match_fine_to_coarse()
-        if step in f.upsample_at:
-            self._cache.pop("selection", None)
-            level = list(f.upsample_at).index(step) + 1
-            lo, hi = torch.tensor(self.scene.frame.box_lo), torch.tensor(self.scene.frame.box_hi)
-            res = resolution_for(lo, hi, self._voxel_m(level), f.max_resolution)
+        if step in self.fields.upsample_at:
+            assert self.scene is not None and self._train is not None
+            self._train.selection = None
+            res = self.fields.resolution(self.scene.frame, list(self.fields.upsample_at).index(step) + 1)
             for module in self.stages.modules():
-                if isinstance(module, TensorVM):
+                if isinstance(module, TensorVM) and res is not None:
                     module.upsample(res)
             return True
         return False
 
     def decoder_evals(self) -> int:
         """Radiance-decoder evaluations so far (all stages)."""
-        return sum(s.decoder_evals for s in self.stages.values())
+        return sum(s.decoder_evals for s in self.all_stages())
+
+    def stage(self, name: str) -> RadianceStage:
+        """The rendering stage ``name`` (``"coarse"`` or ``"fine"``)."""
+        return cast(RadianceStage, self.stages[name])
+
+    def all_stages(self) -> list[RadianceStage]:
+        return [cast(RadianceStage, s) for s in self.stages.values()]
+
+    def _training(self) -> _TrainContext:
+        if self._train is None:
+            raise RuntimeError("the model has no training data; fit it first.")
+        return self._train
+
+    def _renderer(self) -> APSRenderer:
+        if self.renderer is None:
+            raise RuntimeError("the model has not been fitted")
+        return self.renderer
+
+    # --- losses ---------------------------------------------------------------------------------
+    def _loss(self, a_sel: torch.Tensor, x: torch.Tensor, pairs: torch.Tensor) -> dict[str, torch.Tensor]:
+        d, c = self._training().data, self.config.loss
+        pred = torch.einsum("bmk,bk->bm", a_sel, x)
+        return lscm_loss(
+            pred, d.rsrp[pairs], d.beam_mask[pairs], x, d.x_scale[pairs], d.threshold,
+            c.fidelity, c.sparsity, c.missing_penalty, floor=10.0 ** (c.floor_db / 10.0),
+        )  # fmt: skip
+
+    def _columns(self, cells: torch.Tensor, bins: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        """Normalised A columns ``[B, M, K]`` of fine ``bins [B, K]`` (zeroed where not ``valid``)."""
+        a = self._training().a_norm
+        beams = torch.arange(a.shape[1], device=a.device)
+        cols = a[cells[:, None, None], beams[None, :, None], bins[:, None, :]]
+        return cols if valid is None else cols * valid[:, None, :].to(cols.dtype)
+
+    def training_losses(self, pairs: torch.Tensor, step: int) -> dict[str, Any]:
+        """HiTAM loss (1 − α) L⁽¹⁾ + α L⁽²⁾ of a batch of pair indices ``pairs [B]``."""
+        d = self._training().data
+        pairs = pairs.to(self.device)
+        cells, xyz = d.cell_index[pairs], d.grid_xyz[pairs]
+        if self.hitam is None:
+            return self._loss(self._training().a_norm[cells], self._renderer().full_power(cells, xyz), pairs)
+        alpha = self.hitam.alpha(step)
+        out: dict[str, Any] = {"alpha": alpha}
+        total: torch.Tensor | float = 0.0
+        if alpha < 1.0:
+            coarse = self._renderer().coarse_power(cells, xyz)
+            a_coarse = self._training().a_coarse
+            assert a_coarse is not None
+            l1 = self._loss(a_coarse[cells], coarse, pairs)
+            total = total + (1.0 - alpha) * l1["total"]
+            out.update({"coarse": l1["total"], **{k: v for k, v in l1.items() if k != "total"}})
+            bins, valid = self._renderer().expand(cells, coarse.detach())
+        else:
+            bins, valid = self._frozen_selection(pairs)
+        if alpha > 0.0:
+            l2 = self._loss(self._columns(cells, bins, valid), self._renderer().fine_power(cells, xyz, bins, valid), pairs)
+            total = total + alpha * l2["total"]
+            out.update({"fine": l2["total"], **{k: v for k, v in l2.items() if k != "total"}})
+        out["total"] = total
+        return out
+
+    @torch.no_grad()
+    def _frozen_selection(self, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """HiTAM's Ω′ of training ``pairs [B]`` once α = 1: the coarse model no longer trains, so each pair's
+        selection is rendered once and remembered (until the weights are replaced)."""
+        train, hitam = self._training(), self.hitam
+        assert hitam is not None
+        d, memo = train.data, train.selection
+        if memo is None:
+            width = hitam.top_k * hitam.beta**2
+            memo = (torch.zeros(d.num_pairs, width, dtype=torch.long, device=self.device),
+                    torch.zeros(d.num_pairs, width, dtype=torch.bool, device=self.device),
+                    torch.zeros(d.num_pairs, dtype=torch.bool, device=self.device))  # fmt: skip
+            train.selection = memo
+        bins, valid, known = memo
+        todo = pairs[~known[pairs]].unique()
+        if todo.numel():
+            cells = d.cell_index[todo]
+            bins[todo], valid[todo] = self._renderer().expand(cells, self._renderer().coarse_power(cells, d.grid_xyz[todo]))
+            known[todo] = True
+        return bins[pairs], valid[pairs]
+
+    @torch.no_grad()
+    def _median_error_db(self, stage: str, num_pairs: int = 64) -> float:
+        """Median (prediction − measurement) [dB] of ``stage``'s APS over the observed beams of a few training pairs."""
+        d = self._training().data
+        pairs = torch.arange(d.num_pairs, device=self.device)[:: max(1, d.num_pairs // num_pairs)][:num_pairs]
+        cells, xyz = d.cell_index[pairs], d.grid_xyz[pairs]
+        if self.hitam is None:
+            bins, values = self._renderer().output(cells, xyz, self.step)
+        elif stage == "coarse":
+            bins, values = self._renderer().coarse_as_fine(self._renderer().coarse_power(cells, xyz))
+        else:
+            bins, valid = self._renderer().expand(cells, self._renderer().coarse_power(cells, xyz))
+            values = self._renderer().fine_power(cells, xyz, bins, valid)
+        pred = torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
+        observed = d.beam_mask[pairs] & ~torch.isnan(d.rsrp[pairs])
+        diff = 10.0 * torch.log10(pred[observed].clamp_min(1e-30) / d.rsrp[pairs][observed])
+        return float(diff.median())
+
+    @torch.no_grad()
+    def _calibrate_level(self, target_db: float) -> float:
+        """Rescale every stage's radiance so that the median (prediction − measurement) is ``target_db``;
+        returns the shift applied [dB]."""
+        shift = target_db - self._median_error_db("coarse" if self.hitam is not None else "fine")
+        for stage in self.all_stages():
+            stage.decoder.scale_power(10.0 ** (shift / 10.0))
+        return shift
+
+    @torch.no_grad()
+    def _match_fine_to_coarse(self) -> float:
+        """Rescale the refinement model so that its median error equals the coarse model's (the hand-over
+        after a copy: fine rays have narrower cones, so β² children do not sum to their block); returns dB."""
+        shift = self._median_error_db("coarse") - self._median_error_db("fine")
+        self.stage("fine").decoder.scale_power(10.0 ** (shift / 10.0))
+        return shift
+
+    @torch.no_grad()
+    def validation_mae(self) -> float:
+        """MAE [dB] on the held-aside round-1 beams (NaN without any)."""
+        d = self._training().data
+        if d.val_pairs.numel() == 0:
+            return float("nan")
+        errs, counts = [], []
+        for start in range(0, d.val_pairs.numel(), PAIR_CHUNK):
+            pairs = d.val_pairs[start : start + PAIR_CHUNK]
+            cells = d.cell_index[pairs]
+            bins, values = self._renderer().output(cells, d.grid_xyz[pairs], self.step)
+            pred = torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
+            mask = d.val_mask[pairs]
+            count = int((mask & ~torch.isnan(d.rsrp[pairs])).sum())
+            if count:
+                errs.append(float(mae_db(pred, d.rsrp[pairs], mask)) * count)
+                counts.append(count)
+        return sum(errs) / sum(counts) if counts else float("nan")
+
+    # --- the contract's APS ---------------------------------------------------------------------
+    @torch.no_grad()
+    def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
+        """APS ``[num_pairs, num_bins]`` [linear path gain] (see :meth:`LSCMModel.aps`).
+
+        Each distinct (cell, grid position) of the call is rendered once; evaluation and the benchmarks
+        remember rendered APS across calls (:class:`rflscm.eval.cache.APSCache`)."""
+        if self.scene is None or self.renderer is None:
+            raise RuntimeError("the model has not been fitted")
+        R = self.renderer
+        cells = self.scene.cell_index(cell_ids)
+        xyz = self.scene.grid_positions(grid_ids) if grid_xyz is None else np.asarray(grid_xyz, np.float64).reshape(-1, 3)
+        keys = [(int(c), *np.round(p, 3).tolist()) for c, p in zip(cells, xyz)]
+        first: dict[tuple, int] = {}
+        for i, key in enumerate(keys):
+            first.setdefault(key, i)
+        todo = sorted(first.values(), key=lambda i: (keys[i][0], i))
+        out = torch.zeros(len(keys), self.angle_grid.num_bins, device=self.device)
+        rendered = torch.zeros(len(todo), self.angle_grid.num_bins, device=self.device)
+        for start in range(0, len(todo), PAIR_CHUNK):
+            rows = todo[start : start + PAIR_CHUNK]
+            c = torch.as_tensor(cells[rows], device=self.device)
+            g = torch.as_tensor(xyz[rows], dtype=torch.float32, device=self.device)
+            bins, values = R.output(c, g, self.step)
+            rendered[start : start + len(rows)].scatter_add_(1, bins, values)
+        if keys:
+            slot = {keys[i]: j for j, i in enumerate(todo)}
+            out = rendered[torch.as_tensor([slot[k] for k in keys], dtype=torch.long, device=self.device)]
+        return out * self.scene.x_ref
 
     # --- persistence --------------------------------------------------------------------------
     def state_dict_for_checkpoint(self) -> dict[str, Any]:
-        g = self.angle_grid
         return {
             "config": to_dict(self.config),
-            "angle_grid": [g.num_el, g.num_az, g.el_min_deg, g.el_step_deg],
+            "angle_grid": self.angle_grid.to_dict(),
             "scene": self.scene.to_dict() if self.scene is not None else None,
             "prior": prior_state(self.prior),
             "surfaces": surfaces_state(self.surfaces),
@@ -288,8 +445,8 @@ class RFLSCM(RenderMixin, LSCMModel):
 
     @classmethod
     def from_checkpoint(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> RFLSCM:
-        num_el, num_az, el_min, el_step = state["angle_grid"]
-        model = cls(from_dict(cls.config_class, state["config"]), AngleGrid(int(num_el), int(num_az), el_min, el_step), device)
+        config: Any = from_dict(cls.config_class, _without_removed_options(state["config"]))
+        model = cls(config, AngleGrid.from_dict(state["angle_grid"]), device)
         if state["scene"] is None:
             raise CheckpointError("this checkpoint holds an unfitted model.")
         model.scene = SceneInfo.from_dict(state["scene"])
@@ -303,9 +460,11 @@ class RFLSCM(RenderMixin, LSCMModel):
         return model
 
     def _load_stage_weights(self, weights: dict[str, torch.Tensor]) -> None:
+        weights = {_current_key(k): v for k, v in weights.items()}
         for name, module in self.stages.named_modules():
             if isinstance(module, TensorVM):
-                res = tuple(int(weights[f"{name}.lines.{a}"].shape[2]) for a in range(3))
+                nx, ny, nz = (int(weights[f"{name}.lines.{a}"].shape[2]) for a in range(3))
+                res = (nx, ny, nz)
                 if res != module.resolution:
                     module.upsample(res)
         try:
@@ -316,8 +475,35 @@ class RFLSCM(RenderMixin, LSCMModel):
                 f"the checkpoint's weights do not fit this version of {self.name!r} ({first}); retrain it with this version."
             ) from None
         self.stages.to(self.device)
-        self.forget_aps()
-        self._cache.pop("selection", None)
+        if self._train is not None:
+            self._train.selection = None
+
+
+_REMOVED_OPTIONS = {("decoder", "grid_code_dim"): 0, ("decoder", "grid_code_neighbours"): None,
+                    ("render", "coherent"): True, ("hitam", "coarse_bins"): "block"}
+"""Options removed in issue 11 → the one value this version implements (None: any)."""
+
+
+def _without_removed_options(config: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint's config without the removed options, if they hold the value still implemented."""
+    config = {k: dict(v) if isinstance(v, dict) else v for k, v in config.items()}
+    for (section, key), kept in _REMOVED_OPTIONS.items():
+        if isinstance(config.get(section), dict) and key in config[section]:
+            value = config[section].pop(key)
+            if kept is not None and value != kept:
+                raise CheckpointError(f"the checkpoint uses `{section}.{key}: {value}`, an option this version no longer has.")
+    return config
+
+
+_OLD_KEYS = ((".delta_field.net.", ".fields."), (".delta_field.", ".fields.delta_vm."), (".feature_field.", ".fields.feature_vm."))
+"""Stage weight names before the field seam (issue 11) → now: NeRF²'s shared trunk, RF-LSCM's two VM tensors."""
+
+
+def _current_key(key: str) -> str:
+    for old, new in _OLD_KEYS:
+        if old in key:
+            return key.replace(old, new, 1)
+    return key
 
 
 def _changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
@@ -331,8 +517,12 @@ def _changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
     return [] if same else [prefix]
 
 
+@dataclass
 class _TrainContext:
-    """Training-only tensors: pair data, normalised A (full and coarse columns)."""
+    """Training-only tensors: pair data, normalised A (full and coarse columns) and HiTAM's frozen selection."""
 
-    def __init__(self, data: Any, a_norm: torch.Tensor, a_coarse: torch.Tensor | None) -> None:
-        self.data, self.a_norm, self.a_coarse = data, a_norm, a_coarse
+    data: PairData
+    a_norm: torch.Tensor
+    a_coarse: torch.Tensor | None
+    selection: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+    """``(bins, valid, known)`` of every training pair once α = 1 (see :meth:`RFLSCM._frozen_selection`)."""

@@ -7,8 +7,8 @@ only what they change.
 
 from __future__ import annotations
 
-import importlib.resources
 import dataclasses
+import importlib.resources
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -99,11 +99,6 @@ class DecoderConfig:
     and CSI-RS 0.2–0.5 dB worse than with it)."""
     specular_voxel_m: float = 4.0
     """Spacing of the surface-orientation grid [m]."""
-    grid_code_dim: int = 0
-    """Width of a learned per-grid code z_l fed beside PE(p_l) (:mod:`rflscm.fields.grid_codes`: one free
-    vector per measured grid, interpolated from the nearest ones for unseen grids); 0: none (paper)."""
-    grid_code_neighbours: int = 4
-    """Measured grids an unseen grid's code is interpolated from (inverse squared distance)."""
     wavelength_freqs: int = 1
     output: Literal["polar", "cartesian"] = "polar"
     """``polar``: (log |R|, arg R), suited to the decades of path gain; ``cartesian``: (Re R, Im R)."""
@@ -124,11 +119,9 @@ class DecoderConfig:
     def __post_init__(self) -> None:
         if self.hidden < 1 or self.layers < 1:
             raise ConfigError(f"`model.decoder` needs hidden >= 1 and layers >= 1 (got {self.hidden}, {self.layers}).")
-        for name in ("dir_freqs", "pos_freqs", "grid_freqs", "wavelength_freqs", "grid_code_dim"):
+        for name in ("dir_freqs", "pos_freqs", "grid_freqs", "wavelength_freqs"):
             _positive(f"model.decoder.{name}", getattr(self, name), allow_zero=True)
         _positive("model.decoder.specular_voxel_m", self.specular_voxel_m)
-        if self.grid_code_neighbours < 1:
-            raise ConfigError(f"`model.decoder.grid_code_neighbours` must be >= 1 (got {self.grid_code_neighbours}).")
         if any(p < 1 for p in self.specular_powers):
             raise ConfigError(f"`model.decoder.specular_powers` must be positive integers (got {list(self.specular_powers)}).")
 
@@ -167,8 +160,6 @@ class RenderConfig:
     """Δr, the sample spacing and FDAM voxel thickness d [m]."""
     num_samples: int | None = None
     """Q; default: enough to reach the farthest corner of the scene box from every cell."""
-    coherent: bool = True
-    """x̃ = |Σ_q (Π δ̃) R̃|² (paper) or Σ_q |(Π δ̃) R̃|² (scatterers along a ray add in power)."""
     inclusive: bool = True
     """Π_{q̃≤q} (paper) or Π_{q̃<q}."""
     max_log_gain: float | None = 0.0
@@ -204,10 +195,6 @@ class HiTAMConfig:
     """Coarse-only steps before α starts rising."""
     ramp_steps: int = 500
     """Steps over which α rises linearly from 0 to 1."""
-    coarse_bins: Literal["block", "representative"] = "block"
-    """``block``: a coarse ray goes through the centre of its β×β block and its A⁽¹⁾ column is the
-    mean of the block's columns (x̃⁽¹⁾ = the block's total power); ``representative``: the paper's
-    every-β-th bin, direction and column."""
     fine_init: Literal["copy_coarse", "fresh"] = "copy_coarse"
     """At the end of the warm-up, start the refinement model from the coarse one (rescaled so that its
     median error on a few training pairs matches the coarse model's) or from scratch."""

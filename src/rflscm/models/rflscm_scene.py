@@ -7,19 +7,21 @@ loaded model answers :meth:`aps` without the scenario.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
-from rflscm.errors import ConfigError, DataError
-from rflscm.models.base import UnsupportedError
+from rflscm.errors import ConfigError, DataError, UnsupportedError
 from rflscm.fields import PointPrior, density_grid
 from rflscm.fields.point_prior import grid_span
 from rflscm.fields.surfaces import SurfaceOrientation, structure_grid
 from rflscm.models.radiance import SceneFrame
 from rflscm.models.rflscm_config import RFLSCMConfig
 from rflscm.render import num_samples_for
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 ASPRS_BUILDING = 6  # LAS classification code of building points
 
@@ -88,7 +90,7 @@ def visible_bins(a_mw: torch.Tensor, min_gain_db: float | None) -> np.ndarray:
     return (gain >= peak * 10.0 ** (min_gain_db / 10.0)).cpu().numpy()
 
 
-def scene_box(scenario: Any, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
+def scene_box(scenario: Scenario, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned box ``(lo, hi)`` [m] holding the point cloud, the cells and the grids, plus a margin."""
     parts = [scenario.cells[1][["x", "y", "z"]].to_numpy(np.float64), scenario.grids[["x", "y", "z"]].to_numpy(np.float64)]
     if scenario.point_cloud is not None and len(scenario.point_cloud.xyz):
@@ -146,15 +148,15 @@ def make_frame(cfg: RFLSCMConfig, lo: np.ndarray, hi: np.ndarray, cell_xyz: np.n
         torch.as_tensor(lo), torch.as_tensor(hi), torch.as_tensor(cell_xyz), cfg.render.step_m
     )
     return SceneFrame(
-        box_lo=tuple(float(v) for v in lo),
-        box_hi=tuple(float(v) for v in hi),
+        box_lo=(float(lo[0]), float(lo[1]), float(lo[2])),
+        box_hi=(float(hi[0]), float(hi[1]), float(hi[2])),
         num_samples=int(q),
         reference_wavelength_m=float(np.median(wavelengths)),
         reference_distance_m=float(max(np.median(pair_distances), cfg.render.step_m)),
     )
 
 
-def make_prior(cfg: RFLSCMConfig, scenario: Any, lo: np.ndarray, hi: np.ndarray) -> PointPrior | None:
+def make_prior(cfg: RFLSCMConfig, scenario: Scenario, lo: np.ndarray, hi: np.ndarray) -> PointPrior | None:
     """The point-cloud prior Φ of a scenario, or ``None`` when switched off."""
     if not cfg.prior.enabled:
         return None
@@ -174,7 +176,7 @@ def make_prior(cfg: RFLSCMConfig, scenario: Any, lo: np.ndarray, hi: np.ndarray)
     return PointPrior(torch.from_numpy(density), torch.from_numpy(grid_lo), torch.from_numpy(grid_hi), threshold, beta)
 
 
-def make_surfaces(cfg: Any, scenario: Any, lo: np.ndarray, hi: np.ndarray, seed: int = 0) -> SurfaceOrientation | None:
+def make_surfaces(cfg: Any, scenario: Scenario, lo: np.ndarray, hi: np.ndarray, seed: int = 0) -> SurfaceOrientation | None:
     """The scan's surface orientation for the decoder's specular cue; ``None`` when the decoder takes none
     (``decoder.specular_powers`` empty) or the scenario has no point cloud (the cue is then 0)."""
     cloud = scenario.point_cloud
@@ -197,7 +199,7 @@ def surfaces_from_state(state: dict[str, Any] | None) -> SurfaceOrientation | No
     return SurfaceOrientation(state["grid"].float(), state["box_lo"], state["box_hi"])
 
 
-def building_targets(cfg: RFLSCMConfig, scenario: Any, prior: PointPrior, max_points: int = 30_000,
+def building_targets(cfg: RFLSCMConfig, scenario: Scenario, prior: PointPrior, max_points: int = 30_000,
                      seed: int = 0) -> tuple[torch.Tensor, torch.Tensor] | None:  # fmt: skip
     """Points ``[n, 3]`` near the scan and their building share ``[n]`` ∈ [0, 1] (building-point count over
     D_th), for initialising the attenuation; ``None`` without building-classified points."""

@@ -19,7 +19,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import pandas as pd
@@ -30,6 +30,9 @@ from rflscm.errors import CheckpointError, ConfigError
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import LSCMModel, UnsupportedError, register_model, require_round1_reports
 from rflscm.models.wnomp_solver import wnomp_solve
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 
 @dataclass(frozen=True)
@@ -126,7 +129,7 @@ class WNOMPModel(LSCMModel):
     # --- fitting ------------------------------------------------------------------------------
     def fit(
         self,
-        scenario: Any,
+        scenario: Scenario,
         progress: bool = True,
         callback: Callable[[dict[str, float]], None] | None = None,
         checkpoint_path: str | Path | None = None,
@@ -239,7 +242,7 @@ class WNOMPModel(LSCMModel):
         return model
 
 
-def round1_problems(scenario: Any) -> tuple[pd.DataFrame, np.ndarray, dict[int, np.ndarray]]:
+def round1_problems(scenario: Scenario) -> tuple[pd.DataFrame, np.ndarray, dict[int, np.ndarray]]:
     """All round-1 (cell, grid) pairs with their stacked SSB + CSI-RS RSRP.
 
     Returns:
@@ -263,7 +266,7 @@ def round1_problems(scenario: Any) -> tuple[pd.DataFrame, np.ndarray, dict[int, 
     return pairs, rsrp, beams
 
 
-def _stacked_sensing(scenario: Any, cell_id: int, angle_grid: AngleGrid, device: torch.device) -> torch.Tensor:
+def _stacked_sensing(scenario: Scenario, cell_id: int, angle_grid: AngleGrid, device: torch.device) -> torch.Tensor:
     """Round-1 SSB rows over CSI-RS rows: ``A [num_ssb + num_csi, num_bins]`` [mW per unit gain].
 
     float32, as :meth:`LSCMModel.predict_rsrp` uses, so that fit and prediction see the same A.

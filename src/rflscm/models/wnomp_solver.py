@@ -188,6 +188,7 @@ def _residual(x: Tensor, cols: Tensor, rows: _Rows, ids: Tensor) -> tuple[Tensor
     residual = torch.where(omega > 0, rows.target[ids] - omega * pred, 0.0)
     if rows.omega_th is None:
         return residual, torch.zeros_like(residual, dtype=torch.bool)
+    assert rows.level_th is not None and rows.target_th is not None
     violated = rows.missing[ids] & (pred > rows.level_th[ids])
     residual = torch.where(violated, rows.target_th[ids] - rows.omega_th[ids] * pred, residual)
     return residual, violated
@@ -220,8 +221,10 @@ def _solve_support(
     best_obj = best_res.square().sum(1)
     hinge = torch.zeros_like(hinge)  # first pass: observed rows only
     for _ in range(_THRESHOLD_PASSES if rows.omega_th is not None else 1):
-        w_eff = torch.where(hinge, rows.omega_th[ids], omega) if rows.omega_th is not None else omega
-        t_eff = torch.where(hinge, rows.target_th[ids], target) if rows.omega_th is not None else target
+        if rows.omega_th is not None and rows.target_th is not None:
+            w_eff, t_eff = torch.where(hinge, rows.omega_th[ids], omega), torch.where(hinge, rows.target_th[ids], target)
+        else:
+            w_eff, t_eff = omega, target
         b = cols * w_eff[:, None, :]  # weighted columns [Pa, k, M]
         norm = b.norm(dim=2).clamp_min(1e-300)  # [Pa, k]
         bn = b / norm[:, :, None]

@@ -13,18 +13,18 @@ from rflscm.render.rays import (
 )
 
 __all__ = [
-    "accumulate_power",
-    "join_queries",
-    "segment_cumsum",
     "PackedSamples",
     "RaySamples",
+    "accumulate_power",
     "build_ray_samples",
     "chunk_bounds",
     "chunked",
     "gather_samples",
+    "join_queries",
     "num_samples_for",
     "ray_points",
     "render_power",
+    "segment_cumsum",
     "select_samples",
     "transmittance",
 ]

@@ -6,7 +6,8 @@
 * :mod:`rflscm.sim.paths` — paths → true APS (binned) and true RSRP for any antenna;
 * :mod:`rflscm.sim.noise` — measurement noise, quantisation, reporting threshold;
 * :mod:`rflscm.sim.builder` — :func:`build_scenario` with :class:`SimulationConfig`;
-* :mod:`rflscm.sim.truth` — ``truth/`` files, :func:`load_true_aps` and the oracle model.
+* :mod:`rflscm.sim.truth` — ``truth/`` files and :func:`load_true_aps` (the oracle that answers with
+  them is an evaluation device: :mod:`rflscm.eval.oracle`).
 """
 
 from __future__ import annotations
@@ -21,16 +22,7 @@ from rflscm.sim.backend import PATH_COLUMNS, SceneBackend, empty_path_table
 from rflscm.sim.builder import CODEBOOKS, SimulationConfig, build_scenario
 from rflscm.sim.noise import MeasurementModel, measure
 from rflscm.sim.procedural import MATERIALS, PROCEDURAL_SCENES, ProceduralCity
-
-_LAZY = {"OracleModel", "TrueAPS", "load_true_aps"}  # rflscm.sim.truth imports the model registry
-
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        from rflscm.sim import truth
-
-        return getattr(truth, name)
-    raise AttributeError(f"module 'rflscm.sim' has no attribute {name!r}")
+from rflscm.sim.truth import TrueAPS, load_true_aps
 
 BACKENDS = ("procedural", "sionna")
 """Names accepted by :func:`make_backend` (``rflscm simulate --backend``)."""
@@ -63,7 +55,7 @@ def make_backend(
 
 def _check_options(cls: type, options: dict[str, Any], name: str, reserved: tuple[str, ...]) -> None:
     """Unknown ``backend_options`` keys (or ones set elsewhere) are a :class:`ConfigError` listing the valid ones."""
-    valid = [p for p in inspect.signature(cls.__init__).parameters if p != "self" and p not in reserved]
+    valid = [p for p in inspect.signature(cls).parameters if p not in reserved]
     unknown = sorted(set(options) - set(valid))
     if unknown:
         raise ConfigError(
@@ -84,7 +76,6 @@ __all__ = [
     "PATH_COLUMNS",
     "PROCEDURAL_SCENES",
     "MeasurementModel",
-    "OracleModel",
     "ProceduralCity",
     "SceneBackend",
     "SimulationConfig",

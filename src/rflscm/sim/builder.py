@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 
 from rflscm.antenna import DFTCodebook, SSBCodebook, wavelength_of
+from rflscm.antenna.codebook import Codebook
 from rflscm.config import to_dict
 from rflscm.data import PointCloud, Scenario, ScenarioMeta, empty_measurements, load_scenario, save_scenario
 from rflscm.errors import ConfigError
@@ -31,7 +32,7 @@ from rflscm.sim.noise import MeasurementModel
 from rflscm.sim.paths import write_truth
 
 ASPRS_BUILDING = 6
-CODEBOOKS = {
+CODEBOOKS: dict[str, Codebook] = {
     "ssb8": SSBCodebook(),
     "csi32": DFTCodebook(),
     "ssb8_b": SSBCodebook(azimuths_deg=(-50.0, -20.0, 10.0, 40.0), tilts_deg=(3.0, 12.0), active_h=4, active_v=4),
@@ -365,8 +366,7 @@ def build_scenario(
         raise ConfigError(f"{out}: folder exists and is not empty; choose another --out or pass --force.")
     rng = np.random.default_rng(config.seed)
     centre = area_center(backend, config)
-    scan = backend.sample_point_cloud(config.point_cloud_points_per_m2, config.point_cloud_noise_m, config.seed)
-    scan = PointCloud(*scan)
+    scan = PointCloud(*backend.sample_point_cloud(config.point_cloud_points_per_m2, config.point_cloud_noise_m, config.seed))
     sites = choose_sites(backend, config, rng, scan)
     cells1 = make_cells(sites, config, rng)
     cells2, changes = make_round2(cells1, config, rng)
@@ -433,10 +433,9 @@ def _provenance(backend, config: SimulationConfig, scene, changes) -> dict[str, 
         "backend": _BACKEND_KINDS.get(type(backend).__name__, type(backend).__name__),
         "scene": scene or backend.name,
         "seed": config.seed,
-        "angle_grid": {"num_el": grid.num_el, "num_az": grid.num_az, "el_min_deg": grid.el_min_deg,
-                       "el_step_deg": grid.el_step_deg},  # fmt: skip
+        "angle_grid": grid.to_dict(),
         "noise": {"sigma_db": config.noise_sigma_db, "quantization_db": config.quantization_db,
-                  "threshold_dbm": config.rsrp_threshold_dbm},  # fmt: skip
+                  "threshold_dbm": config.rsrp_threshold_dbm},
         "points_per_grid": config.points_per_grid,
         "round2_changes": changes,
         "config": to_dict(config),

@@ -18,6 +18,7 @@ an antenna:
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -25,6 +26,9 @@ import torch
 
 from rflscm.antenna import CellAntenna, Codebook, sensing_matrix
 from rflscm.geometry import AngleGrid, unit_vectors
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 _CHUNK = 65_536  # paths per sensing-matrix evaluation
 PATHS_FILE, APS_FILE, RSRP_FILE = "paths.parquet", "aps.parquet", "rsrp_noiseless.parquet"
@@ -154,7 +158,7 @@ def site_groups(paths: pd.DataFrame) -> dict[tuple[int, float], pd.DataFrame]:
     return {(int(s), float(f)): g for (s, f), g in paths.groupby(["site_id", "freq_hz"], sort=True)}
 
 
-def noiseless_rsrp(scenario, paths: pd.DataFrame, points_per_grid: pd.Series | int) -> pd.DataFrame:
+def noiseless_rsrp(scenario: Scenario, paths: pd.DataFrame, points_per_grid: pd.Series | int) -> pd.DataFrame:
     """True RSRP of every (round, cell, grid, beam) before noise, quantisation and threshold.
 
     Args:
@@ -201,7 +205,7 @@ def _long(rsrp_dbm: np.ndarray, rnd: int, cell_id: int, grid_ids: np.ndarray, be
 
 
 def write_truth(
-    folder: Path, scenario, paths: pd.DataFrame, noiseless: pd.DataFrame, points_per_grid: pd.Series,
+    folder: Path, scenario: Scenario, paths: pd.DataFrame, noiseless: pd.DataFrame, points_per_grid: pd.Series,
     angle_grid: AngleGrid, rsrp_floor_dbm: float | None = None,
 ) -> None:
     """Write ``truth/``: the paths, the true APS of every (cell, grid) on ``angle_grid``, and the

@@ -282,7 +282,7 @@ class ProceduralCity:
     def is_outdoor(self, xy: np.ndarray) -> np.ndarray:
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         inside = (xy[:, None] >= self.box_lo[None, :, :2]) & (xy[:, None] <= self.box_hi[None, :, :2])
-        return ~inside.all(axis=-1).any(axis=-1)
+        return np.asarray(~inside.all(axis=-1).any(axis=-1))
 
     def sample_point_cloud(self, points_per_m2: float, noise_std_m: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """Uniform random points on the outdoor ground, roofs and walls, plus Gaussian noise [m]."""
@@ -411,8 +411,8 @@ class ProceduralCity:
         n = len(w)
         if order == 1:
             return np.arange(n)[:, None]
-        a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-        a, b = a.ravel(), b.ravel()
+        grid_a, grid_b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+        a, b = grid_a.ravel(), grid_b.ravel()
         gap = w.sign[a] * (w.coord[b] - w.coord[a])  # b lies this far in front of a
         facing = (w.axis[a] == w.axis[b]) & (w.sign[a] == -w.sign[b]) & (gap > 0) & (gap <= self.max_canyon_m)
         overlap = np.minimum(w.u_hi[a], w.u_hi[b]) - np.maximum(w.u_lo[a], w.u_lo[b]) > 0
@@ -456,7 +456,7 @@ class ProceduralCity:
             hops = [h[ok] for h in hops] + [p[ok]]
         if len(s_idx) == 0:
             return empty_path_table()
-        hops = [np.broadcast_to(tx, (len(s_idx), 3))] + hops[::-1]  # tx, P_1, …, P_order, rx
+        hops = [np.broadcast_to(tx, (len(s_idx), 3)), *hops[::-1]]  # tx, P_1, …, P_order, rx
         blocked = np.zeros(len(s_idx), dtype=bool)
         gamma2 = np.ones(len(s_idx))
         for j in range(len(hops) - 1):

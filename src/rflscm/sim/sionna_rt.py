@@ -43,7 +43,7 @@ def _sionna_scene_dir() -> Path | None:
     spec = importlib.util.find_spec("sionna")
     if spec is None or not spec.submodule_search_locations:
         return None
-    return Path(list(spec.submodule_search_locations)[0]) / "rt" / "scenes"
+    return Path(next(iter(spec.submodule_search_locations))) / "rt" / "scenes"
 
 
 def available_scenes() -> list[str]:
@@ -66,7 +66,9 @@ def _scene_file(scene: str) -> Path:
             f"Unknown Sionna scene {scene!r}; built-in scenes are: {', '.join(names)} "
             "(or give the path of a Mitsuba .xml scene)."
         )
-    return _sionna_scene_dir() / scene / f"{scene}.xml"
+    folder = _sionna_scene_dir()
+    assert folder is not None  # available_scenes() found it
+    return folder / scene / f"{scene}.xml"
 
 
 def _import_sionna(device: str) -> tuple[ModuleType, ModuleType]:

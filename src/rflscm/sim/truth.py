@@ -1,4 +1,4 @@
-"""The simulator's ``truth/`` folder: writing it, reading the true APS, and the oracle model.
+"""The simulator's ``truth/`` folder: writing it and reading the true APS.
 
 ``truth/`` holds (SPEC §6):
 
@@ -11,26 +11,26 @@
   whose strongest beam lies more than ``truth_rsrp_margin_db`` (10 dB) below the reporting
   threshold are left out, as they can never be reported.
 
-Models never read ``truth/``; only evaluation does, and the :class:`OracleModel` — the evaluation
-floor — which answers with the true APS.
+Models never read ``truth/``; only evaluation does, through :class:`rflscm.eval.oracle.OracleModel`
+(the evaluation floor), which answers with the true APS.
 """
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 import torch
 
 from rflscm.data.io import read_table
-from rflscm.errors import CheckpointError, ConfigError, DataError
+from rflscm.errors import DataError, UnsupportedError
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import LSCMModel, UnsupportedError, register_model
 from rflscm.sim.paths import APS_FILE, PATHS_FILE, RSRP_FILE, true_aps_table, write_truth  # noqa: F401
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 class TrueAPS:
     """The true APS of (cell, grid) pairs, dense on request.
@@ -98,7 +98,7 @@ def _index_of(known: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return pos, known[pos] == ids
 
 
-def truth_folder(scenario) -> Path:
+def truth_folder(scenario: Scenario) -> Path:
     """The scenario's ``truth/`` folder, or a :class:`DataError` saying that it has none."""
     if scenario.meta.truth is None or not (scenario.root / scenario.meta.truth).is_dir():
         raise DataError(
@@ -113,10 +113,10 @@ def simulation_angle_grid(simulation: dict[str, Any]) -> AngleGrid:
     spec = simulation.get("angle_grid")
     if not isinstance(spec, dict):
         raise DataError("scenario.yaml `simulation.angle_grid` is missing; the truth folder cannot be read.")
-    return AngleGrid(int(spec["num_el"]), int(spec["num_az"]), float(spec["el_min_deg"]), float(spec["el_step_deg"]))
+    return AngleGrid.from_dict(spec)
 
 
-def load_true_aps(scenario, angle_grid: AngleGrid | None = None) -> TrueAPS:
+def load_true_aps(scenario: Scenario, angle_grid: AngleGrid | None = None) -> TrueAPS:
     """The true APS of ``scenario`` (from ``truth/``), on its simulation grid or re-binned onto ``angle_grid``."""
     simulation = scenario.meta.simulation
     return read_true_aps(
@@ -139,83 +139,3 @@ def read_true_aps(
     paths = paths.astype({"power_lin": "float64", "aod_el_rad": "float64", "aod_az_rad": "float64"})
     table = true_aps_table(paths, cells, angle_grid, int(points_per_grid))
     return TrueAPS(table, angle_grid, cells["cell_id"].to_numpy(), grid_ids)
-
-
-@register_model
-class OracleModel(LSCMModel):
-    """The evaluation floor: answers with the true APS of a simulated scenario.
-
-    ``fit`` only reads the scenario's ``truth/`` folder — the one model allowed to — so that
-    evaluation computes the oracle MAE with the shared :meth:`predict_rsrp`: what remains is
-    angular binning and measurement noise.  Pairs the simulation did not trace raise
-    :class:`UnsupportedError`.  The checkpoint stores the truth folder's path, not the APS.
-    """
-
-    name = "oracle"
-
-    def __init__(self, angle_grid: AngleGrid, device: torch.device | str = "cpu") -> None:
-        super().__init__(angle_grid, device)
-        self.truth_dir: Path | None = None
-        self._truth: TrueAPS | None = None
-        self._scenario_fingerprint: str | None = None
-        self._state: dict[str, Any] = {}
-
-    @classmethod
-    def build(
-        cls, config: str | Path | dict[str, Any] | None, angle_grid: AngleGrid, device: torch.device | str
-    ) -> OracleModel:
-        if config not in (None, "quick", "full") and config != {}:
-            raise ConfigError(f"the oracle model has no settings; use no --config (got {config!r}).")
-        return cls(angle_grid, device)
-
-    def fit(
-        self, scenario, progress: bool = True, callback: Callable[[dict[str, float]], None] | None = None,
-        checkpoint_path: str | Path | None = None, resume: bool = False,
-    ) -> dict[str, float]:
-        start = time.perf_counter()
-        self._truth = load_true_aps(scenario, self.angle_grid)
-        self.truth_dir = truth_folder(scenario).resolve()
-        self._scenario_fingerprint = scenario.fingerprint()
-        if self.fingerprint is None:
-            self.fingerprint = self._scenario_fingerprint
-        self._state = {
-            "cells": scenario.cells[1][["cell_id", "site_id", "freq_hz"]].to_dict(orient="list"),
-            "grid_ids": scenario.grid_ids().tolist(),
-            "points_per_grid": scenario.meta.simulation.get("points_per_grid"),
-            "native_angle_grid": dict(scenario.meta.simulation["angle_grid"]),
-        }
-        if checkpoint_path is not None:
-            self.save(checkpoint_path)
-        return {"train_time_s": time.perf_counter() - start}
-
-    def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
-        if self._truth is None:
-            raise UnsupportedError("the oracle model has not been fitted; call fit(scenario) first.")
-        return self._truth.aps(cell_ids, grid_ids, dtype=torch.float32, device=self.device)
-
-    def state_dict_for_checkpoint(self) -> dict[str, Any]:
-        if self._truth is None:
-            raise UnsupportedError("the oracle model has not been fitted; nothing to save.")
-        g = self.angle_grid
-        return {
-            "truth_dir": str(self.truth_dir), "scenario_fingerprint": self._scenario_fingerprint,
-            "angle_grid": [g.num_el, g.num_az, g.el_min_deg, g.el_step_deg], **self._state,
-        }  # fmt: skip
-
-    @classmethod
-    def from_checkpoint(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> OracleModel:
-        num_el, num_az, el_min, el_step = state["angle_grid"]
-        model = cls(AngleGrid(int(num_el), int(num_az), float(el_min), float(el_step)), device)
-        folder = Path(state["truth_dir"])
-        if not (folder / APS_FILE).is_file():
-            raise CheckpointError(
-                f"oracle checkpoint: its truth folder {folder} is gone; refit the oracle on the simulated scenario."
-            )
-        model._truth = read_true_aps(
-            folder, pd.DataFrame(state["cells"]), np.asarray(state["grid_ids"], dtype=np.int64),
-            simulation_angle_grid({"angle_grid": state["native_angle_grid"]}), state["points_per_grid"],
-            model.angle_grid,
-        )
-        model.truth_dir, model._scenario_fingerprint = folder, state["scenario_fingerprint"]
-        model._state = {k: state[k] for k in ("cells", "grid_ids", "points_per_grid", "native_angle_grid")}
-        return model

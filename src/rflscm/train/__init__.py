@@ -1,7 +1,21 @@
-"""Training of radiance-field LSCM models: data, losses and a generic trainer."""
+"""Training: :func:`fit` (the one way to learn a model from a scenario) and the generic :class:`Trainer`.
 
-from rflscm.train.data import PairData, build_pair_data, stacked_sensing
-from rflscm.train.losses import lscm_loss, mae_db
-from rflscm.train.trainer import Trainer
+The loss and the pair data the models train on live with the models (:mod:`rflscm.models.losses`,
+:mod:`rflscm.models.pairs`) and are re-exported here.
+"""
 
-__all__ = ["PairData", "Trainer", "build_pair_data", "lscm_loss", "mae_db", "stacked_sensing"]
+from rflscm.models.losses import lscm_loss, mae_db
+from rflscm.models.pairs import PairData, build_pair_data, stacked_sensing
+from rflscm.train.trainer import Trainable, Trainer, TrainingPlan, fit
+
+__all__ = [
+    "PairData",
+    "Trainable",
+    "Trainer",
+    "TrainingPlan",
+    "build_pair_data",
+    "fit",
+    "lscm_loss",
+    "mae_db",
+    "stacked_sensing",
+]

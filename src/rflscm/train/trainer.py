@@ -1,19 +1,15 @@
-"""A generic trainer for radiance-field LSCM models (RF-LSCM, NeRF²-LSCM, …).
+"""The trainer: drives any :class:`Trainable` model (RF-LSCM, NeRF²-LSCM, …) through its steps.
 
-The trainer knows nothing about fields, rays or HiTAM; it needs a model with
-
-* ``parameter_groups() -> {name: [parameters]}`` — learning rates are configured by these names;
-* ``training_losses(pairs: LongTensor[B], step: int) -> {"total": …, …}``;
-* ``validation_mae() -> float`` — MAE [dB] on held-aside round-1 beams (NaN when none);
-* ``on_step_begin(step) -> bool`` — per-step hooks (HiTAM hand-over, upsampling); True when the
-  parameter objects changed and the optimizer must be rebuilt;
-* ``save(path)`` and a ``train_state`` attribute that ``save`` writes along;
-* a ``step`` attribute, which the trainer keeps equal to the number of steps done.
+:func:`fit` is the one entry point that learns a model from a scenario: a :class:`Trainable` model is
+trained here, step by step; any other model (WNOMP, closed form) fits itself with ``model.fit``.
+The trainer sits above the models (``rflscm.models`` imports nothing from ``rflscm.train``) and
+knows nothing about fields, rays or HiTAM; it sees the model through :class:`Trainable` only.
 
 Batches are random permutations of the training pairs (an epoch at a time) drawn from a
 dedicated generator, optionally in groups of ``pairs_per_cell`` pairs that share a group key
-(e.g. the cell, whose rays the model then computes once for the group); learning rates are a pure function of the step; so a checkpoint holding
-parameters, optimizer state, step and generator state resumes *exactly*.
+(e.g. the cell, whose rays the model then computes once for the group); learning rates are a pure
+function of the step; so a checkpoint holding parameters, optimizer state, step and generator state
+resumes *exactly*.
 """
 
 from __future__ import annotations
@@ -22,20 +18,94 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import torch
+from torch import nn
 
 from rflscm.errors import ConfigError
+from rflscm.models.base import LSCMModel, TrainingPlan, discard_partial_save, read_checkpoint
+from rflscm.models.rflscm_config import TrainConfig
 
-if TYPE_CHECKING:  # the config lives with the models, which import this module
-    from rflscm.models.rflscm_config import TrainConfig
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
+
+
+@runtime_checkable
+class Trainable(Protocol):
+    """What the trainer needs of an iteratively trained model.
+
+    * :meth:`prepare` — fresh weights and training data for a scenario; returns the :class:`TrainingPlan`;
+    * :meth:`parameter_groups` — ``{name: parameters}``; learning rates are configured by these names;
+    * :meth:`training_losses` — ``{"total": …, …}`` of a batch of pair indices at a step;
+    * :meth:`validation_mae` — MAE [dB] on held-aside round-1 beams (NaN when none);
+    * :meth:`on_step_begin` — per-step hooks (HiTAM hand-over, upsampling); True when the parameter
+      objects changed and the optimizer must be rebuilt;
+    * :meth:`resume_from` — load weights and step from a checkpoint payload (refusing a foreign one)
+      and return the trainer state saved with it;
+    * ``step`` (steps done), ``train_state`` (the trainer state :meth:`save` writes along),
+      ``train_config`` and :meth:`decoder_evals` (a work counter for throughput).
+    """
+
+    step: int
+    train_state: dict[str, Any] | None
+
+    @property
+    def train_config(self) -> TrainConfig: ...
+
+    def prepare(self, scenario: Scenario) -> TrainingPlan: ...
+
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]: ...
+
+    def training_losses(self, pairs: torch.Tensor, step: int) -> dict[str, Any]: ...
+
+    def validation_mae(self) -> float: ...
+
+    def on_step_begin(self, step: int) -> bool: ...
+
+    def resume_from(self, payload: dict[str, Any], path: str | Path) -> dict[str, Any]: ...
+
+    def decoder_evals(self) -> int: ...
+
+    def save(self, path: str | Path) -> Path: ...
+
+
+def fit(
+    model: LSCMModel,
+    scenario: Scenario,
+    progress: bool = True,
+    callback: Callable[[dict[str, float]], None] | None = None,
+    checkpoint_path: str | Path | None = None,
+    resume: bool = False,
+) -> dict[str, float]:
+    """Learn ``model`` from the round-1 measurements of ``scenario``; returns a summary.
+
+    A :class:`Trainable` model is trained by a :class:`Trainer` (checkpoints written atomically to
+    ``checkpoint_path`` every few steps; with ``resume`` it continues exactly from that file); any
+    other model fits itself (:meth:`~rflscm.models.LSCMModel.fit`).  ``callback`` receives periodic
+    metrics.  The model's fingerprint, when not set already (a protocol sets the full scenario's),
+    becomes ``scenario``'s.
+    """
+    if model.fingerprint is None:
+        model.fingerprint = scenario.fingerprint()
+    if not isinstance(model, Trainable):
+        return model.fit(scenario, progress=progress, callback=callback, checkpoint_path=checkpoint_path, resume=resume)
+    discard_partial_save(checkpoint_path)  # a save killed half-way (kill -9) leaves its temporary file behind
+    plan = model.prepare(scenario)
+    trainer = Trainer(model, model.train_config, plan.pairs, groups=plan.groups)
+    if resume and checkpoint_path is not None and Path(checkpoint_path).is_file():
+        trainer.load_state_dict(model.resume_from(read_checkpoint(checkpoint_path), checkpoint_path))
+    evals0, time0 = model.decoder_evals(), trainer.elapsed_s
+    summary = trainer.run(progress=progress, callback=callback, checkpoint_path=checkpoint_path)
+    summary["decoder_evals_per_s"] = (model.decoder_evals() - evals0) / max(trainer.elapsed_s - time0, 1e-9)
+    model.run_info["train"] = {k: float(v) for k, v in summary.items()}
+    return summary
 
 
 class Trainer:
     """Adam over named parameter groups, exponential learning-rate decay, periodic validation and checkpoints."""
 
-    def __init__(self, model: Any, cfg: TrainConfig, train_pairs: torch.Tensor, groups: torch.Tensor | None = None) -> None:
+    def __init__(self, model: Trainable, cfg: TrainConfig, train_pairs: torch.Tensor, groups: torch.Tensor | None = None) -> None:
         self.model, self.cfg = model, cfg
         self.train_pairs = train_pairs.cpu()
         self.groups = groups.cpu() if groups is not None else None
@@ -45,10 +115,10 @@ class Trainer:
         self.pos = 0
         self.last_val_mae = float("nan")
         self.elapsed_s = 0.0
-        groups = model.parameter_groups()
-        if set(cfg.lr) != set(groups):
+        named = model.parameter_groups()
+        if set(cfg.lr) != set(named):
             raise ConfigError(
-                f"`train.lr` names {sorted(cfg.lr)} do not match the model's parameter groups {sorted(groups)}; "
+                f"`train.lr` names {sorted(cfg.lr)} do not match the model's parameter groups {sorted(named)}; "
                 f"give one learning rate per group."
             )
         self.optimizer = self._build_optimizer()

@@ -6,8 +6,8 @@ import json
 
 import numpy as np
 import pytest
-
 from eval_helpers import GRID, on_grid_truth_scenario, simulate
+
 from rflscm.data import load_scenario
 from rflscm.eval import AdjustProtocol, UnseenProtocol, evaluate, fit_with_protocol, run_evaluation
 from rflscm.eval.metrics import changed_cells
@@ -45,7 +45,7 @@ def adjust_run(sim_scenario):
 
 
 def test_documented_keys_are_present_and_json_ready(adjust_run, sim_scenario) -> None:
-    model, evaluation = adjust_run
+    _model, evaluation = adjust_run
     metrics = evaluation.metrics
     for key in DOCUMENTED_KEYS:
         get(metrics, key)  # KeyError names the missing one

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import re
 
+from eval_helpers import GRID
 from matplotlib.image import imread
 
-from eval_helpers import GRID
 from rflscm.eval import fit_with_protocol, run_evaluation
 from rflscm.eval.report import metric_rows, write_report
 from rflscm.models import MODEL_REGISTRY

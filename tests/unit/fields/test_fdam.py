@@ -16,7 +16,7 @@ from rflscm.fields.fdam import DB_PER_NEPER
 
 def reference_fdam(mu: np.ndarray, eps: np.ndarray, wavelength: float, d: float) -> np.ndarray:
     """Eq. (8) written out voxel by voxel, free space before and after (independent of the torch code)."""
-    z = [1.0 + 0j] + list(np.sqrt(mu / eps)) + [1.0 + 0j]
+    z = [1.0 + 0j, *list(np.sqrt(mu / eps)), 1.0 + 0j]
     out = []
     for q in range(len(mu)):
         g = (z[q + 1] - z[q]) / (z[q + 1] + z[q])

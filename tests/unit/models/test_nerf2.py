@@ -12,8 +12,10 @@ from rflscm.config import to_dict
 from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
 from rflscm.models import MODEL_REGISTRY, load_model
-from rflscm.models.nerf2 import NeRF2Config, NeRF2Field, NeRF2FieldConfig, NeRF2LSCM, _match_rows
+from rflscm.models.nerf2 import NeRF2Config, NeRF2Field, NeRF2FieldConfig, NeRF2LSCM
 from rflscm.models.radiance import SceneFrame
+from rflscm.models.rflscm import RFLSCM
+from rflscm.train import fit
 
 GRID = AngleGrid(num_el=16, num_az=18, el_min_deg=-90.0, el_step_deg=12.0)
 NARROW = {
@@ -86,25 +88,23 @@ def test_field_shapes_skip_and_free_space_start() -> None:
     widths = [layer.in_features for layer in net.trunk.hidden]
     assert widths == [63, 256, 256, 256, 256 + 63, 256, 256, 256]
     pts = torch.rand(500, 3) * 100.0 - 50.0
-    raw = net.delta(pts)
+    code = net.encode(pts)
+    raw = net.delta(code)
     assert raw.shape == (500, 3) and raw.abs().max() < 1.0  # raw ≈ 0: the medium starts ≈ free space
-    assert net.features(pts[:10]).shape == (10, 256)
+    assert net.features(code[:10]).shape == (10, 256)
+    assert net.delta_module() is net  # the attenuation initialisation fits the whole trunk
 
 
-def test_feature_lookup_equals_a_fresh_trunk_evaluation() -> None:
-    torch.manual_seed(1)
-    net = NeRF2Field(NeRF2FieldConfig(hidden=32, layers=4, skip_at=2, feature_dim=8), _frame(), 2)
-    pts = torch.rand(300, 3) * 80.0 - 40.0
-    fresh = net.trunk.out(net.hidden_of(pts))
-    live = torch.tensor([3, 3, 0, 299, 150])
-    net.delta(pts)
-    torch.testing.assert_close(net.features(pts[live]), fresh[live])
-    # points that were not in the last δ call are evaluated afresh, matches or not
-    other = torch.cat((pts[:2], torch.rand(3, 3)))
-    net.delta(pts)
-    torch.testing.assert_close(net.features(other), net.trunk.out(net.hidden_of(other)))
-    idx = _match_rows(pts, torch.cat((pts[[7, 7]], pts[[7]] + 1e-3)))
-    assert idx.tolist()[:2] == [7, 7] and idx[2] == -1
+def test_nerf2_is_rflscm_with_mlp_fields_plugged_in_at_construction(scenario) -> None:
+    model = NeRF2LSCM.build(narrow(hitam={"warmup_steps": 2, "ramp_steps": 2, "top_k": 4, "beta": 2}), GRID)
+    model._prepare(scenario)
+    for stage in model.stages.values():
+        assert isinstance(stage.fields, NeRF2Field)
+        # the radiance head is built narrow (NeRF²: 256 → 128 → 2), not patched after construction
+        assert [layer.out_features for layer in stage.decoder.mlp.hidden] == [8]
+        assert stage.decoder.mlp.hidden[0].in_features == 16
+    for method in ("training_losses", "aps", "prepare", "parameter_groups", "on_step_begin"):
+        assert getattr(NeRF2LSCM, method) is getattr(RFLSCM, method), method  # nothing but the fields differs
 
 
 def test_gradient_reaches_every_parameter(scenario) -> None:
@@ -129,7 +129,7 @@ def test_tiny_scenario_loss_decreases(scenario) -> None:
     pairs = torch.nonzero(model._train.data.beam_mask.any(1)).squeeze(1)
     with torch.no_grad():
         before = float(model.training_losses(pairs, 0)["total"])
-    summary = model.fit(scenario, progress=False)
+    summary = fit(model, scenario, progress=False)
     with torch.no_grad():
         after = float(model.training_losses(pairs, model.step)["total"])
     assert summary["steps"] == 80 and np.isfinite(after)
@@ -140,7 +140,7 @@ def test_save_load_round_trip(scenario, tmp_path: Path) -> None:
     torch.manual_seed(0)
     cfg = narrow(hitam={"warmup_steps": 3, "ramp_steps": 2, "top_k": 4, "beta": 2}, train={"steps": 8})
     model = NeRF2LSCM.build(cfg, GRID)
-    model.fit(scenario, progress=False)
+    fit(model, scenario, progress=False)
     path = model.save(tmp_path / "m.ckpt")
     loaded = load_model(path, scenario)
     assert isinstance(loaded, NeRF2LSCM) and loaded.step == model.step

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from rflscm.fields import PassiveMedium, TensorVM
-from rflscm.models.radiance import Queries, RadianceDecoder, RadianceStage, RayBatch, SceneFrame
+from rflscm.models.radiance import Queries, RadianceDecoder, RadianceStage, RayBatch, SceneFrame, VMFields
 from rflscm.models.rflscm_config import DecoderConfig, RenderConfig
 from rflscm.render import RaySamples, gather_samples, select_samples
 
@@ -20,7 +20,7 @@ def make_stage(inputs: str = "offset+grid") -> RadianceStage:
     delta = TensorVM(lo, hi, (6, 6, 4), 2, medium.num_channels, "per_channel", init_scale=0.5)
     features = TensorVM(lo, hi, (6, 6, 4), 2, 4, "per_component", init_scale=0.5)
     decoder = RadianceDecoder(DecoderConfig(hidden=8, inputs=inputs), 4, frame, 4.0)
-    return RadianceStage(delta, features, medium, decoder, RenderConfig(step_m=4.0))
+    return RadianceStage(VMFields(delta, features), medium, decoder, RenderConfig(step_m=4.0))
 
 
 def rays_for(n: int) -> RayBatch:
@@ -61,7 +61,7 @@ def test_early_termination_drops_only_negligible_samples() -> None:
 
     stage = make_stage()
     with torch.no_grad():  # an opaque scene: most samples lie deep behind the first walls
-        for p in stage.delta_field.parameters():
+        for p in stage.fields.delta_module().parameters():
             p.mul_(6.0)
     phi = torch.rand(3, 12, generator=torch.Generator().manual_seed(3))
     samples = select_samples(phi)

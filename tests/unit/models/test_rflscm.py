@@ -17,6 +17,7 @@ from rflscm.geometry import AngleGrid
 from rflscm.models import MODEL_REGISTRY, UnsupportedError, load_model
 from rflscm.models.rflscm import RFLSCM
 from rflscm.models.rflscm_config import RFLSCMConfig, load_rflscm_config, preset_path
+from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)
 
@@ -80,7 +81,7 @@ def test_loss_falls_by_a_large_factor(scenario) -> None:
         loss={"missing_penalty": 0.0},
     )
     history = []
-    RFLSCM.build(cfg, GRID).fit(scenario, progress=False, callback=lambda m: history.append(m["total"]))
+    fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=lambda m: history.append(m["total"]))
     first, last = np.mean(history[:3]), np.mean(history[-3:])
     assert last < first / 8, (first, last)
 
@@ -88,7 +89,7 @@ def test_loss_falls_by_a_large_factor(scenario) -> None:
 def test_resume_continues_exactly(scenario, tmp_path) -> None:
     cfg = tiny_config()
     reference = []
-    RFLSCM.build(cfg, GRID).fit(scenario, progress=False, callback=lambda m: reference.append(m["total"]))
+    fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=lambda m: reference.append(m["total"]))
 
     class Interrupt(Exception):
         pass
@@ -99,18 +100,18 @@ def test_resume_continues_exactly(scenario, tmp_path) -> None:
 
     ckpt = tmp_path / "run.ckpt"
     with pytest.raises(Interrupt):
-        RFLSCM.build(cfg, GRID).fit(scenario, progress=False, callback=stop_at_four, checkpoint_path=ckpt)
+        fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=stop_at_four, checkpoint_path=ckpt)
     resumed = []
-    RFLSCM.build(cfg, GRID).fit(scenario, progress=False, callback=lambda m: resumed.append(m["total"]),
+    fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=lambda m: resumed.append(m["total"]),
                                 checkpoint_path=ckpt, resume=True)  # fmt: skip
     assert resumed == reference[4:]
     with pytest.raises(CheckpointError, match="another config"):
-        RFLSCM.build(tiny_config(decoder={"hidden": 8}), GRID).fit(scenario, progress=False, checkpoint_path=ckpt, resume=True)
+        fit(RFLSCM.build(tiny_config(decoder={"hidden": 8}), GRID), scenario, progress=False, checkpoint_path=ckpt, resume=True)
 
 
 def test_save_load_round_trip_and_contract(scenario, tmp_path) -> None:
     model = RFLSCM.build(tiny_config(), GRID)
-    model.fit(scenario, progress=False)
+    fit(model, scenario, progress=False)
     path = model.save(tmp_path / "m.ckpt")
     loaded = load_model(path, scenario)
     assert isinstance(loaded, RFLSCM) and loaded.step == 8
@@ -132,12 +133,12 @@ def test_save_load_round_trip_and_contract(scenario, tmp_path) -> None:
 
 def test_without_hitam_renders_every_visible_bin(scenario) -> None:
     model = RFLSCM.build(tiny_config(hitam={"enabled": False}, train={"steps": 3}, render={"min_gain_db": None}), GRID)
-    summary = model.fit(scenario, progress=False)
+    summary = fit(model, scenario, progress=False)
     assert math.isfinite(summary["final_loss"]) and list(model.stages) == ["fine"]
     x = model.aps(np.array([11]), np.array([100]))
     assert int((x > 0).sum()) == GRID.num_bins
     model = RFLSCM.build(tiny_config(hitam={"enabled": False}, train={"steps": 1}, render={"min_gain_db": -10.0}), GRID)
-    model.fit(scenario, progress=False)
+    fit(model, scenario, progress=False)
     visible = model.scene.visible[0]
     assert 0 < visible.sum() < GRID.num_bins
     x = model.aps(np.array([11]), np.array([100]))[0].numpy()
@@ -147,7 +148,7 @@ def test_without_hitam_renders_every_visible_bin(scenario) -> None:
 def test_upsampling_during_training_survives_checkpoints(scenario, tmp_path) -> None:
     cfg = tiny_config(field={"voxel_m": 10.0, "init_voxel_m": 40.0, "upsample_at": [2, 5]})
     model = RFLSCM.build(cfg, GRID)
-    model.fit(scenario, progress=False, checkpoint_path=tmp_path / "u.ckpt")
+    fit(model, scenario, progress=False, checkpoint_path=tmp_path / "u.ckpt")
     fields = [m for m in model.stages.modules() if isinstance(m, TensorVM)]
     box = np.array(model.scene.frame.box_hi) - np.array(model.scene.frame.box_lo)
     assert all(f.resolution == tuple(int(round(e / 10.0)) + 1 for e in box) for f in fields)
@@ -158,37 +159,46 @@ def test_upsampling_during_training_survives_checkpoints(scenario, tmp_path) -> 
 def test_prior_needs_a_point_cloud(scenario) -> None:
     bare = dataclasses.replace(scenario, point_cloud=None)
     with pytest.raises(ConfigError, match="point cloud"):
-        RFLSCM.build(tiny_config(prior={"enabled": True}), GRID).fit(bare, progress=False)
+        fit(RFLSCM.build(tiny_config(prior={"enabled": True}), GRID), bare, progress=False)
 
 
 def test_coarse_model_is_frozen_once_alpha_is_one_and_its_selection_is_remembered(scenario) -> None:
     model = RFLSCM.build(tiny_config(train={"steps": 9}), GRID)
     snapshots = []
-    model.fit(scenario, progress=False,
+    fit(model, scenario, progress=False,
               callback=lambda m: snapshots.append([p.detach().clone() for p in model.stages["coarse"].parameters()]))  # fmt: skip
     after_ramp = snapshots[6:]  # α = 1 from step 6 (warm-up 4, ramp 2)
     assert all(torch.equal(a, b) for snap in after_ramp[1:] for a, b in zip(after_ramp[0], snap))
-    assert "selection" in model._cache
+    assert model._train.selection is not None
     d = model._train.data
     pairs = torch.arange(d.num_pairs)
     remembered = model._frozen_selection(pairs)
-    fresh = model._expand(d.cell_index, model._coarse_power(d.cell_index, d.grid_xyz))
+    fresh = model.renderer.expand(d.cell_index, model.renderer.coarse_power(d.cell_index, d.grid_xyz))
     assert torch.equal(remembered[1], fresh[1])
     assert torch.equal(remembered[0][fresh[1]], fresh[0][fresh[1]])
 
 
-def test_grid_codes_train_persist_and_answer_unseen_grids(scenario, tmp_path) -> None:
-    model = RFLSCM.build(tiny_config(decoder={"grid_code_dim": 4}), GRID)
-    model._prepare(scenario)
-    codes = model.stages["coarse"].decoder.grid_codes
-    assert codes.codes.shape == (np.unique(model._train.data.grid_ids).size, 4)
-    assert any(p is codes.codes for p in model.parameter_groups()["tensors"])
-    model.training_losses(torch.arange(model._train.data.num_pairs), step=4)["total"].backward()
-    assert codes.codes.grad.abs().sum(1).gt(0).all()  # every measured grid's code is used
-    model = RFLSCM.build(tiny_config(decoder={"grid_code_dim": 4}), GRID)
-    model.fit(scenario, progress=False)
-    loaded = load_model(model.save(tmp_path / "g.ckpt"), scenario)
-    cells, grids = np.array([11, 11]), np.array([100, 101])
+def test_iterative_models_are_trained_by_the_trainer_not_by_model_fit(scenario) -> None:
+    with pytest.raises(UnsupportedError, match="trained iteratively"):
+        RFLSCM.build(tiny_config(), GRID).fit(scenario, progress=False)
+
+
+def test_checkpoints_from_before_the_field_seam_still_load(scenario, tmp_path) -> None:
+    from rflscm.models.rflscm import _current_key, _without_removed_options
+
+    assert _current_key("coarse.delta_field.lines.0") == "coarse.fields.delta_vm.lines.0"
+    assert _current_key("fine.feature_field.basis") == "fine.fields.feature_vm.basis"
+    assert _current_key("fine.delta_field.net.trunk.out.weight") == "fine.fields.trunk.out.weight"  # NeRF²
+    old = {"decoder": {"hidden": 8, "grid_code_dim": 0, "grid_code_neighbours": 4}, "render": {"coherent": True}}
+    assert _without_removed_options(old) == {"decoder": {"hidden": 8}, "render": {}}
+    with pytest.raises(CheckpointError, match="grid_code_dim"):
+        _without_removed_options({"decoder": {"grid_code_dim": 16}})
+    model = RFLSCM.build(tiny_config(train={"steps": 2}), GRID)
+    fit(model, scenario, progress=False)
+    state = model.state_dict_for_checkpoint()
+    state["stages"] = {k.replace(".fields.delta_vm.", ".delta_field.").replace(".fields.feature_vm.", ".feature_field."): v
+                       for k, v in state["stages"].items()}  # fmt: skip
+    state["config"]["hitam"]["coarse_bins"] = "block"
+    loaded = RFLSCM.from_checkpoint(state)
+    cells, grids = np.array([11, 12]), np.array([100, 101])
     assert torch.equal(loaded.aps(cells, grids), model.aps(cells, grids))
-    between = model.aps(cells[:1], np.array([12345]), grid_xyz=np.array([[30.0, 40.0, 1.5]]))
-    assert between.shape == (1, GRID.num_bins) and bool(torch.isfinite(between).all())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -87,7 +88,7 @@ def test_chunk_bounds_respect_budget_and_cover_everything() -> None:
     costs = torch.tensor([3, 1, 4, 1, 5, 9, 2, 6])
     bounds = chunk_bounds(costs, 7)
     assert bounds[0][0] == 0 and bounds[-1][1] == 8
-    assert all(b[1] == n[0] for b, n in zip(bounds, bounds[1:]))
+    assert all(b[1] == n[0] for b, n in itertools.pairwise(bounds))
     for a, b in bounds:
         assert costs[a:b].sum() <= 7 or b - a == 1
     out = chunked(lambda a, b: costs[a:b] * 2, bounds)

@@ -1,4 +1,4 @@
-"""Training data for radiance-field LSCM models: (cell, grid) pairs with SSB and CSI-RS beams stacked.
+"""Training data of radiance-field LSCM models: (cell, grid) pairs with SSB and CSI-RS beams stacked.
 
 Beam layout of every pair: columns ``0 … num_ssb−1`` are SSB beams, the rest CSI-RS beams; the
 rows of the stacked sensing matrix follow the same layout (zero rows past a cell's codebook).
@@ -10,6 +10,7 @@ with x_ref = r_ref / a_ref is O(1) for a typical path seen by a beam peak.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -17,6 +18,9 @@ import torch
 from rflscm.data import BEAM_TYPES
 from rflscm.errors import DataError
 from rflscm.geometry import AngleGrid
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 
 @dataclass
@@ -40,11 +44,11 @@ class PairData:
     def to(self, device: torch.device | str) -> PairData:
         """A copy with every tensor on ``device``."""
         moved = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in vars(self).items()}
-        return PairData(**moved)
+        return PairData(**moved)  # type: ignore[arg-type]  # the same fields, tensors moved
 
 
 def stacked_sensing(
-    scenario, cell_ids: np.ndarray, grid: AngleGrid, round: int = 1, device: torch.device | str = "cpu"
+    scenario: Scenario, cell_ids: np.ndarray, grid: AngleGrid, round: int = 1, device: torch.device | str = "cpu"
 ) -> tuple[torch.Tensor, int]:
     """A ``[num_cells, num_ssb + num_csi, num_bins]`` [mW] (float32) of both beam types, and num_ssb."""
     sizes = {t: max(scenario.num_beams(int(c), t, round) for c in cell_ids) for t in BEAM_TYPES}
@@ -59,7 +63,7 @@ def stacked_sensing(
 
 
 def build_pair_data(
-    scenario, cell_ids: np.ndarray, a_norm: torch.Tensor, num_ssb: int, r_ref_mw: float,
+    scenario: Scenario, cell_ids: np.ndarray, a_norm: torch.Tensor, num_ssb: int, r_ref_mw: float,
     val_pairs: int, val_fraction: float, seed: int,
 ) -> PairData:  # fmt: skip
     """Stack the round-1 SSB and CSI-RS tables of ``scenario`` into :class:`PairData`.
