@@ -35,6 +35,8 @@ THERMAL_NOISE_DBM_PER_HZ = -174.0
 SSB_SUBCARRIERS = 20 * 12
 """An SS/PBCH block spans 20 PRB × 12 subcarriers (TS 38.211 §7.4.3.1)."""
 MIN_POWER_MW = 1e-30
+SIGNAL_FLOOR_MW = 1e-20
+"""Powers below −200 dBm are "no signal" (0): prediction code floors a zero power at 1e-30 mW before dB."""
 SINR_FLOOR_DB = -30.0
 """SINR statistics floor a grid's SINR here [dB]: a grid with no signal at all (no traced path) would
 otherwise put −∞ into the mean; −30 dB is far below SSB detection (≈ −6 dB), so nothing is flattered."""
@@ -122,6 +124,7 @@ def carrier_samples(
         ``best_mw``, ``sinr_lin``, ``overlap`` (bool), ``server`` (cell position) ``[..., num_grids]``
         and ``valid`` ``[num_grids]`` (grids with at least one known pair).
     """
+    power_mw = torch.where(power_mw >= SIGNAL_FLOOR_MW, power_mw, torch.zeros_like(power_mw))
     if known is not None:
         power_mw = power_mw * known.to(power_mw.dtype)
     best_mw, server = power_mw.max(dim=-2)
