@@ -31,18 +31,31 @@ MODELS = ("rflscm", "nerf2", "wnomp")
 KEYS = ("coverage", "mean_sinr_db", "p5_sinr_db", "overlap")
 
 
-@register_bench("b7", "network optimisation: true vs predicted coverage/SINR gain of each model's recommendation")
+@register_bench(
+    "b7",
+    "network optimisation: true vs predicted coverage/SINR gain of each model's recommendation",
+)
 def run(ctx: BenchContext) -> dict[str, Any]:
     from rflscm.data import load_scenario
 
     path, source = scenario_path(ctx)
     full = load_scenario(path)
-    size = dataclasses.replace(bench_size(ctx.size), max_sites=None, max_grids=None, crop_margin_m=None)
-    data = BenchData(full, full, None, size, {"scenario": str(path), "source": source, "name": full.meta.name})
+    size = dataclasses.replace(
+        bench_size(ctx.size), max_sites=None, max_grids=None, crop_margin_m=None
+    )
+    data = BenchData(
+        full,
+        full,
+        None,
+        size,
+        {"scenario": str(path), "source": source, "name": full.meta.name},
+    )
     return run_b7(ctx, data, MODELS)
 
 
-def run_b7(ctx: BenchContext, data: BenchData, models: tuple[str, ...], restarts: int = 2) -> dict[str, Any]:
+def run_b7(
+    ctx: BenchContext, data: BenchData, models: tuple[str, ...], restarts: int = 2
+) -> dict[str, Any]:
     from rflscm.network.kpi import KPIConfig
     from rflscm.network.space import build_space
     from rflscm.sim.truth import truth_folder
@@ -54,18 +67,23 @@ def run_b7(ctx: BenchContext, data: BenchData, models: tuple[str, ...], restarts
     space = build_space({}, scen.cells[1], scen.meta.codebooks)
     kpi = KPIConfig()
     out: dict[str, Any] = {"scenario": data.info, "size": data.size.describe(), "notes": __doc__.split("\n\n")[-1],
-                           "search_space_log10": space.size_log10(), "kpi": kpi.describe(list(scen.meta.frequencies_hz)),
+                           "search_space_log10": space.size_log10(),
+                           "kpi": kpi.describe(list(scen.meta.frequencies_hz)),
                            "models": {}}  # fmt: skip
     runs: dict[str, Any] = {}
     for name in ("oracle", *models):
         model, train_s, reused = _model(ctx, data, name, folder)
-        entry, result, cache = _optimise(scen, model, space, kpi, folder / f"{name}_aps.pt", restarts)
+        entry, result, cache = _optimise(
+            scen, model, space, kpi, folder / f"{name}_aps.pt", restarts
+        )
         entry.update(train_time_s=train_s, checkpoint_reused=reused)
         out["models"][name] = entry
         runs[name] = (result, cache)
     oracle_gain = out["models"]["oracle"]["true_gain"]["coverage"]
     for entry in out["models"].values():
-        entry["share_of_oracle_true_coverage_gain"] = entry["true_gain"]["coverage"] / oracle_gain if oracle_gain else None
+        entry["share_of_oracle_true_coverage_gain"] = (
+            entry["true_gain"]["coverage"] / oracle_gain if oracle_gain else None
+        )
     out["optimisers_on_oracle"] = _compare_optimisers(scen, runs["oracle"], space, kpi)
     learned = {k: v for k, v in out["models"].items() if k != "oracle"}
     best = max(learned, key=lambda k: learned[k]["true_gain"]["coverage"])
@@ -75,7 +93,9 @@ def run_b7(ctx: BenchContext, data: BenchData, models: tuple[str, ...], restarts
     return out
 
 
-def _model(ctx: BenchContext, data: BenchData, name: str, folder: Path) -> tuple[Any, float, bool]:
+def _model(
+    ctx: BenchContext, data: BenchData, name: str, folder: Path
+) -> tuple[Any, float, bool]:
     from rflscm.errors import CheckpointError
     from rflscm.models import load_model
 
@@ -90,7 +110,11 @@ def _model(ctx: BenchContext, data: BenchData, name: str, folder: Path) -> tuple
     if path.is_file():
         try:
             model = load_model(path, data.scenario, device=ctx.device)
-            return model, float(model.run_info.get("fit", {}).get("train_time_s", float("nan"))), True
+            return (
+                model,
+                float(model.run_info.get("fit", {}).get("train_time_s", float("nan"))),
+                True,
+            )
         except CheckpointError:
             pass
     from rflscm.eval import fit_with_protocol
@@ -104,13 +128,19 @@ def _model(ctx: BenchContext, data: BenchData, name: str, folder: Path) -> tuple
     return model, elapsed, False
 
 
-def _optimise(scen: Any, model: Any, space: Any, kpi: Any, cache_path: Path, restarts: int) -> tuple[dict, Any, Any]:
+def _optimise(
+    scen: Any, model: Any, space: Any, kpi: Any, cache_path: Path, restarts: int
+) -> tuple[dict, Any, Any]:
     from rflscm.network.optimize import load_or_cache_aps, run_optimize
 
     if model.name == "oracle":
-        cache_path.unlink(missing_ok=True)  # the truth is cheap to read, and a stale cache must not stand in
+        cache_path.unlink(
+            missing_ok=True
+        )  # the truth is cheap to read, and a stale cache must not stand in
     cache, cache_s = load_or_cache_aps(model, scen, cache_path)
-    result = run_optimize(scen, cache, space, 1, "coverage", "cd", kpi, verify=True, restarts=restarts)
+    result = run_optimize(
+        scen, cache, space, 1, "coverage", "cd", kpi, verify=True, restarts=restarts
+    )
     s = result.summary()
     entry = {
         "kpi_pairs": s["kpi_pairs"],
@@ -128,7 +158,9 @@ def _optimise(scen: Any, model: Any, space: Any, kpi: Any, cache_path: Path, res
     return entry, result, cache
 
 
-def _compare_optimisers(scen: Any, oracle_run: tuple[Any, Any], space: Any, kpi: Any) -> dict[str, Any]:
+def _compare_optimisers(
+    scen: Any, oracle_run: tuple[Any, Any], space: Any, kpi: Any
+) -> dict[str, Any]:
     """Coordinate descent against scipy DE on the oracle's APS, DE given CD's wall time."""
     from rflscm.network.search import NetworkEvaluator, differential_evolution
 
@@ -136,8 +168,12 @@ def _compare_optimisers(scen: Any, oracle_run: tuple[Any, Any], space: Any, kpi:
     ev = NetworkEvaluator(scen, 1, cache, space, kpi, "coverage")
     de = differential_evolution(ev, time_budget_s=max(cd.search.time_s, 5.0), seed=0)
     out = {}
-    for label, r in (("coordinate_descent", cd.search), ("scipy_differential_evolution", de)):
-        out[label] = {"objective_before": r.base_objective, "objective_after": r.objective, "evaluations": r.evaluations,
+    for label, r in (
+        ("coordinate_descent", cd.search),
+        ("scipy_differential_evolution", de),
+    ):
+        out[label] = {"objective_before": r.base_objective, "objective_after": r.objective,
+                      "evaluations": r.evaluations,
                       "time_s": r.time_s, "gain_per_1000_evaluations": 1000 * (r.objective - r.base_objective)
                       / max(r.evaluations, 1)}  # fmt: skip
     return out

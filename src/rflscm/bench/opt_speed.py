@@ -21,7 +21,10 @@ from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import scenario_path
 
 
-@register_bench("optspeed", "rflscm optimize speed: candidate configurations per second, whole-scenario search time")
+@register_bench(
+    "optspeed",
+    "rflscm optimize speed: candidate configurations per second, whole-scenario search time",
+)
 def run(ctx: BenchContext) -> dict[str, Any]:
     from rflscm.data import load_scenario
     from rflscm.geometry import AngleGrid
@@ -36,7 +39,10 @@ def run(ctx: BenchContext) -> dict[str, Any]:
     rf = Path(ctx.out_dir) / "b7_checkpoints" / "rflscm_aps.pt"
     if rf.is_file():
         caches["rflscm_b7"] = ApsCache.load(rf)
-    out: dict[str, Any] = {"threads": torch.get_num_threads(), "notes": __doc__.split("\n\n")[-1]}
+    out: dict[str, Any] = {
+        "threads": torch.get_num_threads(),
+        "notes": __doc__.split("\n\n")[-1],
+    }
     for name, cache in caches.items():
         out[name] = _measure(scen, cache, whole=name != "dense_6552_bins")
     return out

@@ -40,6 +40,9 @@ SIGNAL_FLOOR_MW = 1e-20
 SINR_FLOOR_DB = -30.0
 """SINR statistics floor a grid's SINR here [dB]: a grid with no signal at all (no traced path) would
 otherwise put −∞ into the mean; −30 dB is far below SSB detection (≈ −6 dB), so nothing is flattered."""
+RSRP_FLOOR_DBM = -156.0
+"""Mean RSRP floors a grid's best-server RSRP here [dBm] (the low end of the reportable range,
+TS 38.133 SS-RSRP mapping), so that a grid without signal does not put −300 dBm into the mean."""
 SINR_CLIP_DB = (-20.0, 30.0)
 """SINR range the ``sinr``/``weighted`` objectives average over: above 30 dB link adaptation buys nothing."""
 
@@ -60,11 +63,15 @@ class KPIConfig:
 
     def __post_init__(self) -> None:
         if self.overlap_servers < 2:
-            raise ConfigError(f"`overlap_servers` must be >= 2 (got {self.overlap_servers}).")
+            raise ConfigError(
+                f"`overlap_servers` must be >= 2 (got {self.overlap_servers})."
+            )
         if self.overlap_db <= 0:
             raise ConfigError(f"`overlap_db` must be > 0 dB (got {self.overlap_db}).")
         if not 0.0 <= self.noise_figure_db <= 30.0:
-            raise ConfigError(f"`noise_figure_db` must lie in 0…30 dB (got {self.noise_figure_db}).")
+            raise ConfigError(
+                f"`noise_figure_db` must lie in 0…30 dB (got {self.noise_figure_db})."
+            )
 
     def noise_per_re_dbm(self, freq_hz: float) -> float:
         """Thermal noise per SSB resource element [dBm]: −174 + 10 log10(SCS) + NF."""
@@ -74,15 +81,21 @@ class KPIConfig:
     def describe(self, freqs_hz: list[float]) -> dict[str, Any]:
         """Plain-data constants for reports: threshold, NF and per-carrier SCS / noise figures."""
         carriers = {}
-        for f in sorted(set(float(v) for v in freqs_hz)):
+        for f in sorted({float(v) for v in freqs_hz}):
             noise_re = self.noise_per_re_dbm(f)
             carriers[f"{f / 1e9:g} GHz"] = {
                 "scs_khz": self.scs_hz.get(f, default_scs_hz(f)) / 1e3,
                 "noise_per_re_dbm": round(noise_re, 2),
-                "noise_ssb_bw_dbm": round(noise_re + 10.0 * math.log10(SSB_SUBCARRIERS), 2),
+                "noise_ssb_bw_dbm": round(
+                    noise_re + 10.0 * math.log10(SSB_SUBCARRIERS), 2
+                ),
             }
-        return {"threshold_dbm": self.threshold_dbm, "noise_figure_db": self.noise_figure_db,
-                "overlap": f">= {self.overlap_servers} cells within {self.overlap_db:g} dB", "carriers": carriers}
+        return {
+            "threshold_dbm": self.threshold_dbm,
+            "noise_figure_db": self.noise_figure_db,
+            "overlap": f">= {self.overlap_servers} cells within {self.overlap_db:g} dB",
+            "carriers": carriers,
+        }
 
 
 def default_scs_hz(freq_hz: float) -> float:
@@ -124,7 +137,9 @@ def carrier_samples(
         ``best_mw``, ``sinr_lin``, ``overlap`` (bool), ``server`` (cell position) ``[..., num_grids]``
         and ``valid`` ``[num_grids]`` (grids with at least one known pair).
     """
-    power_mw = torch.where(power_mw >= SIGNAL_FLOOR_MW, power_mw, torch.zeros_like(power_mw))
+    power_mw = torch.where(
+        power_mw >= SIGNAL_FLOOR_MW, power_mw, torch.zeros_like(power_mw)
+    )
     if known is not None:
         power_mw = power_mw * known.to(power_mw.dtype)
     best_mw, server = power_mw.max(dim=-2)
@@ -133,16 +148,30 @@ def carrier_samples(
     near = power_mw >= best_mw.unsqueeze(-2) * 10.0 ** (-cfg.overlap_db / 10.0)
     overlap = (near & (power_mw > 0)).sum(dim=-2) >= cfg.overlap_servers
     num_grids = power_mw.shape[-1]
-    valid = known.any(dim=0) if known is not None else torch.ones(num_grids, dtype=torch.bool, device=power_mw.device)
-    return {"best_mw": best_mw, "sinr_lin": sinr, "overlap": overlap, "server": server, "valid": valid}
+    valid = (
+        known.any(dim=0)
+        if known is not None
+        else torch.ones(num_grids, dtype=torch.bool, device=power_mw.device)
+    )
+    return {
+        "best_mw": best_mw,
+        "sinr_lin": sinr,
+        "overlap": overlap,
+        "server": server,
+        "valid": valid,
+    }
 
 
-def area_kpis(samples: list[dict[str, torch.Tensor]], cfg: KPIConfig) -> dict[str, torch.Tensor]:
+def area_kpis(
+    samples: list[dict[str, torch.Tensor]], cfg: KPIConfig
+) -> dict[str, torch.Tensor]:
     """Area KPIs pooled over every valid (grid, carrier) sample of ``samples`` (one dict per carrier,
     from :func:`carrier_samples`, same leading dimensions).
 
     Returns tensors ``[...]``: ``coverage`` (fraction with RSRP ≥ threshold), ``mean_sinr_db``,
-    ``p5_sinr_db`` (5th percentile; both with each grid's SINR floored at :data:`SINR_FLOOR_DB`), ``overlap`` (fraction), ``mean_rsrp_dbm``, ``margin``
+    ``p5_sinr_db`` (5th percentile; both with each grid's SINR floored at :data:`SINR_FLOOR_DB`),
+    ``overlap`` (fraction), ``mean_rsrp_dbm`` (floored at :data:`RSRP_FLOOR_DBM`), ``no_signal``
+    (fraction of samples that no cell reaches), ``margin``
     (mean of (RSRP − threshold)/10 dB clipped to ±1, the coverage objective's tie-break),
     ``mean_sinr_clipped_db`` (mean of SINR clipped to :data:`SINR_CLIP_DB`), ``num_samples``.
     """
@@ -151,16 +180,21 @@ def area_kpis(samples: list[dict[str, torch.Tensor]], cfg: KPIConfig) -> dict[st
     overlap = torch.cat([s["overlap"][..., s["valid"]] for s in samples], dim=-1)
     n = best.shape[-1]
     if n == 0:
-        raise ConfigError("no (grid, carrier) sample has a known pair; the network KPIs are undefined.")
+        raise ConfigError(
+            "no (grid, carrier) sample has a known pair; the network KPIs are undefined."
+        )
     rsrp_dbm = 10.0 * torch.log10(best.clamp_min(MIN_POWER_MW))
-    sinr_db = (10.0 * torch.log10(sinr.clamp_min(MIN_POWER_MW))).clamp_min(SINR_FLOOR_DB)
+    sinr_db = (10.0 * torch.log10(sinr.clamp_min(MIN_POWER_MW))).clamp_min(
+        SINR_FLOOR_DB
+    )
     lo, hi = SINR_CLIP_DB
     return {
         "coverage": (rsrp_dbm >= cfg.threshold_dbm).to(best.dtype).mean(dim=-1),
         "mean_sinr_db": sinr_db.mean(dim=-1),
         "p5_sinr_db": torch.quantile(sinr_db, 0.05, dim=-1),
         "overlap": overlap.to(best.dtype).mean(dim=-1),
-        "mean_rsrp_dbm": rsrp_dbm.mean(dim=-1),
+        "mean_rsrp_dbm": rsrp_dbm.clamp_min(RSRP_FLOOR_DBM).mean(dim=-1),
+        "no_signal": (best <= 0).to(best.dtype).mean(dim=-1),
         "margin": ((rsrp_dbm - cfg.threshold_dbm) / 10.0).clamp(-1.0, 1.0).mean(dim=-1),
         "mean_sinr_clipped_db": sinr_db.clamp(lo, hi).mean(dim=-1),
         "num_samples": torch.full_like(best[..., 0], float(n)),
@@ -168,7 +202,9 @@ def area_kpis(samples: list[dict[str, torch.Tensor]], cfg: KPIConfig) -> dict[st
 
 
 def network_kpis(
-    power_mw: torch.Tensor | np.ndarray, cell_freq_hz: np.ndarray, cfg: KPIConfig | None = None,
+    power_mw: torch.Tensor | np.ndarray,
+    cell_freq_hz: np.ndarray,
+    cfg: KPIConfig | None = None,
     known: torch.Tensor | np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Area KPIs of one configuration, pooled and per carrier (plain floats, for JSON and reports).
@@ -181,12 +217,16 @@ def network_kpis(
     """
     cfg = cfg or KPIConfig()
     power = torch.as_tensor(np.asarray(power_mw), dtype=torch.float64)
-    known_t = None if known is None else torch.as_tensor(np.asarray(known), dtype=torch.bool)
+    known_t = (
+        None if known is None else torch.as_tensor(np.asarray(known), dtype=torch.bool)
+    )
     per_carrier, samples = {}, []
     for freq, rows in carrier_groups(cell_freq_hz):
         idx = torch.as_tensor(rows)
         noise = 10.0 ** (cfg.noise_per_re_dbm(freq) / 10.0)
-        s = carrier_samples(power[idx], noise, None if known_t is None else known_t[idx], cfg)
+        s = carrier_samples(
+            power[idx], noise, None if known_t is None else known_t[idx], cfg
+        )
         samples.append(s)
         per_carrier[f"{freq / 1e9:g} GHz"] = _floats(area_kpis([s], cfg))
     out = _floats(area_kpis(samples, cfg))
@@ -195,7 +235,10 @@ def network_kpis(
 
 
 def grid_maps(
-    power_mw: np.ndarray, cell_ids: np.ndarray, cell_freq_hz: np.ndarray, cfg: KPIConfig | None = None,
+    power_mw: np.ndarray,
+    cell_ids: np.ndarray,
+    cell_freq_hz: np.ndarray,
+    cfg: KPIConfig | None = None,
     known: np.ndarray | None = None,
 ) -> list[GridMaps]:
     """Per-carrier maps (best-server RSRP, serving cell id, SINR) of one configuration ``[num_cells, num_grids]``."""
@@ -204,17 +247,32 @@ def grid_maps(
     maps = []
     for freq, rows in carrier_groups(cell_freq_hz):
         noise = 10.0 ** (cfg.noise_per_re_dbm(freq) / 10.0)
-        k = None if known is None else torch.as_tensor(np.asarray(known)[rows], dtype=torch.bool)
+        k = (
+            None
+            if known is None
+            else torch.as_tensor(np.asarray(known)[rows], dtype=torch.bool)
+        )
         s = carrier_samples(power[torch.as_tensor(rows)], noise, k, cfg)
         valid = s["valid"].numpy()
         server = np.where(valid, np.asarray(cell_ids)[rows][s["server"].numpy()], -1)
-        maps.append(GridMaps(freq, 10.0 * np.log10(np.maximum(s["best_mw"].numpy(), MIN_POWER_MW)), server,
-                             10.0 * np.log10(np.maximum(s["sinr_lin"].numpy(), MIN_POWER_MW)), valid))
+        maps.append(
+            GridMaps(
+                freq,
+                10.0 * np.log10(np.maximum(s["best_mw"].numpy(), MIN_POWER_MW)),
+                server,
+                10.0 * np.log10(np.maximum(s["sinr_lin"].numpy(), MIN_POWER_MW)),
+                valid,
+            )
+        )
     return maps
 
 
 def best_beam_power_from_rsrp(
-    rsrp_dbm: np.ndarray, pairs_cell: np.ndarray, pairs_grid: np.ndarray, cell_ids: np.ndarray, grid_ids: np.ndarray
+    rsrp_dbm: np.ndarray,
+    pairs_cell: np.ndarray,
+    pairs_grid: np.ndarray,
+    cell_ids: np.ndarray,
+    grid_ids: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Best-beam power matrix ``[num_cells, num_grids]`` [mW] and the known-pair mask from per-pair
     RSRP ``[num_pairs, num_beams]`` [dBm] (NaN past a codebook), e.g. ``predict_rsrp``'s output."""

@@ -15,7 +15,12 @@ import yaml
 from rflscm.errors import ConfigError
 from rflscm.network.candidates import ApsCache, cache_aps
 from rflscm.network.kpi import KPIConfig
-from rflscm.network.search import NetworkEvaluator, SearchResult, coordinate_descent, differential_evolution
+from rflscm.network.search import (
+    NetworkEvaluator,
+    SearchResult,
+    coordinate_descent,
+    differential_evolution,
+)
 from rflscm.network.space import SearchSpace, cells_table, changes_table
 
 METHODS = ("cd", "de")
@@ -51,7 +56,7 @@ class OptimizeResult:
             "kpi_pairs": "measured round-1 pairs only" if self.known is not None else "every (cell, grid) pair",
             "predicted": self.predicted,
             "predicted_gain": {k: self.predicted["after"][k] - self.predicted["before"][k] for k in keys},
-            "changed_cells": int(len(self.changes)),
+            "changed_cells": len(self.changes),
             "search": {"evaluations": self.search.evaluations, "time_s": self.search.time_s,
                        "candidates_per_s": self.search.evaluations / max(self.search.time_s, 1e-9),
                        "objective_before": self.search.base_objective, "objective_after": self.search.objective},
@@ -59,17 +64,23 @@ class OptimizeResult:
         }  # fmt: skip
         if self.truth is not None:
             out["truth"] = self.truth
-            out["true_gain"] = {k: self.truth["after"][k] - self.truth["before"][k] for k in keys}
+            out["true_gain"] = {
+                k: self.truth["after"][k] - self.truth["before"][k] for k in keys
+            }
         return out
 
 
-def load_or_cache_aps(model: Any, scenario: Any, path: Path | None, on_cell: Any = None) -> tuple[ApsCache, float]:
+def load_or_cache_aps(
+    model: Any, scenario: Any, path: Path | None, on_cell: Any = None
+) -> tuple[ApsCache, float]:
     """The model's APS cache (read from ``path`` when it holds this model's cache, else rendered and written)."""
     t0 = time.perf_counter()
     if path is not None and Path(path).is_file():
         cache = ApsCache.load(path)
-        if cache.model == model.name and np.array_equal(cache.cell_ids, scenario.cell_ids()) and np.array_equal(
-            cache.grid_ids, scenario.grid_ids()
+        if (
+            cache.model == model.name
+            and np.array_equal(cache.cell_ids, scenario.cell_ids())
+            and np.array_equal(cache.grid_ids, scenario.grid_ids())
         ):
             return cache, time.perf_counter() - t0
     cache = cache_aps(model, scenario, on_cell=on_cell)
@@ -80,9 +91,19 @@ def load_or_cache_aps(model: Any, scenario: Any, path: Path | None, on_cell: Any
 
 
 def run_optimize(
-    scenario: Any, cache: ApsCache, space: SearchSpace, base_round: int = 1, objective: str = "coverage",
-    method: str = "cd", kpi: KPIConfig | None = None, verify: bool | None = None, seed: int = 0,
-    restarts: int = 2, time_budget_s: float = 60.0, sinr_weight: float = 0.1, on_step: Any = None,
+    scenario: Any,
+    cache: ApsCache,
+    space: SearchSpace,
+    base_round: int = 1,
+    objective: str = "coverage",
+    method: str = "cd",
+    kpi: KPIConfig | None = None,
+    verify: bool | None = None,
+    seed: int = 0,
+    restarts: int = 2,
+    time_budget_s: float = 60.0,
+    sinr_weight: float = 0.1,
+    on_step: Any = None,
 ) -> OptimizeResult:
     """Search ``space`` on the cached APS and report KPIs before and after (and on truth).
 
@@ -93,26 +114,36 @@ def run_optimize(
         on_step: called after every cell visit (cd) or generation (de), for progress bars.
     """
     if method not in METHODS:
-        raise ConfigError(f"--method must be one of {', '.join(METHODS)} (got {method!r}).")
+        raise ConfigError(
+            f"--method must be one of {', '.join(METHODS)} (got {method!r})."
+        )
     kpi = kpi or KPIConfig()
     truth_verifier = _verifier(scenario, verify)
     t0 = time.perf_counter()
-    ev = NetworkEvaluator(scenario, base_round, cache, space, kpi, objective, sinr_weight)
+    ev = NetworkEvaluator(
+        scenario, base_round, cache, space, kpi, objective, sinr_weight
+    )
     before_kpis, power_before = ev.kpis(), ev.power.double().numpy().copy()
     if method == "cd":
         result = coordinate_descent(ev, restarts=restarts, seed=seed, on_cell=on_step)
     else:
-        result = differential_evolution(ev, time_budget_s=time_budget_s, seed=seed, on_generation=on_step)
+        result = differential_evolution(
+            ev, time_budget_s=time_budget_s, seed=seed, on_generation=on_step
+        )
     after_kpis, power_after = ev.kpis(), ev.power.double().numpy().copy()
     timings = {"search_s": time.perf_counter() - t0}
     base = scenario.cells[base_round]
     after = cells_table(base, space, result.config)
     known = None if cache.known.all() else cache.known
     out = OptimizeResult(cache.model, objective, method, result, base, after, changes_table(base, after),
-                         {"before": before_kpis, "after": after_kpis}, power_before, power_after, known, timings)  # fmt: skip
+                         {"before": before_kpis, "after": after_kpis}, power_before, power_after, known,
+                         timings)  # fmt: skip
     if truth_verifier is not None:
         t1 = time.perf_counter()
-        out.truth_power = {"before": truth_verifier.best_power(base), "after": truth_verifier.best_power(after)}
+        out.truth_power = {
+            "before": truth_verifier.best_power(base),
+            "after": truth_verifier.best_power(after),
+        }
         freqs = base["freq_hz"].to_numpy()
         from rflscm.network.kpi import network_kpis
 
@@ -131,7 +162,10 @@ def _verifier(scenario: Any, verify: bool | None) -> Any:
 
     if verify is False:
         return None
-    has_truth = scenario.meta.truth is not None and (scenario.root / scenario.meta.truth).is_dir()
+    has_truth = (
+        scenario.meta.truth is not None
+        and (scenario.root / scenario.meta.truth).is_dir()
+    )
     if verify is None and not has_truth:
         return None
     return TruthVerifier(scenario)  # raises DataError without truth/
@@ -148,16 +182,24 @@ def write_round(scenario: Any, cells: pd.DataFrame, out_dir: Path) -> tuple[Path
     rnd = max(scenario.rounds()) + 1
     meta = scenario.meta.to_dict()
     root = Path(scenario.root).resolve()
-    meta["rounds"] = {r: {"cells": str(root / f["cells"])} for r, f in meta["rounds"].items()}
+    meta["rounds"] = {
+        r: {"cells": str(root / f["cells"])} for r, f in meta["rounds"].items()
+    }
     meta["rounds"][rnd] = {"cells": f"cells_round{rnd}.parquet"}
     for key in ("grids", "measurements", "point_cloud", "truth"):
         if meta[key] is not None:
             meta[key] = str(root / meta[key])
-    meta["description"] = (meta.get("description") or "") + f" Round {rnd}: written by `rflscm optimize`."
+    meta["description"] = (
+        meta.get("description") or ""
+    ) + f" Round {rnd}: written by `rflscm optimize`."
     cols = [c for c in cells.columns]
-    write_table(cells[cols].reset_index(drop=True), folder / f"cells_round{rnd}.parquet")
+    write_table(
+        cells[cols].reset_index(drop=True), folder / f"cells_round{rnd}.parquet"
+    )
     (folder / "scenario.yaml").write_text(
-        yaml.safe_dump(_plain(meta), sort_keys=False, allow_unicode=True, default_flow_style=None)
+        yaml.safe_dump(
+            _plain(meta), sort_keys=False, allow_unicode=True, default_flow_style=None
+        )
     )
     return folder, rnd
 
@@ -174,6 +216,8 @@ def _plain(value: Any) -> Any:
 
 def replace_cells(scenario: Any, rnd: int, cells: pd.DataFrame) -> Any:
     """``scenario`` with round ``rnd`` set to ``cells`` (in memory)."""
-    new = dataclasses.replace(scenario, cells={**scenario.cells, rnd: cells.reset_index(drop=True)})
+    new = dataclasses.replace(
+        scenario, cells={**scenario.cells, rnd: cells.reset_index(drop=True)}
+    )
     new._elements.update(scenario._elements)
     return new

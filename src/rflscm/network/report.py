@@ -12,7 +12,8 @@ from rflscm.network.kpi import KPIConfig, grid_maps
 
 KPI_ROWS = (("coverage", "coverage ratio", 100.0, "%"), ("mean_sinr_db", "mean SS-SINR", 1.0, "dB"),
             ("p5_sinr_db", "5th-percentile SS-SINR", 1.0, "dB"), ("overlap", "overlap ratio", 100.0, "%"),
-            ("mean_rsrp_dbm", "mean best-server RSRP", 1.0, "dBm"))  # fmt: skip
+            ("mean_rsrp_dbm", "mean best-server RSRP", 1.0, "dBm"),
+            ("no_signal", "no signal at all", 100.0, "%"))  # fmt: skip
 
 
 def kpi_table(result: Any) -> list[str]:
@@ -67,7 +68,14 @@ def write_report(result: Any, scenario: Any, out_dir: Path, kpi: KPIConfig, roun
               f"`rflscm predict CKPT {scenario_dir} --round {round_written} --pairs all --kpi` reproduces the "
               "predicted KPIs.", "", "## Maps (predicted)", ""]  # fmt: skip
     lines += [f"![{m}]({m})" for m in maps]
-    lines += ["", "## KPI constants", "", "```json", json.dumps(summary["kpi_constants"], indent=2), "```"]
+    lines += [
+        "",
+        "## KPI constants",
+        "",
+        "```json",
+        json.dumps(summary["kpi_constants"], indent=2),
+        "```",
+    ]
     if command:
         lines += ["", f"Command: `{command}`"]
     path = out_dir / "report.md"
@@ -112,10 +120,28 @@ def _maps(result: Any, scenario: Any, out_dir: Path, kpi: KPIConfig) -> list[str
             for col, (values, title, cmap, lim) in enumerate(panels):
                 ax = axes[row, col]
                 if lim is None:
-                    codes = np.searchsorted(cell_ids, values[v])  # the same colour per cell before and after
-                    sc = ax.scatter(xy[v, 0], xy[v, 1], c=codes % 20, cmap=cmap, s=9, vmin=0, vmax=19)
+                    codes = np.searchsorted(
+                        cell_ids, values[v]
+                    )  # the same colour per cell before and after
+                    sc = ax.scatter(
+                        xy[v, 0],
+                        xy[v, 1],
+                        c=codes % 20,
+                        cmap=cmap,
+                        s=9,
+                        vmin=0,
+                        vmax=19,
+                    )
                 else:
-                    sc = ax.scatter(xy[v, 0], xy[v, 1], c=values[v], cmap=cmap, s=9, vmin=lim[0], vmax=lim[1])
+                    sc = ax.scatter(
+                        xy[v, 0],
+                        xy[v, 1],
+                        c=values[v],
+                        cmap=cmap,
+                        s=9,
+                        vmin=lim[0],
+                        vmax=lim[1],
+                    )
                     fig.colorbar(sc, ax=ax, shrink=0.8)
                 ax.set_title(f"{label}: {title}")
                 ax.set_aspect("equal")

@@ -5,11 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from network_helpers import load, pencil_scenario
 
 from rflscm.errors import ConfigError
 from rflscm.network.space import VARIABLES, build_space, parse_range
-
-from network_helpers import load, pencil_scenario
 
 
 @pytest.fixture
@@ -21,9 +20,14 @@ def test_defaults_are_a_planners(scen) -> None:
     space = build_space({}, scen.cells[1], scen.meta.codebooks)
     cell12 = space.cells[1]
     assert cell12.values["mech_tilt_deg"] == tuple(float(v) for v in range(16))
-    assert len(cell12.values["azimuth_deg"]) == 13 and cell12.values["azimuth_deg"][0] == 150.0
+    assert (
+        len(cell12.values["azimuth_deg"]) == 13
+        and cell12.values["azimuth_deg"][0] == 150.0
+    )
     assert set(cell12.values["ssb_codebook"]) == {"ssb8", "pencil"}
-    assert cell12.config(cell12.current) == {v: scen.cells[1].iloc[1][v] for v in VARIABLES}
+    assert cell12.config(cell12.current) == {
+        v: scen.cells[1].iloc[1][v] for v in VARIABLES
+    }
 
 
 @pytest.mark.parametrize(
@@ -34,7 +38,10 @@ def test_defaults_are_a_planners(scen) -> None:
         ({"cells": {12: {"ssb_codebooks": ["nope"]}}}, "'nope' is not an SSB codebook"),
         ({"defaults": {"ssb_codebooks": ["csi8"]}}, "not an SSB codebook"),
         ({"frozen": [11, 12]}, "empty search space"),
-        ({"defaults": {"mech_tilt_deg": {"min": 0, "max": 5, "step": 0}}}, "step must be > 0"),
+        (
+            {"defaults": {"mech_tilt_deg": {"min": 0, "max": 5, "step": 0}}},
+            "step must be > 0",
+        ),
         ({"bogus": 1}, "unknown key"),
         ({"max_changed_cells": 0}, "max_changed_cells"),
     ],
@@ -55,6 +62,10 @@ def test_empty_when_every_range_is_the_current_value(scen) -> None:
 
 
 def test_parse_range() -> None:
-    assert parse_range("0:15:1", "--tilt-range") == {"min": 0.0, "max": 15.0, "step": 1.0}
+    assert parse_range("0:15:1", "--tilt-range") == {
+        "min": 0.0,
+        "max": 15.0,
+        "step": 1.0,
+    }
     with pytest.raises(ConfigError, match="MIN:MAX"):
         parse_range("0-15", "--tilt-range")
