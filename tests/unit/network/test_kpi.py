@@ -90,3 +90,17 @@ def test_power_from_rsrp_table() -> None:
 def test_bad_kpi_constants() -> None:
     with pytest.raises(ConfigError, match="overlap_servers"):
         KPIConfig(overlap_servers=1)
+
+
+def test_objectives() -> None:
+    import torch
+
+    from rflscm.network.search import objective_value
+
+    k = {"coverage": torch.tensor(0.5), "margin": torch.tensor(1.0), "num_samples": torch.tensor(100.0),
+         "mean_sinr_clipped_db": torch.tensor(4.0)}  # fmt: skip
+    assert float(objective_value(k, "coverage")) == pytest.approx(0.5 + 0.004)  # tie-break < one sample (0.01)
+    assert float(objective_value(k, "sinr")) == pytest.approx(4.0)
+    assert float(objective_value(k, "weighted")) == pytest.approx(0.5 + 0.1 * 0.4)
+    with pytest.raises(ConfigError, match="--objective"):
+        objective_value(k, "throughput")
