@@ -163,7 +163,7 @@ def carrier_samples(
 
 
 def area_kpis(
-    samples: list[dict[str, torch.Tensor]], cfg: KPIConfig
+    samples: list[dict[str, torch.Tensor]], cfg: KPIConfig, percentile: bool = True
 ) -> dict[str, torch.Tensor]:
     """Area KPIs pooled over every valid (grid, carrier) sample of ``samples`` (one dict per carrier,
     from :func:`carrier_samples`, same leading dimensions).
@@ -191,7 +191,7 @@ def area_kpis(
     return {
         "coverage": (rsrp_dbm >= cfg.threshold_dbm).to(best.dtype).mean(dim=-1),
         "mean_sinr_db": sinr_db.mean(dim=-1),
-        "p5_sinr_db": torch.quantile(sinr_db, 0.05, dim=-1),
+        "p5_sinr_db": torch.quantile(sinr_db, 0.05, dim=-1) if percentile else torch.full_like(best[..., 0], torch.nan),
         "overlap": overlap.to(best.dtype).mean(dim=-1),
         "mean_rsrp_dbm": rsrp_dbm.clamp_min(RSRP_FLOOR_DBM).mean(dim=-1),
         "no_signal": (best <= 0).to(best.dtype).mean(dim=-1),

@@ -121,9 +121,8 @@ class NetworkEvaluator:
             for k, s in enumerate(self._samples)
         ]
         samples = [_expand(s, len(indices)) for s in samples]
-        return objective_value(
-            area_kpis(samples, self.kpi), self.objective, self.sinr_weight
-        )
+        kpis = area_kpis(samples, self.kpi, percentile=False)  # no objective uses the percentile
+        return objective_value(kpis, self.objective, self.sinr_weight)
 
     def set_cell(
         self, pos: int, index: tuple[int, ...], power: torch.Tensor | None = None
