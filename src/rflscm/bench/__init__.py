@@ -45,6 +45,8 @@ def load_all() -> None:
         b04_point_cloud,
         b05_alpha_p,
         b06_unseen,
+        b07_optimize,
+        opt_speed,
         sensing,
         wnomp_speed,
     )

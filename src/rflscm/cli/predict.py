@@ -90,6 +90,26 @@ def _export_aps(model: LSCMModel, scenario: Scenario, cells: np.ndarray, grids: 
     return len(table)
 
 
+def _print_kpis(scen, model, selected: pd.DataFrame, ssb: pd.DataFrame, threshold: float, path: Path | None,
+                console: Console) -> None:  # fmt: skip
+    """Network KPIs (rflscm.network) of the predicted SSB RSRP, printed and optionally written as JSON."""
+    import json
+
+    from rflscm.network.kpi import KPIConfig, best_beam_power_from_rsrp, network_kpis
+
+    wide = ssb.pivot_table(index=["cell_id", "grid_id"], columns="beam_id", values="rsrp_dbm", aggfunc="first")
+    cells, grids = wide.index.get_level_values(0).to_numpy(), wide.index.get_level_values(1).to_numpy()
+    power, known = best_beam_power_from_rsrp(wide.to_numpy(), cells, grids, scen.cell_ids(), scen.grid_ids())
+    freqs = np.array([scen.freq_hz(int(c)) for c in scen.cell_ids()])
+    kpis = network_kpis(power, freqs, KPIConfig(threshold_dbm=threshold), None if known.all() else known)
+    kpis["pairs"] = "every (cell, grid) pair" if known.all() else f"{int(known.sum())} (cell, grid) pairs only"
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(kpis, indent=2))
+    console.print(f"network KPIs ({kpis['pairs']}): coverage {kpis['coverage']:.4f}, mean SS-SINR "
+                  f"{kpis['mean_sinr_db']:.2f} dB, 5th pct {kpis['p5_sinr_db']:.2f} dB, overlap {kpis['overlap']:.4f}")  # fmt: skip
+
+
 @app.command()
 def predict(
     checkpoint: Path = typer.Argument(..., help="Model checkpoint written by `rflscm train`."),
@@ -101,6 +121,9 @@ def predict(
     aps_grids: str | None = typer.Option(None, "--aps-grids", help="Comma-separated grid ids whose APS to export."),
     aps_out: Path = typer.Option(Path("aps.parquet"), "--aps-out", help="Where the exported APS goes."),
     attenuation_map: Path | None = typer.Option(None, "--attenuation-map", help="PNG of −log|δ| seen from above (field models)."),
+    kpi: bool = typer.Option(False, "--kpi", help="Also print network KPIs (best server, SS-SINR, coverage) of the round."),
+    kpi_json: Path | None = typer.Option(None, "--kpi-json", help="Write the network KPIs as JSON here (implies --kpi)."),
+    threshold: float = typer.Option(-105.0, "--threshold", help="--kpi: coverage threshold [dBm]."),
     device: str = DeviceOption,
     seed: int = SeedOption,
 ) -> None:
@@ -131,6 +154,8 @@ def predict(
     out.parent.mkdir(parents=True, exist_ok=True)
     write_table(pd.concat(tables, ignore_index=True), out)
     console.print(f"wrote {out} ({sum(len(t) for t in tables)} beams)")
+    if kpi or kpi_json is not None:
+        _print_kpis(scen, model, selected, tables[0], threshold, kpi_json, console)
     cells, grids = _id_list(aps_cells, "--aps-cells"), _id_list(aps_grids, "--aps-grids")
     if (cells is None) != (grids is None):
         raise ConfigError("--aps-cells and --aps-grids go together.")

@@ -1,0 +1,176 @@
+"""Cached APS and batched candidate sensing matrices: what makes a candidate configuration cheap.
+
+The APS lives in the world frame (SPEC §2), so a candidate antenna setting changes only A.  Per cell
+we keep its APS at every grid, ``aps[num_grids, num_kept]``, on the bins where any grid has power
+(dropping all-zero columns is exact: they add nothing to r = A x), and build the candidate sensing
+matrices of many settings at once with the very functions :func:`rflscm.antenna.sensing_matrix`
+uses: one rotation → element gain and steering vectors ``[num_kept, num_elements]`` once, then one
+complex product with the stacked beam weights of every (electrical tilt, codebook) candidate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from rflscm.antenna.array import steering_vectors
+from rflscm.antenna.sensing import beam_weights
+from rflscm.network.space import CellOptions
+
+
+@dataclass
+class ApsCache:
+    """Per-cell APS on the kept bins, for every grid of the scenario.
+
+    Attributes:
+        cell_ids: ``[num_cells]`` sorted; grid_ids: ``[num_grids]`` sorted.
+        bins: per cell, the kept flat bin indices ``[num_kept]`` of the model's angle grid.
+        aps: per cell, ``[num_grids, num_kept]`` float32 linear path gain (zero rows: no APS).
+        known: ``[num_cells, num_grids]`` pairs the model has an APS for (all True for field models;
+            WNOMP: the measured round-1 pairs only).
+        angle_grid: the model's angle grid; model: the model's name.
+    """
+
+    cell_ids: np.ndarray
+    grid_ids: np.ndarray
+    bins: list[np.ndarray]
+    aps: list[torch.Tensor]
+    known: np.ndarray
+    angle_grid: Any
+    model: str
+
+    def save(self, path: Any) -> None:
+        torch.save(
+            {k: getattr(self, k) for k in (f.name for f in dataclasses.fields(self))},
+            path,
+        )
+
+    @classmethod
+    def load(cls, path: Any) -> ApsCache:
+        return cls(**torch.load(path, map_location="cpu", weights_only=False))
+
+
+def measured_grids(scenario: Any, cell_id: int) -> np.ndarray:
+    """Grids with round-1 measurements of ``cell_id`` (what WNOMP has an APS for), sorted."""
+    m = scenario.measurements
+    sel = ((m["round"] == 1) & (m["cell_id"] == cell_id)).to_numpy()
+    return np.unique(m["grid_id"].to_numpy()[sel])
+
+
+def cache_aps(
+    model: Any, scenario: Any, chunk: int = 1024, on_cell: Any = None
+) -> ApsCache:
+    """Render the APS of every (cell, grid) pair once (field models) or of the measured pairs (models
+    without unseen grids, i.e. WNOMP) and keep the bins any grid uses.
+
+    ``on_cell(done, total)`` is called after each cell (progress bars).
+    """
+    cell_ids, grid_ids = scenario.cell_ids(), scenario.grid_ids()
+    xyz_all = (
+        scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
+    )
+    known = np.zeros((len(cell_ids), len(grid_ids)), dtype=bool)
+    bins, aps = [], []
+    for i, cell in enumerate(cell_ids):
+        rows = (
+            np.arange(len(grid_ids))
+            if model.supports_unseen_grids
+            else np.searchsorted(grid_ids, measured_grids(scenario, int(cell)))
+        )
+        known[i, rows] = True
+        dense = torch.zeros(len(grid_ids), model.angle_grid.num_bins)
+        for start in range(0, len(rows), chunk):
+            sel = rows[start : start + chunk]
+            with torch.no_grad():
+                x = model.aps(np.full(len(sel), cell), grid_ids[sel], xyz_all[sel])
+            dense[torch.as_tensor(sel)] = x.detach().float().cpu()
+        keep = torch.nonzero(dense.amax(dim=0) > 0).reshape(-1)
+        bins.append(keep.numpy())
+        aps.append(dense[:, keep].contiguous())
+        if on_cell is not None:
+            on_cell(i + 1, len(cell_ids))
+    return ApsCache(cell_ids, grid_ids, bins, aps, known, model.angle_grid, model.name)
+
+
+class CellSensing:
+    """Candidate sensing matrices of one cell on its kept bins, many settings per call.
+
+    Args:
+        scenario: the scenario (array, element, power, carrier, codebooks of the cell).
+        cell_id: the cell; base_round: the round whose antenna the candidates modify.
+        directions: world-frame unit vectors of the kept bins ``[num_kept, 3]`` (float32).
+        options: the cell's search options.
+    """
+
+    def __init__(self, scenario: Any, cell_id: int, base_round: int, directions: torch.Tensor,
+                 options: CellOptions) -> None:  # fmt: skip
+        self.antenna = scenario.antenna(cell_id, base_round)
+        self.wavelength_m = scenario.wavelength_m(cell_id)
+        self.codebooks = [
+            scenario.meta.codebooks[name] for name in options.values["ssb_codebook"]
+        ]
+        self.max_beams = max(cb.num_beams for cb in self.codebooks)
+        self.directions = directions
+        self.options = options
+        self._weights: dict[tuple[int, int], torch.Tensor] = {}
+
+    def _beam_weights(self, i_book: int, i_elec: int) -> torch.Tensor:
+        """Unit-power weights ``[num_beams, num_elements]`` (complex64, electrical tilt included)."""
+        key = (i_book, i_elec)
+        if key not in self._weights:
+            antenna = dataclasses.replace(
+                self.antenna, elec_tilt_deg=self.options.values["elec_tilt_deg"][i_elec]
+            )
+            w = beam_weights(
+                self.codebooks[i_book],
+                antenna,
+                self.wavelength_m,
+                dtype=torch.complex64,
+            )
+            self._weights[key] = w.reshape(w.shape[0], -1)
+        return self._weights[key]
+
+    def matrices(self, indices: list[tuple[int, ...]]) -> torch.Tensor:
+        """Sensing matrices ``[num_candidates, max_beams, num_kept]`` [mW per unit path gain] of the
+        candidates ``(i_book, i_elec, i_mech, i_az)``; a smaller codebook's extra rows are zero."""
+        out = torch.zeros(len(indices), self.max_beams, self.directions.shape[0])
+        groups: dict[tuple[int, int], list[int]] = {}
+        for k, (_, _, i_mech, i_az) in enumerate(indices):
+            groups.setdefault((i_mech, i_az), []).append(k)
+        values = self.options.values
+        for (i_mech, i_az), members in groups.items():
+            antenna = dataclasses.replace(
+                self.antenna,
+                mech_tilt_deg=values["mech_tilt_deg"][i_mech],
+                azimuth_deg=values["azimuth_deg"][i_az],
+            )
+            rot = torch.as_tensor(antenna.rotation(), dtype=torch.float32)
+            local = self.directions @ rot  # world → antenna frame    [num_kept, 3]
+            gain = antenna.element.gain_lin(local) * antenna.tx_power_mw  # [num_kept]
+            steer = steering_vectors(
+                antenna.array, local, self.wavelength_m
+            )  # [num_kept, num_elements]
+            weights = [
+                self._beam_weights(indices[k][0], indices[k][1]) for k in members
+            ]
+            response = steer @ torch.cat(weights).T  # [num_kept, sum of beams]
+            power = (response.real.square() + response.imag.square()) * gain[:, None]
+            start = 0
+            for k, w in zip(members, weights):
+                out[k, : w.shape[0]] = power[:, start : start + w.shape[0]].T
+                start += w.shape[0]
+        return out
+
+
+def best_beam_power(aps: torch.Tensor, matrices: torch.Tensor) -> torch.Tensor:
+    """Best-beam RSRP ``[num_candidates, num_grids]`` [mW]: max over beams of A x for APS
+    ``[num_grids, num_kept]`` and candidate matrices ``[num_candidates, num_beams, num_kept]``."""
+    c, b, n = matrices.shape
+    power = (
+        aps @ matrices.reshape(c * b, n).T
+    )  # [num_grids, num_candidates * num_beams]
+    return power.reshape(-1, c, b).amax(dim=-1).T.contiguous()
