@@ -26,18 +26,24 @@ def _fmt(value: float | None) -> str:
 
 
 def demo_table(results: dict[str, dict], title: str) -> Table:
-    """Rows: the four MAEs; columns: each model, then the oracle floor and the trivial baseline."""
+    """Rows: the four MAEs and the models' mean signed errors; columns: each model, then the model floor (oracle:
+    true APS through the nominal A′), the noise floor (noiseless RSRP through the real antenna) and trivial."""
     table = Table(title=title)
     table.add_column("metric")
     for name in results:
         table.add_column(name, justify="right")
-    table.add_column("oracle floor", justify="right")
+    table.add_column("model floor", justify="right")
+    table.add_column("noise floor", justify="right")
     table.add_column("trivial", justify="right")
     first = next(iter(results.values()))
     for label, (bt, subset) in ROWS:
         cells = [_fmt(r["mae_db"][bt][subset]) for r in results.values()]
-        table.add_row(label, *cells, _fmt(first["oracle_mae_db"][bt][subset]), _fmt(first["trivial_mae_db"][bt][subset]))
-    table.add_row("training time [s]", *[f"{(r['model']['fit'] or {}).get('train_time_s', float('nan')):.0f}" for r in results.values()], "", "")
+        floors = (first["oracle_mae_db"][bt][subset], first.get("noise_floor_mae_db", {}).get(bt, {}).get(subset))
+        table.add_row(label, *cells, *(_fmt(f) for f in floors), _fmt(first["trivial_mae_db"][bt][subset]))
+    for bt, name in (("ssb", "SSB"), ("csi", "CSI-RS")):
+        bias = [_fmt(r.get("bias_db", {}).get(bt, {}).get("all")) for r in results.values()]
+        table.add_row(f"{name} mean signed error [dB]", *bias, "", "", "")
+    table.add_row("training time [s]", *[f"{(r['model']['fit'] or {}).get('train_time_s', float('nan')):.0f}" for r in results.values()], "", "", "")
     return table
 
 
