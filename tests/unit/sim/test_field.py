@@ -169,3 +169,17 @@ def test_per_sample_fading_averages_to_the_noncoherent_expectation() -> None:
         np.testing.assert_allclose(sums.mean @ q, expected[None])
         errors.append(float(np.abs(10 * np.log10(sums.faded(q)[0] / expected)).max()))
     assert errors[2] < 0.2 and errors[2] < errors[0]
+
+
+def test_a_real_element_pattern_changes_the_truth_only(traced: Path) -> None:
+    from rflscm.antenna.msi import patch_msi_path
+
+    sc = load_scenario(traced)
+    paths = _paths(traced)
+    cfg = dataclasses.replace(FieldConfig.ideal(), real_element=str(patch_msi_path()))
+    true_rsrp, expected, _ = field_rsrp(sc, paths, TINY.points_per_grid, cfg, np.random.default_rng(1))
+    nominal = noiseless_rsrp(sc, paths, TINY.points_per_grid)
+    finite = np.isfinite(nominal["rsrp_dbm"].to_numpy())
+    diff = (expected["rsrp_dbm"].to_numpy() - nominal["rsrp_dbm"].to_numpy())[finite]
+    assert np.abs(diff).max() > 1.0  # wider horizontally, narrower vertically, 1 dB less peak gain
+    assert (sc.cells[1]["element"] == "tr38901").all()  # the models keep the declared element
