@@ -86,6 +86,11 @@ class FieldConfig:
     """CSI-RS rows only for the serving cell of each (round, grid, carrier) (CSI-RS is UE-specific)."""
     csi_top_n: int | None = 4
     """CSI-RS beams per report: TS 38.214 §5.2.1.4 L1-RSRP reports carry up to 4 (``nrofReportedRS``)."""
+    drive_routes: int = 0
+    """Drive test: only the grids along this many routes are measured (both rounds drive the same routes);
+    0 = every grid (MR-like coverage)."""
+    drive_route_grids: int = 80
+    """Grids per route: a random walk between neighbouring outdoor grids (streets), without revisits."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -96,6 +101,7 @@ class FieldConfig:
             (self.ssb_detection in ("sinr", "threshold"), "`field.ssb_detection` must be sinr or threshold"),
             (self.ssb_top_n is None or self.ssb_top_n >= 1, "`field.ssb_top_n` must be >= 1 or null"),
             (self.csi_top_n is None or self.csi_top_n >= 1, "`field.csi_top_n` must be >= 1 or null"),
+            (self.drive_routes >= 0 and self.drive_route_grids >= 1, "`field.drive_routes` >= 0, `drive_route_grids` >= 1"),
         ]
         for ok, message in checks:
             if not ok:
@@ -338,7 +344,33 @@ def report(
         csi = (table["beam_type"] == "csi").to_numpy()
     if config.csi_top_n is not None:
         _keep_top(table, csi, config.csi_top_n)
+    if config.drive_routes > 0:
+        route = drive_route(scenario.grids, config.drive_routes, config.drive_route_grids, rng)
+        table = table[table["grid_id"].isin(route).to_numpy()].reset_index(drop=True)
     return table.drop(columns="freq_hz")
+
+
+def drive_route(grids: pd.DataFrame, num_routes: int, length: int, rng: np.random.Generator) -> np.ndarray:
+    """Grid ids ``[n]`` along ``num_routes`` random walks of up to ``length`` grids between neighbouring grids
+    (centres within 1.5 grid sizes: the street network of outdoor grids), never revisiting a grid."""
+    from scipy.spatial import cKDTree
+
+    xy = grids[["x", "y"]].to_numpy(np.float64)
+    ids = grids["grid_id"].to_numpy()
+    if len(ids) < 2:
+        return ids
+    step = float(np.median(cKDTree(xy).query(xy, k=2)[0][:, 1]))
+    neighbours = cKDTree(xy).query_ball_point(xy, r=1.5 * step)
+    visited = np.zeros(len(ids), dtype=bool)
+    for _ in range(num_routes):
+        here = int(rng.choice(np.flatnonzero(~visited))) if (~visited).any() else 0
+        for _ in range(length):
+            visited[here] = True
+            options = [n for n in neighbours[here] if not visited[n]]
+            if not options:
+                break
+            here = int(rng.choice(options))
+    return ids[visited]
 
 
 def _keep_top(table: pd.DataFrame, rows: np.ndarray, top_n: int) -> None:

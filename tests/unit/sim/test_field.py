@@ -183,3 +183,15 @@ def test_a_real_element_pattern_changes_the_truth_only(traced: Path) -> None:
     diff = (expected["rsrp_dbm"].to_numpy() - nominal["rsrp_dbm"].to_numpy())[finite]
     assert np.abs(diff).max() > 1.0  # wider horizontally, narrower vertically, 1 dB less peak gain
     assert (sc.cells[1]["element"] == "tr38901").all()  # the models keep the declared element
+
+
+def test_drive_routes_keep_only_connected_grids_along_the_routes() -> None:
+    from rflscm.sim.field import drive_route
+
+    xx, yy = np.meshgrid(np.arange(10) * 10.0 + 5, np.arange(10) * 10.0 + 5)
+    grids = pd.DataFrame({"grid_id": np.arange(100), "x": xx.ravel(), "y": yy.ravel()})
+    route = drive_route(grids, 1, 15, np.random.default_rng(0))
+    assert 2 <= len(route) <= 15 and len(set(route)) == len(route)
+    pos = grids.set_index("grid_id").loc[route, ["x", "y"]].to_numpy()
+    nearest = np.sort(np.linalg.norm(pos[:, None] - pos[None], axis=-1), axis=1)[:, 1]
+    assert nearest.max() <= 15.0  # every route grid touches another one: a connected street walk
