@@ -1,6 +1,7 @@
 """What within-grid variation costs the oracle (issue 12): round-2 MAE of the true APS through the nominal A′,
 taken from the round-2 UE samples themselves (the model floor), from all traced points of the grid, and from the
-round-1 samples (what a perfect per-grid fit of round 1 could know), beside the noise floor.
+round-1 samples (what a perfect per-grid fit of round 1 could know), beside the noise floor; with each oracle's
+mean signed error (prediction − measurement), which shows the selection bias of top-N and detection reports.
 
     PYTHONPATH=src python scripts/within_grid_cost.py [SCENARIO]   # default: the shipped scenario
 
@@ -29,7 +30,7 @@ def main(path: str | None = None) -> dict:
         oracle.sample_round = sample_round
         oracle.fit(scenario, progress=False)
         metrics = run_evaluation(oracle, scenario, AdjustProtocol(), oracle=None).metrics
-        out[label] = metrics["mae_db"]
+        out[label] = {"mae_db": metrics["mae_db"], "bias_db": metrics["bias_db"]}
         out["noise_floor"] = metrics["noise_floor_mae_db"]
     return out
 
