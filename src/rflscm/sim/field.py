@@ -30,7 +30,7 @@ With every effect off (``FieldConfig.ideal()``) the result equals the ideal regi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -41,7 +41,7 @@ from rflscm.antenna import sensing_matrix
 from rflscm.data.reporting import ReportingRule
 from rflscm.errors import ConfigError
 from rflscm.sim.noise import MeasurementModel
-from rflscm.sim.paths import _CHUNK, _long, path_directions, path_rsrp_mw, site_groups, to_dbm
+from rflscm.sim.paths import _CHUNK, _long, path_directions, site_groups, to_dbm
 
 THERMAL_NOISE_DBM_PER_HZ = -174.0
 """Thermal noise density at 290 K [dBm/Hz]."""
@@ -288,8 +288,6 @@ def field_rsrp(
             key = (int(row["site_id"]), float(row["freq_hz"]))
             antenna = scenario.antenna(int(cell_id), rnd)
             if element is not None:
-                from dataclasses import replace
-
                 antenna = replace(antenna, element=element)
             for beam_type in ("ssb", "csi"):
                 book = scenario.codebook(int(cell_id), beam_type, rnd)

@@ -108,7 +108,7 @@ def test_top_n_and_sinr_detection_report_exactly_the_expected_beams() -> None:
     true = {(1, 7): [-70.0, -80.0, -90.0], (2, 7): [-85.0, -75.0, -100.0]}
     toy = _toy_scenario(true, {})
     table = toy.measurements
-    quiet = dict(accuracy_sigma_db=0.0, quantization_db=0.0, array_amp_sigma_db=0.0, array_phase_sigma_deg=0.0)
+    quiet = {"accuracy_sigma_db": 0.0, "quantization_db": 0.0, "array_amp_sigma_db": 0.0, "array_phase_sigma_deg": 0.0}
     # top-2 SSB, no SINR, CSI from every cell
     cfg = FieldConfig(**quiet, ssb_detection="threshold", ssb_top_n=2, csi_serving_only=False, csi_top_n=None)
     got = report(table, toy, cfg, np.random.default_rng(0))
@@ -177,7 +177,7 @@ def test_a_real_element_pattern_changes_the_truth_only(traced: Path) -> None:
     sc = load_scenario(traced)
     paths = _paths(traced)
     cfg = dataclasses.replace(FieldConfig.ideal(), real_element=str(patch_msi_path()))
-    true_rsrp, expected, _ = field_rsrp(sc, paths, TINY.points_per_grid, cfg, np.random.default_rng(1))
+    _, expected, _ = field_rsrp(sc, paths, TINY.points_per_grid, cfg, np.random.default_rng(1))
     nominal = noiseless_rsrp(sc, paths, TINY.points_per_grid)
     finite = np.isfinite(nominal["rsrp_dbm"].to_numpy())
     diff = (expected["rsrp_dbm"].to_numpy() - nominal["rsrp_dbm"].to_numpy())[finite]
