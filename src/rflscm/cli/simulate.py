@@ -99,6 +99,13 @@ def simulate(
     if measurements not in (None, "ideal", "field"):
         raise ConfigError(f"--measurements must be ideal or field (got {measurements!r}).")
     if from_trace is not None:
+        layout = [flag for flag, value in (("--sites", sites), ("--grids", grids), ("--carriers", carriers),
+                                           ("--scene", scene)) if value is not None]  # fmt: skip
+        if layout:
+            raise ConfigError(
+                f"--from-trace re-measures an existing trace, so {', '.join(layout)} cannot change it; drop "
+                f"{'them' if len(layout) > 1 else 'it'} or simulate anew without --from-trace."
+            )
         _remeasure(from_trace, out, config, measurements, seed, force)
         return
     cfg = load_config(SimulationConfig, config) if config is not None else SimulationConfig()
