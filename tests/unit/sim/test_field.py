@@ -195,3 +195,13 @@ def test_drive_routes_keep_only_connected_grids_along_the_routes() -> None:
     pos = grids.set_index("grid_id").loc[route, ["x", "y"]].to_numpy()
     nearest = np.sort(np.linalg.norm(pos[:, None] - pos[None], axis=-1), axis=1)[:, 1]
     assert nearest.max() <= 15.0  # every route grid touches another one: a connected street walk
+
+
+def test_build_scenario_in_the_field_regime_directly(tmp_path: Path) -> None:
+    cfg = dataclasses.replace(TINY, measurements="field", field_model=FieldConfig(samples_per_grid=6, drive_routes=1,
+                                                                                 drive_route_grids=20))  # fmt: skip
+    out = build_scenario(ProceduralCity(seed=2, size_m=260.0, num_buildings=14), cfg, tmp_path / "f", progress=False)
+    sc = load_scenario(out)
+    assert sc.meta.simulation["measurements"] == "field" and sc.meta.simulation["field"]["drive_routes"] == 1
+    assert sc.meta.reporting["csi"].serving_only and check_reporting(sc) == []
+    assert sc.measurements["grid_id"].nunique() <= 20  # one drive route of at most 20 grids
