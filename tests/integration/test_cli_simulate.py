@@ -46,6 +46,18 @@ def test_simulate_then_check(tmp_path: Path) -> None:
 
     again = rflscm("simulate", "--sites", "1", "--grids", "10", "--out", str(out))
     assert again.returncode == 2 and "not empty" in again.stderr and "--force" in again.stderr
+    field = tmp_path / "field"
+    field_config = tmp_path / "field.yaml"
+    field_config.write_text("field_model: {samples_per_grid: 8, csi_top_n: 2}\n")
+    remeasured = rflscm("simulate", "--from-trace", str(out), "--measurements", "field", "--config", str(field_config),
+                        "--out", str(field))  # fmt: skip
+    assert remeasured.returncode == 0, remeasured.stderr
+    check = rflscm("check", str(field))
+    assert check.returncode == 0, check.stderr
+    assert "reported fraction" in check.stdout and "'top_n': 2" in check.stdout and "sinr" in check.stdout
+    moved = rflscm("simulate", "--from-trace", str(out), "--grids", "5", "--out", str(tmp_path / "f2"))
+    assert moved.returncode == 2 and "--grids cannot change it" in moved.stderr
+
     forced = rflscm("simulate", "--sites", "1", "--grids", "10", "--carriers", "3.5e9", "--config", str(config),
                     "--out", str(out), "--force", "--no-progress")  # fmt: skip
     assert forced.returncode == 0, forced.stderr

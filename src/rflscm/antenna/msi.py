@@ -128,3 +128,12 @@ def sample_msi_path() -> Path:
     from importlib.resources import files
 
     return Path(str(files("rflscm") / "assets" / "antennas" / "sample_65deg_3500MHz.msi"))
+
+
+def patch_msi_path() -> Path:
+    """Path of the second shipped pattern: a synthesised embedded patch element of a 3.5 GHz panel (90° × 70°
+    HPBW, 7 dBi, 25 dB front-back, edge ripple; ``scripts/make_patch_element.py``), for the field regime's
+    real antenna (``field_model.real_element``) — realistic traits, not a vendor measurement."""
+    from importlib.resources import files
+
+    return Path(str(files("rflscm") / "assets" / "antennas" / "patch_90x70deg_3500MHz.msi"))

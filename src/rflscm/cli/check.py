@@ -50,10 +50,15 @@ def _print_summary(sc: Scenario, console: Console) -> None:
 
 
 def _print_measurements(sc: Scenario, console: Console) -> None:
+    from rflscm.data.reporting import reported_fraction, rule_of, validate_reporting
+
     stats = measurement_stats(sc)
     if stats.empty:
         console.print("  measurements: none")
         return
+    validate_reporting(sc)
+    rules = "; ".join(f"{t}: {rule_of(sc, t).to_dict()}" for t in ("ssb", "csi"))
+    console.print(f"  reporting rule: {rules}")
     table = Table(title=f"measurements ({len(sc.measurements):,} rows)", title_justify="left")
     for column in ("round", "beam", "rows", "cell–grid pairs", "cells", "grids", "missing"):
         table.add_column(column, justify="right")
@@ -61,6 +66,9 @@ def _print_measurements(sc: Scenario, console: Console) -> None:
         counts = (f"{row.rows:,}", f"{row.pairs:,}", str(row.cells), str(row.grids))
         table.add_row(str(row.round), row.beam_type, *counts, f"{100 * row.missing:.1f} %")
     console.print(table)
+    frac = reported_fraction(sc)
+    text = ", ".join(f"round {r.round} {r.beam_type} {100 * r.fraction:.1f} %" for r in frac.itertuples())
+    console.print(f"  reported fraction of the beams of detected (cell, grid) pairs: {text}")
 
 
 def _print_point_cloud(sc: Scenario, console: Console) -> None:

@@ -87,12 +87,30 @@ def simulate(
     device: str = DeviceOption,
     seed: int | None = typer.Option(None, "--seed", help="Random seed (default: the config's, else 0); "
                                     "the same seed gives the same scenario."),
+    measurements: str | None = typer.Option(None, "--measurements", help="Measurement regime: ideal (noise on the "
+                                            "expectation, every beam above r_th) or field (as a network reports "
+                                            "them; effects under `field_model:` in --config). Default: the config's, "
+                                            "else ideal."),
+    from_trace: Path | None = typer.Option(None, "--from-trace", help="Re-measure the paths of this simulated "
+                                           "scenario instead of tracing (only measurement keys may change)."),
 ) -> None:
     """Trace a scene once per (site, carrier) and write a complete scenario with truth/ (SPEC §6)."""
     from rflscm.sim import SimulationConfig, build_scenario, make_backend
 
+    if measurements not in (None, "ideal", "field"):
+        raise ConfigError(f"--measurements must be ideal or field (got {measurements!r}).")
+    if from_trace is not None:
+        layout = [flag for flag, value in (("--sites", sites), ("--grids", grids), ("--carriers", carriers),
+                                           ("--scene", scene)) if value is not None]  # fmt: skip
+        if layout:
+            raise ConfigError(
+                f"--from-trace re-measures an existing trace, so {', '.join(layout)} cannot change it; drop "
+                f"{'them' if len(layout) > 1 else 'it'} or simulate anew without --from-trace."
+            )
+        _remeasure(from_trace, out, config, measurements, seed, force)
+        return
     cfg = load_config(SimulationConfig, config) if config is not None else SimulationConfig()
-    overrides: dict[str, Any] = {"num_sites": sites, "max_grids": grids, "seed": seed,
+    overrides: dict[str, Any] = {"num_sites": sites, "max_grids": grids, "seed": seed, "measurements": measurements,
                  "carriers_hz": parse_carriers(carriers) if carriers is not None else None}  # fmt: skip
     cfg = dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     _check_backend(backend, scene)
@@ -115,4 +133,33 @@ def simulate(
         f"{100 * stats['fraction_missing']:.1f} % beams missing; "
         f"tracing {stats['trace_seconds']:.1f} s ({stats['seconds_per_1000_rx_per_carrier']:.2f} s per 1000 "
         f"receivers per carrier). Check it with `rflscm check {out}`."
+    )
+
+
+def _remeasure(source: Path, out: Path, config: Path | None, measurements: str | None, seed: int | None,
+               force: bool) -> None:  # fmt: skip
+    """``--from-trace``: the trace's recorded config, overridden by the measurement keys of --config and the flags."""
+    import yaml
+
+    from rflscm.config import from_dict, to_dict
+    from rflscm.sim import SimulationConfig
+    from rflscm.sim.remeasure import remeasure, trace_config
+
+    merged = to_dict(trace_config(source))
+    if config is not None:
+        merged.update(yaml.safe_load(Path(config).read_text()) or {})
+    for key, value in (("measurements", measurements), ("seed", seed)):
+        if value is not None:
+            merged[key] = value
+    cfg = from_dict(SimulationConfig, merged)
+    _prepare_out(out, force)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=f".{out.name}.", dir=out.parent) as tmp:
+        remeasure(source, cfg, Path(tmp) / "scenario")
+        if out.exists():
+            shutil.rmtree(out) if any(out.iterdir()) else out.rmdir()
+        shutil.move(str(Path(tmp) / "scenario"), str(out))
+    Console(stderr=True).print(
+        f"[green]wrote[/green] {out}: {source} re-measured in the {cfg.measurements} regime. "
+        f"Check it with `rflscm check {out}`."
     )

@@ -6,6 +6,7 @@ Example::
     description: free text (optional)
     origin: null                  # or {lat: 48.14, lon: 11.57, height_m: 0}
     rsrp_threshold_dbm: -120.0
+    reporting: {csi: {rule: top_n, top_n: 4, serving_only: true}}  # optional, see rflscm.data.reporting
     frequencies_hz: [2.1e9, 3.5e9]
     codebooks: {ssb8: {type: ssb}, csi32: {type: dft}}
     rounds: {1: {cells: cells_round1.csv}, 2: {cells: cells_round2.csv}}
@@ -29,6 +30,7 @@ from rflscm.antenna import Codebook, codebook_from_dict
 from rflscm.config import from_dict, to_dict
 from rflscm.data.columns import fmt_list, fmt_number
 from rflscm.data.geo import Origin
+from rflscm.data.reporting import ReportingRule, reporting_from_dict
 from rflscm.errors import ConfigError
 
 RSRP_MIN_DBM = -156.0
@@ -62,6 +64,8 @@ class ScenarioMeta:
     """Reporting threshold r_th [dBm]: beams below it are missing (NaN)."""
     point_cloud: str | None = None
     truth: str | None = None
+    reporting: dict[str, ReportingRule] = field(default_factory=dict)
+    """Reporting rule per beam type (:mod:`rflscm.data.reporting`); absent = ``rsrp_threshold_dbm`` for both."""
     simulation: dict[str, Any] = field(default_factory=dict)
     """Free-form provenance written by the simulator, kept as is."""
 
@@ -72,6 +76,7 @@ class ScenarioMeta:
             "description": self.description,
             "origin": None if self.origin is None else to_dict(self.origin),
             "rsrp_threshold_dbm": self.rsrp_threshold_dbm,
+            **({"reporting": {k: r.to_dict() for k, r in self.reporting.items()}} if self.reporting else {}),
             "frequencies_hz": list(self.frequencies_hz),
             "codebooks": {name: to_dict(cb) for name, cb in self.codebooks.items()},
             "rounds": {r: {"cells": f} for r, f in sorted(self.rounds.items())},
@@ -118,6 +123,7 @@ def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml") -> Scenar
             point_cloud=_optional_text(data.get("point_cloud"), "point_cloud"),
             truth=_optional_text(data.get("truth"), "truth"),
             simulation=_simulation(data.get("simulation")),
+            reporting=reporting_from_dict(data.get("reporting")),
         )
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from None

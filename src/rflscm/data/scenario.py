@@ -217,6 +217,8 @@ class Scenario:
         digest = hashlib.sha256()
         meta = self.meta.to_dict()
         meta_part = {k: meta[k] for k in ("origin", "rsrp_threshold_dbm", "frequencies_hz", "codebooks")}
+        if "reporting" in meta:
+            meta_part["reporting"] = meta["reporting"]
         digest.update(json.dumps(meta_part, sort_keys=True).encode())
         m = self.measurements
         round1 = m[(m["round"] == 1).to_numpy()]

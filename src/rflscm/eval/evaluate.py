@@ -10,12 +10,19 @@ key                                    meaning
 ``mae_db.{ssb,csi}.all``               MAE [dB] of the model over every reported test beam it was scored on
 ``mae_db.{ssb,csi}.changed``           the same over the cells whose antenna changed between round 1 and the
                                        test round (``null`` when none changed, e.g. round-1 tests)
-``oracle_mae_db.{ssb,csi}.{all,...}``  the same for the oracle (true APS through A′): the floor left by angular
-                                       binning and measurement noise; ``null`` without ground truth
+``oracle_mae_db.{ssb,csi}.{all,...}``  the *model floor*: the oracle (true APS through the nominal A′; in the field
+                                       regime the APS of the test round's own UE samples): what a perfect LSCM
+                                       model could reach; ``null`` without ground truth
+``noise_floor_mae_db.{ssb,csi}.*``     the *noise floor*: the noiseless test-round RSRP through the real antenna
+                                       (``truth/rsrp_noiseless``) against the measurements: what fading, report
+                                       error and quantisation alone cost; ``null`` without ground truth
+``bias_db.{ssb,csi}.{all,changed}``    the model's mean signed error (prediction − measurement) [dB]
+``missing_above_bound.{model,oracle,trivial}.{ssb,csi}``  share of the test round's missing beams predicted
+                                       above their bound under the reporting rule (:mod:`rflscm.data.reporting`)
 ``trivial_mae_db.{ssb,csi}.{all,...}`` the same for the trivial baseline (each pair's mean round-1 RSRP of
                                        that beam type for every beam; the cell's mean for unseen pairs)
 ``per_cell[<cell_id>]``                ``changed`` (bool), ``ssb``, ``csi`` (model MAE [dB]), ``oracle.{ssb,csi}``,
-                                       ``trivial.{ssb,csi}``, ``counts.{ssb,csi}`` (scored beams)
+                                       ``trivial.{ssb,csi}``, ``noise_floor.{ssb,csi}``, ``counts.{ssb,csi}``
 ``aps.nmse_db``                        mean over test pairs of the per-pair NMSE 10·log10(‖x̂ − x‖²/‖x‖²) [dB]
                                        against the true APS (``aps.nmse_db_median``: its median)
 ``aps.angle_error_deg``                power-weighted great-circle error [deg] between the strongest
@@ -78,6 +85,8 @@ class BeamResult:
     seen: np.ndarray
     scored: np.ndarray
     changed: np.ndarray
+    noiseless: np.ndarray | None = None  # [num_pairs, max_beams] dBm, truth through the real antenna
+    bound: np.ndarray | None = None  # [num_pairs, max_beams] dBm, bound of each missing beam (NaN elsewhere)
 
     def rows(self) -> np.ndarray:
         """Rows the three MAEs are computed over (all test rows when the model answered none)."""
@@ -153,7 +162,7 @@ def run_evaluation(
     train = protocol.training_scenario(scenario)
     test = protocol.test_set(scenario)
     t0 = time.perf_counter()
-    oracle_model = _oracle(scenario, model, oracle)
+    oracle_model = _oracle(scenario, model, oracle, test.round)
     timing["oracle"] = time.perf_counter() - t0
     seen_index = _trained_pairs(train)
     changed = M.changed_cells(scenario, 1, test.round)
@@ -164,6 +173,8 @@ def run_evaluation(
         pairs, measured = test.tables[beam_type]
         res, why = _predict_beam_type(model, oracle_model, scenario, train, test.round, beam_type, pairs, measured, seen_index)
         res.changed = res.pairs["cell_id"].isin(changed).to_numpy()
+        res.noiseless = _noiseless(scenario, test.round, beam_type, pairs, measured.shape[1])
+        res.bound = _bounds(scenario, test.round, beam_type, pairs, measured)
         beams[beam_type] = res
         unsupported = unsupported or why
     skipped = {bt: int((~res.scored).sum()) for bt, res in beams.items()}
@@ -181,7 +192,7 @@ def run_evaluation(
     return evaluation
 
 
-def _oracle(scenario: Scenario, model: LSCMModel, oracle: LSCMModel | str | None) -> LSCMModel | None:
+def _oracle(scenario: Scenario, model: LSCMModel, oracle: LSCMModel | str | None, test_round: int = 1) -> LSCMModel | None:
     if oracle is None or isinstance(oracle, LSCMModel):
         return oracle
     if oracle != "auto":
@@ -189,7 +200,8 @@ def _oracle(scenario: Scenario, model: LSCMModel, oracle: LSCMModel | str | None
     if scenario.meta.truth is None:
         return None
     try:
-        return OracleModel.for_scenario(scenario, model.angle_grid, model.device)
+        # field regime: the APS of the test round's own UE samples
+        return OracleModel.for_scenario(scenario, model.angle_grid, model.device, sample_round=test_round)
     except (DataError, UnsupportedError):
         return None
 
@@ -274,18 +286,68 @@ def _predict_beam_type(
     return res, why
 
 
+def _noiseless(scenario: Any, round: int, beam_type: str, pairs: pd.DataFrame, width: int) -> np.ndarray | None:
+    """The truth's noiseless RSRP [dBm] ``[num_pairs, width]`` of the test pairs (NaN where truth left a pair out)."""
+    from rflscm.data.io import read_table
+
+    if scenario.meta.truth is None or not (scenario.root / scenario.meta.truth / "rsrp_noiseless.parquet").is_file():
+        return None
+    table = read_table(scenario.root / scenario.meta.truth / "rsrp_noiseless.parquet")
+    table = table[((table["round"] == round) & (table["beam_type"].astype(str) == beam_type)).to_numpy()]
+    out = np.full((len(pairs), width), np.nan)
+    index = pd.MultiIndex.from_frame(pairs[["cell_id", "grid_id"]].astype("int64"))
+    row = index.get_indexer(pd.MultiIndex.from_frame(table[["cell_id", "grid_id"]].astype("int64")))
+    beam = table["beam_id"].to_numpy(np.int64)
+    keep = (row >= 0) & (beam < width)
+    out[row[keep], beam[keep]] = table["rsrp_dbm"].to_numpy(np.float64)[keep]
+    return out
+
+
+def _bounds(scenario: Any, round: int, beam_type: str, pairs: pd.DataFrame, measured: np.ndarray) -> np.ndarray | None:
+    from rflscm.data.reporting import missing_bounds
+
+    try:
+        return missing_bounds(scenario, round, beam_type, pairs, measured)
+    except (KeyError, ValueError, IndexError):  # a test round the scenario has no table for
+        return None
+
+
+def _signed_mean(pred: np.ndarray, measured: np.ndarray, rows: np.ndarray) -> float | None:
+    err = (pred - measured)[np.asarray(rows, dtype=bool)]
+    finite = np.isfinite(err)
+    return float(err[finite].mean()) if finite.any() else None
+
+
 def _mae_triplet(res: BeamResult, rows: np.ndarray) -> dict[str, float | None]:
-    """Model, oracle and trivial MAE over ``rows`` (rows with no finite model prediction drop out of the model's)."""
+    """Model, oracle, trivial and noise-floor MAE over ``rows`` (rows with no finite model prediction drop out of the
+    model's), and the model's mean signed error."""
     return {
         "model": M.mae_db(M.abs_error_db(res.model, res.measured), rows),
         "oracle": None if res.oracle is None else M.mae_db(M.abs_error_db(res.oracle, res.measured), rows),
         "trivial": M.mae_db(M.abs_error_db(res.trivial, res.measured), rows),
+        "noise_floor": None if res.noiseless is None else M.mae_db(M.abs_error_db(res.noiseless, res.measured), rows),
+        "bias": _signed_mean(res.model, res.measured, rows),
     }
 
 
+def _above_bound(beams: dict[str, BeamResult]) -> dict[str, dict[str, float | None]]:
+    """Share of each beam type's missing test beams that model / oracle / trivial predict above their bound."""
+    out: dict[str, dict[str, float | None]] = {k: {} for k in ("model", "oracle", "trivial")}
+    for beam_type, res in beams.items():
+        for name, pred in (("model", res.model), ("oracle", res.oracle), ("trivial", res.trivial)):
+            value = None
+            if res.bound is not None and pred is not None:
+                has = np.isfinite(res.bound) & np.isfinite(pred) & res.rows()[:, None]
+                value = float((pred[has] > res.bound[has]).mean()) if has.any() else None
+            out[name][beam_type] = value
+    return out
+
+
 def _mae_blocks(beams: dict[str, BeamResult], any_changed: bool) -> dict[str, dict[str, dict[str, float | None]]]:
-    """``{model|oracle|trivial: {ssb|csi: {all, changed}}}``."""
-    out: dict[str, dict[str, dict[str, float | None]]] = {k: {} for k in ("model", "oracle", "trivial")}
+    """``{model|oracle|trivial|noise_floor|bias: {ssb|csi: {all, changed}}}``."""
+    out: dict[str, dict[str, dict[str, float | None]]] = {
+        k: {} for k in ("model", "oracle", "trivial", "noise_floor", "bias")
+    }
     for beam_type, res in beams.items():
         rows = res.rows()
         every = _mae_triplet(res, rows)
@@ -299,26 +361,29 @@ def _per_cell(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, An
     cells = sorted({int(c) for res in beams.values() for c in res.pairs["cell_id"].to_numpy()})
     out: dict[str, Any] = {}
     for cell in cells:
-        entry: dict[str, Any] = {"changed": bool(cell in set(changed.tolist())), "oracle": {}, "trivial": {}, "counts": {}}
+        entry: dict[str, Any] = {"changed": bool(cell in set(changed.tolist())), "oracle": {}, "trivial": {},
+                                 "noise_floor": {}, "counts": {}}  # fmt: skip
         for beam_type, res in beams.items():
             rows = res.rows() & (res.pairs["cell_id"].to_numpy() == cell)
             trip = _mae_triplet(res, rows)
             entry[beam_type] = trip["model"]
             entry["oracle"][beam_type] = trip["oracle"]
             entry["trivial"][beam_type] = trip["trivial"]
+            entry["noise_floor"][beam_type] = trip["noise_floor"]
             entry["counts"][beam_type] = M.count_finite(M.abs_error_db(res.model, res.measured), rows)
         out[str(cell)] = entry
     return out
 
 
 def _unseen_block(model: LSCMModel, beams: dict[str, BeamResult]) -> dict[str, Any]:
-    block: dict[str, Any] = {"mae_db": {}, "oracle_mae_db": {}, "trivial_mae_db": {}, "pairs": {}}
+    block: dict[str, Any] = {"mae_db": {}, "oracle_mae_db": {}, "trivial_mae_db": {}, "noise_floor_mae_db": {}, "pairs": {}}
     for beam_type, res in beams.items():
         rows = ~res.seen
-        trip = _mae_triplet(res, rows) if rows.any() else dict.fromkeys(("model", "oracle", "trivial"))
+        trip = _mae_triplet(res, rows) if rows.any() else dict.fromkeys(("model", "oracle", "trivial", "noise_floor"))
         block["mae_db"][beam_type] = trip["model"] if model.supports_unseen_grids else None
         block["oracle_mae_db"][beam_type] = trip["oracle"]
         block["trivial_mae_db"][beam_type] = trip["trivial"]
+        block["noise_floor_mae_db"][beam_type] = trip["noise_floor"]
         block["pairs"][beam_type] = int(rows.sum())
     return block
 
@@ -385,7 +450,10 @@ def _assemble(
     return {
         "mae_db": maes["model"],
         "oracle_mae_db": maes["oracle"],
+        "noise_floor_mae_db": maes["noise_floor"],
         "trivial_mae_db": maes["trivial"],
+        "bias_db": maes["bias"],
+        "missing_above_bound": _above_bound(beams),
         "per_cell": _per_cell(beams, changed),
         "aps": aps,
         "unseen": _unseen_block(model, beams),

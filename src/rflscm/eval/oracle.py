@@ -37,6 +37,8 @@ class OracleModel(LSCMModel):
     def __init__(self, angle_grid: AngleGrid, device: torch.device | str = "cpu") -> None:
         super().__init__(angle_grid, device)
         self._truth: TrueAPS | None = None
+        self.sample_round: int | None = None
+        """Set before ``fit``: answer with the APS of that round's UE samples where truth/ has it (field regime)."""
 
     @classmethod
     def build(
@@ -47,9 +49,13 @@ class OracleModel(LSCMModel):
         return cls(angle_grid, device)
 
     @classmethod
-    def for_scenario(cls, scenario: Scenario, angle_grid: AngleGrid, device: torch.device | str = "cpu") -> OracleModel:
-        """The oracle of ``scenario`` on ``angle_grid`` (a :class:`DataError` without ``truth/``)."""
+    def for_scenario(
+        cls, scenario: Scenario, angle_grid: AngleGrid, device: torch.device | str = "cpu", sample_round: int | None = None
+    ) -> OracleModel:
+        """The oracle of ``scenario`` on ``angle_grid`` (a :class:`DataError` without ``truth/``); with
+        ``sample_round``, the APS of that round's own UE samples where the truth folder has them (field regime)."""
         oracle = cls(angle_grid, device)
+        oracle.sample_round = sample_round
         oracle.fit(scenario, progress=False)
         return oracle
 
@@ -60,7 +66,7 @@ class OracleModel(LSCMModel):
         """Read the true APS of ``scenario`` (``progress``, ``callback``, ``resume`` do not apply)."""
         if checkpoint_path is not None:
             raise UnsupportedError("the oracle is rebuilt from truth/ by evaluation; it has no checkpoint.")
-        self._truth = load_true_aps(scenario, self.angle_grid)
+        self._truth = load_true_aps(scenario, self.angle_grid, self.sample_round)
         if self.fingerprint is None:
             self.fingerprint = scenario.fingerprint()
         return {"train_time_s": 0.0}

@@ -1,8 +1,10 @@
 """The LSCM training loss (paper eqs. (19), (22)–(23); SPEC §3).
 
-L = ‖r − A x̃‖² + β_pen ‖x̃‖₁ + α_P ‖𝟙(r missing) ⊙ [A x̃ − r_th]₊‖²
+L = ‖r − A x̃‖² + β_pen ‖x̃‖₁ + α_P ‖𝟙(r missing) ⊙ [A x̃ − r̄]₊‖²
 
-per (cell, grid) pair, summed over beams and averaged over the pairs of a batch.  Quantities
+per (cell, grid) pair, r̄ being each missing beam's upper bound under the scenario's reporting rule
+(SPEC §3; :func:`rflscm.data.reporting.missing_bounds`: r_th for a threshold, the weakest reported
+beam of a full top-N report, the SS-SINR detection level),, summed over beams and averaged over the pairs of a batch.  Quantities
 are in the model's normalised units (r / r_ref, A / a_ref, x / x_ref, so that r = A x holds in
 both).  ``fidelity="log"`` compares bels (dB/10) instead of linear power — RSRP spans six
 decades, and the linear form lets the strongest pairs dominate; its missing-beam penalty then
@@ -24,7 +26,7 @@ def lscm_loss(
     beam_mask: torch.Tensor,
     aps: torch.Tensor,
     x_scale: torch.Tensor,
-    threshold: float,
+    bound: torch.Tensor,
     fidelity: Literal["linear", "log"] = "log",
     sparsity_weight: float = 1e-3,
     penalty_weight: float = 0.5,
@@ -39,24 +41,28 @@ def lscm_loss(
             codebook, measured for this pair, not held out).
         aps: the rendered APS x̃ ``[num_pairs, num_dirs]`` (normalised).
         x_scale: ``[num_pairs]`` per-pair APS power scale (used by the log form's L1 term).
-        threshold: the reporting threshold r_th (normalised linear power).
+        bound: ``[num_pairs, num_beams]`` upper bound r̄ of each missing beam (normalised linear power),
+            NaN where no bound applies (reported beams, beams absent from the data); a scalar tensor or
+            float applies one bound (r_th) to every missing beam.
         floor: added to predictions before taking logs (normalised linear power).
 
     Returns:
         ``{"total", "fidelity", "sparsity", "penalty"}`` scalar tensors.
     """
+    bound = torch.as_tensor(bound, dtype=pred.dtype, device=pred.device).expand_as(pred)
     observed = beam_mask & ~torch.isnan(rsrp)
-    missing = beam_mask & torch.isnan(rsrp)
+    missing = beam_mask & torch.isnan(rsrp) & ~torch.isnan(bound)
+    bound = torch.where(missing, bound, torch.ones_like(bound))
     num_pairs = max(pred.shape[0], 1)
     if fidelity == "log":
         pred_b = torch.log10(pred + floor)
         rsrp_b = torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
         err = pred_b - rsrp_b
-        excess = torch.relu(pred_b - torch.log10(torch.as_tensor(threshold, dtype=pred.dtype)))
+        excess = torch.relu(pred_b - torch.log10(bound))
         l1 = (aps / x_scale[:, None]).sum()
     elif fidelity == "linear":
         err = pred - torch.nan_to_num(rsrp)
-        excess = torch.relu(pred - threshold)
+        excess = torch.relu(pred - bound)
         l1 = aps.sum()
     else:
         raise ValueError(f"unknown fidelity {fidelity!r}")

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from rflscm.data import BEAM_TYPES
+from rflscm.data.reporting import missing_bounds
 from rflscm.errors import DataError
 from rflscm.geometry import AngleGrid
 
@@ -34,7 +35,8 @@ class PairData:
     beam_mask: torch.Tensor  # bool [P, M], beams used in training
     val_mask: torch.Tensor  # bool [P, M], beams held aside for validation
     x_scale: torch.Tensor  # float32 [P], least APS power explaining the strongest beam
-    threshold: float  # r_th, normalised
+    bound: torch.Tensor  # float32 [P, M], normalised linear upper bound of each missing beam under the
+    #                      scenario's reporting rule (rflscm.data.reporting); NaN where reported or absent
     val_pairs: torch.Tensor  # long [V]
 
     @property
@@ -68,7 +70,10 @@ def build_pair_data(
 ) -> PairData:  # fmt: skip
     """Stack the round-1 SSB and CSI-RS tables of ``scenario`` into :class:`PairData`.
 
-    ``a_norm [num_cells, M, N]`` is the normalised stacked sensing matrix (for ``x_scale``).
+    ``a_norm [num_cells, M, N]`` is the normalised stacked sensing matrix (for ``x_scale``).  ``bound``
+    holds each missing beam's upper bound under the scenario's reporting rule, per report
+    (:func:`rflscm.data.reporting.missing_bounds`): r_th, the weakest reported beam of a full top-N
+    report, or the SS-SINR detection level.
     """
     grid_all = scenario.grid_ids()
     keys, tables = [], {}
@@ -76,20 +81,22 @@ def build_pair_data(
         pairs, rsrp_dbm = scenario.rsrp_table(1, t)
         c = np.searchsorted(cell_ids, pairs["cell_id"].to_numpy())
         k = c * len(grid_all) + np.searchsorted(grid_all, pairs["grid_id"].to_numpy())
-        tables[t] = (k, rsrp_dbm)
+        tables[t] = (k, rsrp_dbm, missing_bounds(scenario, 1, t, pairs, rsrp_dbm))
         keys.append(k)
     union = np.unique(np.concatenate(keys))
     if union.size == 0:
         raise DataError(f"scenario {scenario.meta.name!r} has no round-1 measurements to train on.")
     num_beams = a_norm.shape[1]
     rsrp_dbm = np.full((union.size, num_beams), np.nan)
+    bound_dbm = np.full((union.size, num_beams), np.nan)
     mask = np.zeros((union.size, num_beams), bool)
     cell_pos = union // len(grid_all)
     for t, offset in zip(BEAM_TYPES, (0, num_ssb)):
-        k, table = tables[t]
+        k, table, bound_t = tables[t]
         rows = np.searchsorted(union, k)
         width = table.shape[1]
         rsrp_dbm[rows, offset : offset + width] = table
+        bound_dbm[rows, offset : offset + width] = bound_t
         sizes = np.array([scenario.num_beams(int(c), t, 1) for c in cell_ids])[cell_pos[rows]]
         mask[rows, offset : offset + width] = np.arange(width)[None, :] < sizes[:, None]
     rsrp = 10.0 ** (rsrp_dbm / 10.0) / r_ref_mw
@@ -109,7 +116,7 @@ def build_pair_data(
         beam_mask=torch.as_tensor(mask & ~val_mask),
         val_mask=torch.as_tensor(val_mask),
         x_scale=x_scale.float(),
-        threshold=float(threshold),
+        bound=torch.as_tensor(10.0 ** (bound_dbm / 10.0) / r_ref_mw, dtype=torch.float32),
         val_pairs=torch.as_tensor(np.flatnonzero(val_mask.any(1)), dtype=torch.long),
     )
 

@@ -287,7 +287,7 @@ class RFLSCM(LSCMModel):
         d, c = self._training().data, self.config.loss
         pred = torch.einsum("bmk,bk->bm", a_sel, x)
         return lscm_loss(
-            pred, d.rsrp[pairs], d.beam_mask[pairs], x, d.x_scale[pairs], d.threshold,
+            pred, d.rsrp[pairs], d.beam_mask[pairs], x, d.x_scale[pairs], d.bound[pairs],
             c.fidelity, c.sparsity, c.missing_penalty, floor=10.0 ** (c.floor_db / 10.0),
         )  # fmt: skip
 

@@ -28,6 +28,7 @@ from rflscm.data import PointCloud, Scenario, ScenarioMeta, empty_measurements, 
 from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
 from rflscm.sim.backend import SceneBackend
+from rflscm.sim.field import FieldConfig
 from rflscm.sim.noise import MeasurementModel
 from rflscm.sim.paths import write_truth
 
@@ -82,6 +83,11 @@ class SimulationConfig:
     grid_radius_m: float | None = None
     """Keep only grids within this distance of the area centre [m] (the nearest ``max_grids`` anyway)."""
     # --- measurement model ---
+    measurements: Literal["ideal", "field"] = "ideal"
+    """``ideal``: the keys below (noise on the expectation over all points); ``field``: :class:`FieldConfig`
+    (``field_model:`` block; its own error, step and threshold replace the keys below)."""
+    field_model: FieldConfig = field(default_factory=FieldConfig)
+    """The field regime's effects (used with ``measurements: field``; see :mod:`rflscm.sim.field`)."""
     noise_sigma_db: float = 2.0
     quantization_db: float = 1.0
     rsrp_threshold_dbm: float = -120.0
@@ -141,6 +147,11 @@ class SimulationConfig:
     @property
     def measurement_model(self) -> MeasurementModel:
         return MeasurementModel(self.noise_sigma_db, self.quantization_db, self.rsrp_threshold_dbm)
+
+    @property
+    def threshold_dbm(self) -> float:
+        """The reporting threshold r_th of the regime in use [dBm]."""
+        return self.field_model.threshold_dbm if self.measurements == "field" else self.rsrp_threshold_dbm
 
 
 # ---- layout: sites, cells, grids ---------------------------------------------------------------------
@@ -358,9 +369,6 @@ def build_scenario(
     RSRP); the result is validated with :func:`rflscm.data.load_scenario`.  ``stats``, when given,
     receives timings and counts (kept out of the files so that they are reproducible).
     """
-    from rflscm.sim.noise import measure
-    from rflscm.sim.paths import noiseless_rsrp
-
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()):
         raise ConfigError(f"{out}: folder exists and is not empty; choose another --out or pass --force.")
@@ -379,25 +387,73 @@ def build_scenario(
         name=config.name, description=config.description or f"simulated with rflscm ({backend.name})",
         frequencies_hz=tuple(float(f) for f in config.carriers_hz), codebooks=dict(CODEBOOKS),
         rounds={1: "cells_round1.parquet", 2: "cells_round2.parquet"}, grids="grids.parquet",
-        measurements="measurements.parquet", rsrp_threshold_dbm=config.rsrp_threshold_dbm,
+        measurements="measurements.parquet", rsrp_threshold_dbm=config.threshold_dbm,
         point_cloud="point_cloud.ply", truth="truth",
         simulation=_provenance(backend, config, scene, changes),
     )  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     scenario = Scenario(out.resolve(), meta, {1: cells1, 2: cells2}, grids, empty_measurements(), cloud)
     scenario = _normalised(scenario)
-    points_per_grid = pd.Series(config.points_per_grid, index=grids["grid_id"].to_numpy())
-    noiseless = noiseless_rsrp(scenario, paths, points_per_grid)
-    detect_on = None if config.detect_on == "any" else config.detect_on
-    measurements = measure(noiseless, config.measurement_model, rng, detect_on=detect_on)
-    floor = None if config.truth_rsrp_margin_db is None else config.rsrp_threshold_dbm - config.truth_rsrp_margin_db
-    write_truth(out / "truth", scenario, paths, noiseless, points_per_grid, config.angle_grid, floor)
-    scenario = dataclasses.replace(scenario, measurements=measurements)
-    save_scenario(scenario, out, table_format="parquet")
+    write_measurements(scenario, paths, config, rng, out)
     if stats is not None:
         stats.update(trace_stats)
-        stats.update(_summary(scenario, paths))
+        stats.update(_summary(load_scenario(out), paths))
     return load_scenario(out).root
+
+
+def write_measurements(
+    scenario: Scenario, paths: pd.DataFrame, config: SimulationConfig, rng: np.random.Generator, out: Path
+) -> None:
+    """The measurement step of :func:`build_scenario` (also run alone on an existing trace, see
+    :func:`rflscm.sim.remeasure.remeasure`): truth/ and the measurements of ``config``'s regime, saved
+    with the scenario into ``out``.  ``rng`` draws the report error exactly as the ideal regime did; the
+    field effects draw from a generator of their own (seeded by ``config.seed``)."""
+    from rflscm.sim.field import field_rsrp, report
+    from rflscm.sim.noise import measure
+    from rflscm.sim.paths import noiseless_rsrp
+
+    grid_ids = scenario.grid_ids()
+    points_per_grid = pd.Series(config.points_per_grid, index=grid_ids)
+    samples = None
+    if config.measurements == "field":
+        field_rng = np.random.default_rng([config.seed, 12])
+        true_rsrp, noiseless, samples = field_rsrp(scenario, paths, config.points_per_grid, config.field_model, field_rng)
+        measurements = report(true_rsrp, scenario, config.field_model, rng)
+        meta = dataclasses.replace(scenario.meta, reporting=config.field_model.reporting())
+        scenario = dataclasses.replace(scenario, meta=meta)
+    else:
+        noiseless = noiseless_rsrp(scenario, paths, points_per_grid)
+        detect_on = None if config.detect_on == "any" else config.detect_on
+        measurements = measure(noiseless, config.measurement_model, rng, detect_on=detect_on)
+    floor = None if config.truth_rsrp_margin_db is None else config.threshold_dbm - config.truth_rsrp_margin_db
+    write_truth(out / "truth", scenario, paths, noiseless, points_per_grid, config.angle_grid, floor)
+    if samples is not None:
+        write_sample_truth(out / "truth", scenario, paths, samples, config.points_per_grid, config.angle_grid)
+    scenario = dataclasses.replace(scenario, measurements=measurements)
+    save_scenario(scenario, out, table_format="parquet")
+
+
+def write_sample_truth(
+    folder: Path, scenario: Scenario, paths: pd.DataFrame, samples: pd.DataFrame, points_per_grid: int,
+    angle_grid: AngleGrid,
+) -> None:
+    """``truth/samples.parquet`` (the UE samples of every round) and ``truth/aps_samples.parquet``: the true
+    APS of each round's samples (``round``, ``cell_id``, ``grid_id``, ``bin``, ``power_lin``), the model
+    floor of ``rflscm evaluate``."""
+    from rflscm.sim.paths import true_aps_table
+
+    samples.astype({"round": "int8", "grid_id": "int32", "point_id": "int16", "weight": "float32"}).to_parquet(
+        folder / "samples.parquet", index=False, compression="zstd"
+    )
+    frames = []
+    for rnd, sub in samples.groupby("round"):
+        weight = pd.Series(sub["weight"].to_numpy(), index=pd.MultiIndex.from_frame(sub[["grid_id", "point_id"]]))
+        w = weight.reindex(pd.MultiIndex.from_frame(paths[["grid_id", "point_id"]].astype("int64"))).fillna(0.0)
+        weighted = paths.assign(power_lin=paths["power_lin"].to_numpy() * w.to_numpy() * points_per_grid)
+        aps = true_aps_table(weighted[weighted["power_lin"] > 0], scenario.cells[1], angle_grid, points_per_grid)
+        frames.append(aps.assign(round=np.int8(rnd)))
+    table = pd.concat(frames, ignore_index=True)[["round", "cell_id", "grid_id", "bin", "power_lin"]]
+    table.astype({"power_lin": "float32"}).to_parquet(folder / "aps_samples.parquet", index=False, compression="zstd")
 
 
 def _summary(scenario: Scenario, paths: pd.DataFrame) -> dict[str, float]:
@@ -434,8 +490,10 @@ def _provenance(backend, config: SimulationConfig, scene, changes) -> dict[str, 
         "scene": scene or backend.name,
         "seed": config.seed,
         "angle_grid": grid.to_dict(),
+        "measurements": config.measurements,
         "noise": {"sigma_db": config.noise_sigma_db, "quantization_db": config.quantization_db,
                   "threshold_dbm": config.rsrp_threshold_dbm},
+        **({"field": to_dict(config.field_model)} if config.measurements == "field" else {}),
         "points_per_grid": config.points_per_grid,
         "round2_changes": changes,
         "config": to_dict(config),

@@ -116,9 +116,23 @@ def simulation_angle_grid(simulation: dict[str, Any]) -> AngleGrid:
     return AngleGrid.from_dict(spec)
 
 
-def load_true_aps(scenario: Scenario, angle_grid: AngleGrid | None = None) -> TrueAPS:
-    """The true APS of ``scenario`` (from ``truth/``), on its simulation grid or re-binned onto ``angle_grid``."""
+SAMPLES_APS_FILE = "aps_samples.parquet"
+"""Field regime: the true APS of each round's UE samples (``round`` + the columns of ``aps.parquet``)."""
+
+
+def load_true_aps(scenario: Scenario, angle_grid: AngleGrid | None = None, sample_round: int | None = None) -> TrueAPS:
+    """The true APS of ``scenario`` (from ``truth/``), on its simulation grid or re-binned onto ``angle_grid``.
+
+    ``sample_round``: the APS of that round's UE samples (``truth/aps_samples.parquet``, field regime) when
+    the folder has it and no re-binning is needed; otherwise the APS over all traced points.
+    """
     simulation = scenario.meta.simulation
+    native = simulation_angle_grid(simulation)
+    per_round = truth_folder(scenario) / SAMPLES_APS_FILE
+    if sample_round is not None and per_round.is_file() and (angle_grid is None or angle_grid == native):
+        table = read_table(per_round)
+        table = table[(table["round"] == sample_round).to_numpy()].drop(columns="round")
+        return TrueAPS(table, native, scenario.cells[1]["cell_id"].to_numpy(), scenario.grid_ids())
     return read_true_aps(
         truth_folder(scenario), scenario.cells[1], scenario.grid_ids(), simulation_angle_grid(simulation),
         simulation.get("points_per_grid"), angle_grid,

@@ -23,6 +23,8 @@ DOCUMENTED_KEYS = [
     "counts.ssb.changed_beams", "counts.csi.beams", "counts.cells", "counts.changed_cells",
     "model.name", "model.supports_unseen_grids", "model.fingerprint", "model.fit", "protocol.name",
     "test_round", "scenario.name", "unsupported", "timing_s.predict",
+    "noise_floor_mae_db.ssb.all", "noise_floor_mae_db.csi.changed", "bias_db.ssb.all", "bias_db.csi.changed",
+    "missing_above_bound.model.ssb", "missing_above_bound.trivial.csi", "unseen.noise_floor_mae_db.ssb",
 ]  # fmt: skip
 
 
@@ -52,9 +54,11 @@ def test_documented_keys_are_present_and_json_ready(adjust_run, sim_scenario) ->
     assert json.loads(json.dumps(metrics)) == metrics
     assert metrics["protocol"] == {"name": "adjust", "test_round": 2}
     assert metrics["counts"]["changed_cells"] == changed_cells(sim_scenario).tolist() != []
+    floor = metrics["noise_floor_mae_db"]["ssb"]["all"]  # ideal regime: 2 dB noise + 1 dB steps on the truth
+    assert floor is not None and 1.0 < floor < 2.2 and metrics["oracle_mae_db"]["ssb"]["all"] >= floor - 0.3
     for cell, entry in metrics["per_cell"].items():
         assert entry["changed"] == (int(cell) in metrics["counts"]["changed_cells"])
-        assert set(entry) == {"changed", "ssb", "csi", "oracle", "trivial", "counts"}
+        assert set(entry) == {"changed", "ssb", "csi", "oracle", "trivial", "noise_floor", "counts"}
 
 
 def test_mae_recomputed_independently_and_wnomp_beats_trivial(adjust_run, sim_scenario) -> None:

@@ -221,3 +221,20 @@ def test_speed_benchmark_runs_the_fit_code_path() -> None:
     assert result["num_beams"] == 40 and result["num_bins"] == 1296 and result["num_problems"] == 64
     assert result["problems_per_s"] > 0 and 1.0 <= result["mean_atoms"] <= 8.0
     assert result["target_problems_per_s"] == 3000.0
+
+
+def test_settings_are_chosen_on_held_aside_round1_beams_only(tiny) -> None:
+    from rflscm.models.wnomp_select import hold_aside, select_wnomp
+
+    m = tiny.measurements
+    train, held = hold_aside(m, fraction=0.5, seed=0)
+    assert len(held) > 0 and (m.iloc[held]["round"] == 1).all() and m.iloc[held]["rsrp_dbm"].notna().all()
+    assert train.iloc[held]["rsrp_dbm"].isna().all() and train.drop(index=held).equals(m.drop(index=held))
+    grid = AngleGrid(num_el=16, num_az=24, el_min_deg=-60.0, el_step_deg=8.0)
+    best, table = select_wnomp(tiny, grid, fraction=0.5, seed=0)
+    assert len(table) == 12 and table["mae_db"].notna().all()
+    # round 2 plays no part: scrambling it changes nothing
+    scrambled = m.assign(rsrp_dbm=np.where(m["round"] == 2, m["rsrp_dbm"] - 20.0, m["rsrp_dbm"]))
+    best2, table2 = select_wnomp(tiny.with_measurements(scrambled, validate=False), grid, fraction=0.5, seed=0)
+    assert best2 == best
+    np.testing.assert_allclose(table2["mae_db"], table["mae_db"])

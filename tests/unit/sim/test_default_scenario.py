@@ -39,7 +39,19 @@ def test_default_scenario_is_sized_like_the_paper(default) -> None:
     m = default.measurements
     round1 = m[m["round"] == 1]
     assert round1["cell_id"].nunique() >= 30  # most cells are heard somewhere
-    assert 0.0 < m["rsrp_dbm"].isna().mean() < 0.6
+
+
+def test_default_scenario_is_in_the_field_regime(default) -> None:
+    from rflscm.data.reporting import check_reporting, reported_fraction
+
+    sim = default.meta.simulation
+    assert sim["measurements"] == "field" and sim["field"]["samples_per_grid"] >= 1
+    assert default.meta.reporting["ssb"].rule == "sinr" and default.meta.reporting["csi"].rule == "top_n"
+    assert check_reporting(default) == []
+    frac = reported_fraction(default).set_index(["round", "beam_type"])["fraction"]
+    assert 0.2 < frac[(1, "ssb")] < 0.95 and 0.0 < frac[(1, "csi")] < 0.2  # serving-cell top-4 of 32 beams
+    for name in ("samples.parquet", "aps_samples.parquet"):
+        assert (default.root / "truth" / name).is_file()
 
 
 def test_oracle_truth_covers_the_default_scenario(default) -> None:

@@ -21,7 +21,7 @@ def setup():
 
 def test_log_form_terms() -> None:
     pred, rsrp, mask, aps, scale = setup()
-    out = lscm_loss(pred, rsrp, mask, aps, scale, threshold=0.05, fidelity="log", sparsity_weight=0.1, penalty_weight=0.5, floor=0.0)
+    out = lscm_loss(pred, rsrp, mask, aps, scale, bound=0.05, fidelity="log", sparsity_weight=0.1, penalty_weight=0.5, floor=0.0)
     fid = (math.log10(0.1) ** 2 + math.log10(2.0) ** 2) / 2  # bels², observed beams only
     pen = (math.log10(0.5 / 0.05) ** 2 + math.log10(1.0 / 0.05) ** 2) / 2  # missing beams above r_th
     sparsity = 0.1 * (3.0 / 2.0 + 1.0 / 1.0) / 2
@@ -33,7 +33,7 @@ def test_log_form_terms() -> None:
 
 def test_linear_form_terms() -> None:
     pred, rsrp, mask, aps, scale = setup()
-    out = lscm_loss(pred, rsrp, mask, aps, scale, threshold=0.05, fidelity="linear", sparsity_weight=0.1, penalty_weight=0.5)
+    out = lscm_loss(pred, rsrp, mask, aps, scale, bound=0.05, fidelity="linear", sparsity_weight=0.1, penalty_weight=0.5)
     assert math.isclose(float(out["fidelity"]), (0.9**2 + 1.0) / 2, rel_tol=1e-6)
     assert math.isclose(float(out["penalty"]), (0.45**2 + 0.95**2) / 2, rel_tol=1e-6)
     assert math.isclose(float(out["sparsity"]), 0.1 * 4.0 / 2, rel_tol=1e-6)
@@ -62,3 +62,29 @@ def test_mae_db() -> None:
     rsrp = torch.tensor([[10.0, 10.0, NAN]])
     assert math.isclose(float(mae_db(pred, rsrp, torch.ones(1, 3, dtype=torch.bool))), 5.0, rel_tol=1e-6)
     assert math.isnan(float(mae_db(pred, rsrp, torch.zeros(1, 3, dtype=torch.bool))))
+
+
+def test_top_n_penalty_is_zero_for_a_prediction_that_respects_the_per_report_bound() -> None:
+    """Top-2 reports: a missing beam of a full report is bounded by that report's weakest beam, not r_th."""
+    import numpy as np
+    import pandas as pd
+
+    from rflscm.data.reporting import missing_bounds, reporting_from_dict
+
+    rsrp_dbm = np.array([[-70.0, -80.0, NAN, NAN], [-95.0, NAN, NAN, NAN]])  # report 1 full, report 2 not
+    pairs = pd.DataFrame({"cell_id": [1, 1], "grid_id": [5, 6]})
+    toy = type("Toy", (), {})()
+    toy.meta = type("Meta", (), {"rsrp_threshold_dbm": -120.0, "reporting": reporting_from_dict(
+        {"csi": {"rule": "top_n", "top_n": 2}})})()  # fmt: skip
+    toy.num_beams = lambda cell, beam_type, round=1: 4
+    bound_dbm = missing_bounds(toy, 1, "csi", pairs, rsrp_dbm)
+    np.testing.assert_array_equal(bound_dbm, [[NAN, NAN, -80.0, -80.0], [NAN, -120.0, -120.0, -120.0]])
+    to_lin = lambda dbm: torch.as_tensor(10.0 ** (np.asarray(dbm) / 10.0) / 1e-9, dtype=torch.float32)  # noqa: E731
+    respecting = np.where(np.isnan(rsrp_dbm), bound_dbm - 0.5, rsrp_dbm)  # −80.5 dBm: above r_th, below the bound
+    mask = torch.ones(2, 4, dtype=torch.bool)
+    args = (to_lin(respecting), to_lin(rsrp_dbm), mask, torch.zeros(2, 1), torch.ones(2))
+    for form in ("log", "linear"):
+        assert float(lscm_loss(*args, bound=to_lin(bound_dbm), fidelity=form)["penalty"]) == 0.0
+        assert float(lscm_loss(*args, bound=to_lin(-120.0), fidelity=form)["penalty"]) > 0.0  # r_th would punish it
+        over = to_lin(np.where(np.isnan(rsrp_dbm), bound_dbm + 3.0, rsrp_dbm))
+        assert float(lscm_loss(over, *args[1:], bound=to_lin(bound_dbm), fidelity=form)["penalty"]) > 0.0
