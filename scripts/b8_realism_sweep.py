@@ -75,8 +75,11 @@ def run_step(name: str, trace: Path, out: Path, neural: list[str], seed: int) ->
 def table_md(results: dict) -> str:
     labels = [k for k in ("wnomp", "rflscm", "nerf2", "model_floor", "noise_floor", "trivial")
               if any(k in r for r in results.values())]  # fmt: skip
-    head = "| step | reported SSB / CSI-RS beams (round 1) | " + " | ".join(
-        f"{lab} SSB all / chg, CSI all / chg" for lab in labels) + " |"
+    head = (
+        "| step | reported SSB / CSI-RS beams (round 1) | "
+        + " | ".join(f"{lab} SSB all / chg, CSI all / chg" for lab in labels)
+        + " |"
+    )
     lines = [head, "|" + " --- |" * (2 + len(labels))]
     for step, r in results.items():
         cells = []

@@ -32,10 +32,20 @@ def main() -> None:
         "decoder": {"hidden": 16},
         "render": {"step_m": 8.0},
         "hitam": {"top_k": 3, "warmup_steps": 6, "ramp_steps": 4},
-        "train": {"steps": 16, "batch_pairs": 4, "pairs_per_cell": 2, "val_pairs": 2, "val_every": 4, "checkpoint_every": 4},
+        "train": {
+            "steps": 16,
+            "batch_pairs": 4,
+            "pairs_per_cell": 2,
+            "val_pairs": 2,
+            "val_every": 4,
+            "checkpoint_every": 4,
+        },
     }
-    nerf2 = {**base, "field": {"hidden": 16, "layers": 3, "skip_at": 2, "pos_freqs": 2, "feature_dim": 8},
-             "decoder": {"hidden": 16, "head_hidden": 8}}
+    nerf2 = {
+        **base,
+        "field": {"hidden": 16, "layers": 3, "skip_at": 2, "pos_freqs": 2, "feature_dim": 8},
+        "decoder": {"hidden": 16, "head_hidden": 8},
+    }
     prior = {**base, "prior": {"enabled": True}}
     for label, name, cfg in (("rflscm", "rflscm", base), ("rflscm+prior", "rflscm", prior), ("nerf2", "nerf2", nerf2)):
         model = MODEL_REGISTRY[name].build(cfg, grid)

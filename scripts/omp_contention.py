@@ -43,7 +43,9 @@ def main(hogs: int) -> None:
     try:
         for name, extra in variants.items():
             env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "OMP_WAIT_POLICY")}
-            out = subprocess.run([sys.executable, "-c", WORK], env={**env, **extra}, capture_output=True, text=True, check=True)
+            out = subprocess.run(
+                [sys.executable, "-c", WORK], env={**env, **extra}, capture_output=True, text=True, check=True
+            )
             print(f"{name:26s} {out.stdout.strip():>7s} s   ({hogs} busy processes beside it)", flush=True)
     finally:
         for p in procs:

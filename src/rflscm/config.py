@@ -97,8 +97,7 @@ def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
     if unknown:
         where = f"`{prefix}`" if prefix else cls.__name__
         raise ConfigError(
-            f"unknown key(s) {', '.join(repr(k) for k in unknown)} in {where}; "
-            f"valid keys: {', '.join(sorted(fields))}."
+            f"unknown key(s) {', '.join(repr(k) for k in unknown)} in {where}; valid keys: {', '.join(sorted(fields))}."
         )
     required = [
         name for name, f in fields.items()
@@ -110,10 +109,7 @@ def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
             f"{where} is missing required key(s) {', '.join(repr(k) for k in required)}; "
             f"give {', '.join(required)} (valid keys: {', '.join(sorted(fields))})."
         )
-    kwargs = {
-        name: _coerce(hints[name], value, f"{prefix}.{name}" if prefix else name)
-        for name, value in data.items()
-    }
+    kwargs = {name: _coerce(hints[name], value, f"{prefix}.{name}" if prefix else name) for name, value in data.items()}
     return cls(**kwargs)
 
 

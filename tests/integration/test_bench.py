@@ -158,7 +158,9 @@ def test_b5_alpha_p(tmp_path: Path, scenario_dir: Path) -> None:
     assert res["sweep"]["0"]["missing_above_threshold"] is not None
 
 
-def test_false_report_rate_counts_missing_beams_predicted_above_the_threshold(tmp_path: Path, scenario_dir: Path) -> None:
+def test_false_report_rate_counts_missing_beams_predicted_above_the_threshold(
+    tmp_path: Path, scenario_dir: Path
+) -> None:
     from rflscm.bench.b05_alpha_p import false_report_rate
 
     data = load_bench_data(ctx_for(tmp_path, scenario_dir), tiny_size())

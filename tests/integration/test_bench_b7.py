@@ -22,9 +22,7 @@ def scenario(tmp_path_factory: pytest.TempPathFactory):
     cfg = SimulationConfig(name="b7-tiny", num_sites=2, max_grids=30, seed=3, site_radius_m=70.0,
                            point_cloud_points_per_m2=0.05, angle_grid=tiny_size().grid())  # fmt: skip
     out = tmp_path_factory.mktemp("b7") / "scen"
-    build_scenario(
-        ProceduralCity(seed=2, size_m=180.0, num_buildings=8), cfg, out, progress=False
-    )
+    build_scenario(ProceduralCity(seed=2, size_m=180.0, num_buildings=8), cfg, out, progress=False)
     return load_scenario(out)
 
 
@@ -52,17 +50,13 @@ def test_b7_reports_true_and_predicted_gain_per_model(scenario, tmp_path: Path) 
             "search_time_s",
             "aps_time_s",
         } <= set(entry)
-        assert (
-            entry["predicted_gain"]["coverage"] >= -1e-12
-        )  # the search never makes its own objective worse
+        assert entry["predicted_gain"]["coverage"] >= -1e-12  # the search never makes its own objective worse
     assert result["models"]["wnomp"]["kpi_pairs"] == "measured round-1 pairs only"
     assert "oracle" in result["winner"] and result["winner"].split(":")[0] in (
         "rflscm",
         "wnomp",
     )
-    assert (
-        tmp_path / "b7_checkpoints" / "rflscm.ckpt"
-    ).is_file()  # reused by the next run
+    assert (tmp_path / "b7_checkpoints" / "rflscm.ckpt").is_file()  # reused by the next run
     assert set(result["optimisers_on_oracle"]) == {
         "coordinate_descent",
         "scipy_differential_evolution",

@@ -105,6 +105,16 @@ def test_train_reports_passes_and_warns_when_a_run_barely_sees_its_data(tiny, tm
         "decoder: {hidden: 8}\nrender: {step_m: 8.0}\nhitam: {top_k: 2, warmup_steps: 1, ramp_steps: 1}\n"
         "train: {steps: 2, batch_pairs: 4, val_pairs: 0}\n"
     )
-    run = rflscm("train", str(tiny.root), "--config", str(config), "--out", str(tmp_path / "r.ckpt"), "--no-progress", "--device", "cpu")
+    run = rflscm(
+        "train",
+        str(tiny.root),
+        "--config",
+        str(config),
+        "--out",
+        str(tmp_path / "r.ckpt"),
+        "--no-progress",
+        "--device",
+        "cpu",
+    )
     assert run.returncode == 0, run.stderr
     assert "expect it to underfit" in " ".join(run.stderr.split())

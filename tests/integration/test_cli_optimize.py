@@ -47,9 +47,7 @@ def simulated(tmp_path_factory: pytest.TempPathFactory):
     return scenario, _checkpoint(scenario, root.parent / "w.ckpt")
 
 
-def test_optimize_writes_a_round_that_checks_and_predicts_the_same_kpis(
-    simulated, tmp_path
-) -> None:
+def test_optimize_writes_a_round_that_checks_and_predicts_the_same_kpis(simulated, tmp_path) -> None:
     scenario, ckpt = simulated
     out = tmp_path / "opt"
     run = rflscm("optimize", str(ckpt), str(scenario.root), "--out", str(out), "--tilt-range", "0:10:2",
@@ -60,34 +58,22 @@ def test_optimize_writes_a_round_that_checks_and_predicts_the_same_kpis(
     assert "measured pairs only" in run.stderr
     assert summary["changed_cells"] <= 3
     assert summary["search"]["objective_after"] >= summary["search"]["objective_before"]
-    assert (
-        set(summary["truth"]) >= {"before", "after", "note"}
-        and "noiseless" in summary["truth"]["note"]
-    )
+    assert set(summary["truth"]) >= {"before", "after", "note"} and "noiseless" in summary["truth"]["note"]
     report = (out / "report.md").read_text()
-    assert (
-        "| coverage ratio [%] |" in report
-        and "true gain" in report
-        and (out / "maps_3.5GHz.png").is_file()
-    )
+    assert "| coverage ratio [%] |" in report and "true gain" in report and (out / "maps_3.5GHz.png").is_file()
     rnd = summary["round"]["number"]
     assert rnd == 3
     check = rflscm("check", str(out / "scenario"))
     assert check.returncode == 0, check.stderr
     again = load_scenario(out / "scenario")
-    assert (
-        sorted(again.cells) == [1, 2, 3]
-        and again.fingerprint() == scenario.fingerprint()
-    )
+    assert sorted(again.cells) == [1, 2, 3] and again.fingerprint() == scenario.fingerprint()
     pred = rflscm("predict", str(ckpt), str(out / "scenario"), "--round", str(rnd), "--pairs", "measured",
                   "--out", str(tmp_path / "p.parquet"), "--kpi-json", str(tmp_path / "k.json"),
                   "--device", "cpu")  # fmt: skip
     assert pred.returncode == 0, pred.stderr
     kpis = json.loads((tmp_path / "k.json").read_text())
     for key in ("coverage", "mean_sinr_db", "overlap", "mean_rsrp_dbm", "p5_sinr_db"):
-        assert kpis[key] == pytest.approx(
-            summary["predicted"]["after"][key], abs=1e-4
-        ), key
+        assert kpis[key] == pytest.approx(summary["predicted"]["after"][key], abs=1e-4), key
 
 
 @pytest.mark.parametrize(
@@ -113,16 +99,12 @@ def test_optimize_writes_a_round_that_checks_and_predicts_the_same_kpis(
         ),
     ],
 )
-def test_bad_search_specs_exit_2(
-    simulated, tmp_path, args: list[str], message: str | None
-) -> None:
+def test_bad_search_specs_exit_2(simulated, tmp_path, args: list[str], message: str | None) -> None:
     scenario, ckpt = simulated
     if message is None:  # freezing every cell is the empty space
         args = ["--freeze", ",".join(str(c) for c in scenario.cell_ids())]
         message = "empty search space"
-    run = rflscm(
-        "optimize", str(ckpt), str(scenario.root), "--out", str(tmp_path / "o"), *args
-    )
+    run = rflscm("optimize", str(ckpt), str(scenario.root), "--out", str(tmp_path / "o"), *args)
     assert run.returncode == 2, run.stderr
     assert message in run.stderr and len(run.stderr.strip().splitlines()) == 1
 
@@ -130,8 +112,6 @@ def test_bad_search_specs_exit_2(
 def test_verify_without_truth_exits_2(tmp_path) -> None:
     root = tiny_scenario(tmp_path / "tiny", seed=2)
     ckpt = _checkpoint(load_scenario(root), tmp_path / "t.ckpt")
-    run = rflscm(
-        "optimize", str(ckpt), str(root), "--verify", "--out", str(tmp_path / "o")
-    )
+    run = rflscm("optimize", str(ckpt), str(root), "--verify", "--out", str(tmp_path / "o"))
     assert run.returncode == 2 and "has no truth folder" in run.stderr
     assert len(run.stderr.strip().splitlines()) == 1

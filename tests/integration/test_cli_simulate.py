@@ -91,6 +91,7 @@ def test_missing_sionna_extra_says_how_to_install(tmp_path: Path, monkeypatch, c
     import importlib.util
 
     real_find_spec = importlib.util.find_spec
+
     def no_sionna(name, *args):
         return None if name == "sionna" else real_find_spec(name, *args)
 

@@ -29,20 +29,61 @@ TABLES = ("measurements.csv", "cells_round1.csv", "cells_round2.csv", "grids.csv
 FILES = (*TABLES, "scenario.yaml", "point_cloud.ply")
 
 ODD_VALUES = st.one_of(
-    st.sampled_from(["", "nan", "NaN", "N/A", "#N/A", "null", "None", "-", "inf", "-inf", "1e400", "1e308",
-                     "-1e308", "99999999999999999999", "-9223372036854775809", "0x10", "1,5", "12 dBm", "true",
-                     "\"quoted\"", "  7  ", "3.0", "-0", "1e-320"]),
+    st.sampled_from(
+        [
+            "",
+            "nan",
+            "NaN",
+            "N/A",
+            "#N/A",
+            "null",
+            "None",
+            "-",
+            "inf",
+            "-inf",
+            "1e400",
+            "1e308",
+            "-1e308",
+            "99999999999999999999",
+            "-9223372036854775809",
+            "0x10",
+            "1,5",
+            "12 dBm",
+            "true",
+            '"quoted"',
+            "  7  ",
+            "3.0",
+            "-0",
+            "1e-320",
+        ]
+    ),
     st.floats(allow_nan=True, allow_infinity=True).map(repr),
     st.integers(min_value=-(2**70), max_value=2**70).map(str),
-    st.text(alphabet=st.characters(blacklist_categories=("Cs",), blacklist_characters="\x00\n\r,\""), max_size=6),
+    st.text(alphabet=st.characters(blacklist_categories=("Cs",), blacklist_characters='\x00\n\r,"'), max_size=6),
 )
 
 
 @st.composite
 def mutations(draw: st.DrawFn) -> tuple[str, str, tuple]:
     table = draw(st.sampled_from(TABLES))
-    kind = draw(st.sampled_from(["value", "value", "value", "encoding", "truncate", "dup_header", "drop_field",
-                                 "add_field", "blank_line", "dup_line", "utf16", "nul"]))
+    kind = draw(
+        st.sampled_from(
+            [
+                "value",
+                "value",
+                "value",
+                "encoding",
+                "truncate",
+                "dup_header",
+                "drop_field",
+                "add_field",
+                "blank_line",
+                "dup_line",
+                "utf16",
+                "nul",
+            ]
+        )
+    )
     return table, kind, (draw(st.integers(0, 10_000)), draw(st.integers(0, 10_000)), draw(ODD_VALUES))
 
 

@@ -28,8 +28,7 @@ CONFIG = {
     "decoder": {"hidden": 16},
     "render": {"step_m": 8.0},
     "hitam": {"top_k": 3, "warmup_steps": 4, "ramp_steps": 2},
-    "train": {"steps": 8, "batch_pairs": 4, "pairs_per_cell": 2, "val_pairs": 2, "val_every": 4,
-              "checkpoint_every": 2},
+    "train": {"steps": 8, "batch_pairs": 4, "pairs_per_cell": 2, "val_pairs": 2, "val_every": 4, "checkpoint_every": 2},
 }
 
 CHILD = textwrap.dedent(
@@ -59,7 +58,18 @@ CHILD = textwrap.dedent(
 
 
 def arguments(scenario: Path, config: Path, out: Path, *extra: str) -> list[str]:
-    return ["--threads", "1", "train", str(scenario), "--config", str(config), "--out", str(out), "--no-progress", *extra]
+    return [
+        "--threads",
+        "1",
+        "train",
+        str(scenario),
+        "--config",
+        str(config),
+        "--out",
+        str(out),
+        "--no-progress",
+        *extra,
+    ]
 
 
 def train_killed(scenario: Path, config: Path, out: Path, kill_at: int) -> subprocess.CompletedProcess:

@@ -45,7 +45,9 @@ PROTOCOLS = {"unseen": {"fraction": 0.3}, "multifreq": {"train_percent": 30.0}}
 
 def rflscm(*args: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.run([sys.executable, "-m", "rflscm.cli", *args], capture_output=True, text=True, timeout=600, env=env)
+    return subprocess.run(
+        [sys.executable, "-m", "rflscm.cli", *args], capture_output=True, text=True, timeout=600, env=env
+    )
 
 
 @pytest.fixture(scope="module")
@@ -71,6 +73,8 @@ def test_field_model_trained_on_a_split_is_evaluated_on_the_full_scenario(scenar
     metrics = json.loads((tmp_path / "m.json").read_text())
     assert metrics["protocol"]["name"] == protocol and metrics["model"]["name"] == name
     assert metrics["counts"]["ssb"]["scored_pairs"] > 0
-    run = rflscm("predict", str(ckpt), str(scenario.root), "--round", "1", "--out", str(tmp_path / "p.csv"), "--device", "cpu")
+    run = rflscm(
+        "predict", str(ckpt), str(scenario.root), "--round", "1", "--out", str(tmp_path / "p.csv"), "--device", "cpu"
+    )
     assert run.returncode == 0, run.stderr
     assert (tmp_path / "p.csv").stat().st_size > 0

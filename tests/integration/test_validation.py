@@ -126,90 +126,183 @@ def set_value(name: str, row: int, column: str, value: object) -> Callable[[Path
 
 CASES: list[tuple[str, Callable[[Path], None], list[str]]] = [
     # item 1: plausibility
-    ("utm-cells", both_rounds(utm), ["cells_round1.csv row 1 (line 2): `x` = 691000.0 puts the point more than 200 km",
-                                     "UTM"]),
+    (
+        "utm-cells",
+        both_rounds(utm),
+        ["cells_round1.csv row 1 (line 2): `x` = 691000.0 puts the point more than 200 km", "UTM"],
+    ),
     ("utm-grids", table(G, utm), ["grids.csv row 1 (line 2)", "more than 200 km from the frame's origin"]),
     ("coordinate-1e308", set_value(G, 2, "x", 1e308), ["grids.csv row 2 (line 3): `x` = 1e+308 puts the point"]),
-    ("cells-far-from-grids", both_rounds(lambda df: df.assign(x=df["x"] + 60_000.0)),
-     ["cells_round1.csv and grids.csv do not cover the same place: they are 60 km apart horizontally"]),
-    ("point-cloud-elsewhere", shift_cloud(20_000.0),
-     ["cells_round1.csv and point_cloud.ply do not cover the same place: they are 20 km apart horizontally "
-      "(at most 5 km)"]),
+    (
+        "cells-far-from-grids",
+        both_rounds(lambda df: df.assign(x=df["x"] + 60_000.0)),
+        ["cells_round1.csv and grids.csv do not cover the same place: they are 60 km apart horizontally"],
+    ),
+    (
+        "point-cloud-elsewhere",
+        shift_cloud(20_000.0),
+        [
+            "cells_round1.csv and point_cloud.ply do not cover the same place: they are 20 km apart horizontally "
+            "(at most 5 km)"
+        ],
+    ),
     ("point-cloud-utm", shift_cloud(5_000_000.0), ["point_cloud.ply point 1", "implausible", "UTM"]),
-    ("cell-height-in-mm", both_rounds(lambda df: df.assign(z=25_000.0)),
-     ["cells_round1.csv row 1 (line 2): `z` = 25000.0 is outside the plausible -500…9000 m"]),
+    (
+        "cell-height-in-mm",
+        both_rounds(lambda df: df.assign(z=25_000.0)),
+        ["cells_round1.csv row 1 (line 2): `z` = 25000.0 is outside the plausible -500…9000 m"],
+    ),
     ("grid-height-far-below", table(G, lambda df: df.assign(z=-3000.0)), ["`z` = -3000.0 is outside the plausible"]),
-    ("cells-high-above-grids", both_rounds(lambda df: df.assign(z=5000.0)),
-     ["cells_round1.csv and grids.csv do not cover the same place", "m apart vertically (at most 2000 m)"]),
-    ("rs-power-too-high", set_value(C1, 1, "tx_power_dbm", 46.0),
-     ["cells_round1.csv row 1 (line 2): `tx_power_dbm` = 46.0 is outside the plausible -20…40 dBm"]),
+    (
+        "cells-high-above-grids",
+        both_rounds(lambda df: df.assign(z=5000.0)),
+        ["cells_round1.csv and grids.csv do not cover the same place", "m apart vertically (at most 2000 m)"],
+    ),
+    (
+        "rs-power-too-high",
+        set_value(C1, 1, "tx_power_dbm", 46.0),
+        ["cells_round1.csv row 1 (line 2): `tx_power_dbm` = 46.0 is outside the plausible -20…40 dBm"],
+    ),
     ("rs-power-too-low", set_value(C1, 2, "tx_power_dbm", -25.0), ["`tx_power_dbm` = -25.0 is outside the plausible"]),
     # item 2: scenario.yaml not UTF-8
-    ("yaml-latin1", raw(Y, lambda b: b.replace(b"description: ", b"description: caf\xe9 ")),
-     ["scenario.yaml line 2: byte 0xe9 is not UTF-8 text; save the file as UTF-8"]),
+    (
+        "yaml-latin1",
+        raw(Y, lambda b: b.replace(b"description: ", b"description: caf\xe9 ")),
+        ["scenario.yaml line 2: byte 0xe9 is not UTF-8 text; save the file as UTF-8"],
+    ),
     ("yaml-utf16", raw(Y, lambda b: b.decode().encode("utf-16")), ["scenario.yaml", "not UTF-8"]),
     # item 3: missing required fields
-    ("origin-without-lon", yaml_edit(lambda d: d.update(origin={"lat": 48.14})),
-     ["scenario.yaml: `origin` is missing required key(s) 'lon'"]),
-    ("origin-lat-nan", yaml_edit(lambda d: d.update(origin={"lat": float("nan"), "lon": 11.0})),
-     ["scenario.yaml: `origin.lat` must be a number (got .nan)"]),
+    (
+        "origin-without-lon",
+        yaml_edit(lambda d: d.update(origin={"lat": 48.14})),
+        ["scenario.yaml: `origin` is missing required key(s) 'lon'"],
+    ),
+    (
+        "origin-lat-nan",
+        yaml_edit(lambda d: d.update(origin={"lat": float("nan"), "lon": 11.0})),
+        ["scenario.yaml: `origin.lat` must be a number (got .nan)"],
+    ),
     # item 8: values that are not numbers are counted, short and truncated rows refused
-    ("rsrp-na-tokens", lambda root: [set_value(M, r, "rsrp_dbm", t)(root)
-                                     for r, t in ((2, "N/A"), (3, "None"), (5, "null"), (8, "#N/A"))],
-     ["measurements.csv row 2 (line 3): `rsrp_dbm` = 'N/A' is not a number", "3 more row(s) have the same problem"]),
+    (
+        "rsrp-na-tokens",
+        lambda root: [
+            set_value(M, r, "rsrp_dbm", t)(root) for r, t in ((2, "N/A"), (3, "None"), (5, "null"), (8, "#N/A"))
+        ],
+        ["measurements.csv row 2 (line 3): `rsrp_dbm` = 'N/A' is not a number", "3 more row(s) have the same problem"],
+    ),
     ("rsrp-nan-text", set_value(M, 4, "rsrp_dbm", "NaN"), ["row 4 (line 5): `rsrp_dbm` = 'NaN' is not a number"]),
-    ("short-row", replace_line(M, 7, "1,11,100,ssb,5"),
-     ["measurements.csv line 7: 5 field(s) where the header has 6; the row is cut short"]),
-    ("truncated-file", raw(M, lambda b: b[: len(b) - 9]),
-     ["measurements.csv line 193:", "the file ends in the middle of this row (was it cut off?)"]),
-    ("long-row", replace_line(G, 3, "101,-40,5,-90.0,1.5"),
-     ["grids.csv line 3: 5 field(s) where the header has 4; an extra comma, or a decimal comma"]),
+    (
+        "short-row",
+        replace_line(M, 7, "1,11,100,ssb,5"),
+        ["measurements.csv line 7: 5 field(s) where the header has 6; the row is cut short"],
+    ),
+    (
+        "truncated-file",
+        raw(M, lambda b: b[: len(b) - 9]),
+        ["measurements.csv line 193:", "the file ends in the middle of this row (was it cut off?)"],
+    ),
+    (
+        "long-row",
+        replace_line(G, 3, "101,-40,5,-90.0,1.5"),
+        ["grids.csv line 3: 5 field(s) where the header has 4; an extra comma, or a decimal comma"],
+    ),
     ("unclosed-quote", replace_line(G, 4, '102,"5,1,1.5'), ["grids.csv line 4:", "quote"]),
     # item 9: misspelled optional columns
-    ("misspelt-optional", table(C1, lambda df: df.assign(tx_power_dBm=[20.0, 20.0])),
-     ["cells_round1.csv: column `tx_power_dBm` is not a column rflscm knows; did you mean `tx_power_dbm`?"]),
+    (
+        "misspelt-optional",
+        table(C1, lambda df: df.assign(tx_power_dBm=[20.0, 20.0])),
+        ["cells_round1.csv: column `tx_power_dBm` is not a column rflscm knows; did you mean `tx_power_dbm`?"],
+    ),
     ("misspelt-array", both_rounds(lambda df: df.assign(array_nhh=[8, 8])), ["did you mean `array_nh`?"]),
     # item 10: duplicates
-    ("duplicate-csv-header", text_edit(G, lambda t: t.replace("grid_id,x,y,z", "grid_id,x,y,x", 1)),
-     ["grids.csv line 1: column `x` appears twice in the header"]),
-    ("duplicate-yaml-key", text_edit(Y, lambda t: t + "name: other\n"),
-     ["scenario.yaml line", "key 'name' appears twice in the same mapping (first on line 1)"]),
-    ("duplicate-nested-yaml-key", text_edit(Y, lambda t: t.replace("{type: dft,", "{type: dft, type: ssb,", 1)),
-     ["key 'type' appears twice"]),
+    (
+        "duplicate-csv-header",
+        text_edit(G, lambda t: t.replace("grid_id,x,y,z", "grid_id,x,y,x", 1)),
+        ["grids.csv line 1: column `x` appears twice in the header"],
+    ),
+    (
+        "duplicate-yaml-key",
+        text_edit(Y, lambda t: t + "name: other\n"),
+        ["scenario.yaml line", "key 'name' appears twice in the same mapping (first on line 1)"],
+    ),
+    (
+        "duplicate-nested-yaml-key",
+        text_edit(Y, lambda t: t.replace("{type: dft,", "{type: dft, type: ssb,", 1)),
+        ["key 'type' appears twice"],
+    ),
     # item 11: codebook contents
-    ("ssb-azimuth-200", codebooks(lambda c: c["ssb8"].update(azimuths_deg=[-45.0, 200.0])),
-     ["`codebooks.ssb8`", "`azimuths_deg` = 200.0 is outside −180…180°"]),
-    ("ssb-tilt-95", codebooks(lambda c: c["ssb8"].update(tilts_deg=[95.0])), ["`codebooks.ssb8`", "`tilts_deg` = 95.0"]),
-    ("ssb-nan-azimuth", codebooks(lambda c: c["ssb8"].update(azimuths_deg=[float("nan")])),
-     ["`codebooks.ssb8"]),
-    ("ssb-duplicate-beams", codebooks(lambda c: c["ssb8"].update(azimuths_deg=[15.0, 15.0])),
-     ["`codebooks.ssb8`", "lists 15.0 twice"]),
+    (
+        "ssb-azimuth-200",
+        codebooks(lambda c: c["ssb8"].update(azimuths_deg=[-45.0, 200.0])),
+        ["`codebooks.ssb8`", "`azimuths_deg` = 200.0 is outside −180…180°"],
+    ),
+    (
+        "ssb-tilt-95",
+        codebooks(lambda c: c["ssb8"].update(tilts_deg=[95.0])),
+        ["`codebooks.ssb8`", "`tilts_deg` = 95.0"],
+    ),
+    ("ssb-nan-azimuth", codebooks(lambda c: c["ssb8"].update(azimuths_deg=[float("nan")])), ["`codebooks.ssb8"]),
+    (
+        "ssb-duplicate-beams",
+        codebooks(lambda c: c["ssb8"].update(azimuths_deg=[15.0, 15.0])),
+        ["`codebooks.ssb8`", "lists 15.0 twice"],
+    ),
     ("ssb-zero-beams", codebooks(lambda c: c["ssb8"].update(tilts_deg=[])), ["`codebooks.ssb8`", "at least one"]),
-    ("dft-index-beyond", codebooks(lambda c: c["csi8"].update(beams_h=[0, 16])),
-     ["`codebooks.csi8`", "`beams_h` = 16 is beyond the 16 DFT beams"]),
-    ("dft-aliased-beams", codebooks(lambda c: c["csi8"].update(beams_h=[-1, 15])),
-     ["`codebooks.csi8`", "lists the beam 15 twice"]),
+    (
+        "dft-index-beyond",
+        codebooks(lambda c: c["csi8"].update(beams_h=[0, 16])),
+        ["`codebooks.csi8`", "`beams_h` = 16 is beyond the 16 DFT beams"],
+    ),
+    (
+        "dft-aliased-beams",
+        codebooks(lambda c: c["csi8"].update(beams_h=[-1, 15])),
+        ["`codebooks.csi8`", "lists the beam 15 twice"],
+    ),
     ("dft-zero-beams", codebooks(lambda c: c["csi8"].update(beams_v=[])), ["`codebooks.csi8`", "at least one"]),
-    ("dft-as-ssb", both_rounds(lambda df: df.assign(ssb_codebook="csi8")),
-     ["cells_round1.csv row 1 (line 2): `ssb_codebook` = 'csi8' is a `type: dft` codebook", "swapped"]),
-    ("ssb-as-csi", both_rounds(lambda df: df.assign(csi_codebook="ssb8")),
-     ["`csi_codebook` = 'ssb8' is a `type: ssb` codebook"]),
+    (
+        "dft-as-ssb",
+        both_rounds(lambda df: df.assign(ssb_codebook="csi8")),
+        ["cells_round1.csv row 1 (line 2): `ssb_codebook` = 'csi8' is a `type: dft` codebook", "swapped"],
+    ),
+    (
+        "ssb-as-csi",
+        both_rounds(lambda df: df.assign(csi_codebook="ssb8")),
+        ["`csi_codebook` = 'ssb8' is a `type: ssb` codebook"],
+    ),
     # item 12: messages that blamed the wrong thing
-    ("cell-id-beyond-int64", both_rounds(lambda df: df.assign(cell_id=df["cell_id"].astype(object)).assign(
-        cell_id=[99999999999999999999, 12])),
-     ["cells_round1.csv row 1 (line 2): `cell_id` = 99999999999999999999 is too large"]),
-    ("csv-latin1", raw(G, lambda b: b.replace(b"101,", b"10\xe9,")),
-     ["grids.csv row 2 (line 3): byte 0xe9 is not UTF-8 text"]),
-    ("table-is-a-folder", lambda root: [(root / G).unlink(), (root / G).mkdir()],
-     ["scenario.yaml: `grids` = 'grids.csv' is a folder"]),
-    ("point-cloud-is-a-folder", lambda root: [(root / "point_cloud.ply").unlink(), (root / "point_cloud.ply").mkdir()],
-     ["`point_cloud` = 'point_cloud.ply' is a folder"]),
+    (
+        "cell-id-beyond-int64",
+        both_rounds(
+            lambda df: df.assign(cell_id=df["cell_id"].astype(object)).assign(cell_id=[99999999999999999999, 12])
+        ),
+        ["cells_round1.csv row 1 (line 2): `cell_id` = 99999999999999999999 is too large"],
+    ),
+    (
+        "csv-latin1",
+        raw(G, lambda b: b.replace(b"101,", b"10\xe9,")),
+        ["grids.csv row 2 (line 3): byte 0xe9 is not UTF-8 text"],
+    ),
+    (
+        "table-is-a-folder",
+        lambda root: [(root / G).unlink(), (root / G).mkdir()],
+        ["scenario.yaml: `grids` = 'grids.csv' is a folder"],
+    ),
+    (
+        "point-cloud-is-a-folder",
+        lambda root: [(root / "point_cloud.ply").unlink(), (root / "point_cloud.ply").mkdir()],
+        ["`point_cloud` = 'point_cloud.ply' is a folder"],
+    ),
     ("yaml-is-a-folder", lambda root: [(root / Y).unlink(), (root / Y).mkdir()], ["scenario.yaml", "folder"]),
     ("nul-bytes", raw(M, lambda b: b.replace(b"-6", b"\x00-6", 1)), ["measurements.csv line", "NUL byte"]),
     ("csv-utf16", raw(G, lambda b: b.decode().encode("utf-16")), ["grids.csv: the file is UTF-16 encoded"]),
-    ("parquet-garbage", lambda root: [yaml_edit(lambda d: d.update(grids="grids.parquet"))(root),
-                                      (root / "grids.parquet").write_bytes(b"PAR1 not really")],
-     ["grids.parquet: not a readable Parquet file"]),
+    (
+        "parquet-garbage",
+        lambda root: [
+            yaml_edit(lambda d: d.update(grids="grids.parquet"))(root),
+            (root / "grids.parquet").write_bytes(b"PAR1 not really"),
+        ],
+        ["grids.parquet: not a readable Parquet file"],
+    ),
 ]
 
 
@@ -267,20 +360,30 @@ def test_empty_field_still_means_not_reported(scenario_dir: Path, monkeypatch, c
 
 
 MORE_CASES: list[tuple[str, Callable[[Path], None], list[str]]] = [
-    ("carrier-nan", yaml_edit(lambda d: d.update(frequencies_hz=[float("nan"), 3.5e9])),
-     ["`frequencies_hz[0]` = nan must be a carrier in Hz"]),
-    ("carrier-inf", yaml_edit(lambda d: d.update(frequencies_hz=[2.1e9, float("inf")])),
-     ["`frequencies_hz[1]` = inf must be a carrier in Hz"]),
-    ("round-number-huge", yaml_edit(lambda d: d["rounds"].update({2**70: d["rounds"].pop(2)})),
-     ["`rounds` keys must be round numbers"]),
-    ("array-too-large", both_rounds(lambda df: df.assign(array_nh=1024, array_nv=1024)),
-     ["`array_nh` = 1024 × `array_nv` is more than 4096 elements"]),
+    (
+        "carrier-nan",
+        yaml_edit(lambda d: d.update(frequencies_hz=[float("nan"), 3.5e9])),
+        ["`frequencies_hz[0]` = nan must be a carrier in Hz"],
+    ),
+    (
+        "carrier-inf",
+        yaml_edit(lambda d: d.update(frequencies_hz=[2.1e9, float("inf")])),
+        ["`frequencies_hz[1]` = inf must be a carrier in Hz"],
+    ),
+    (
+        "round-number-huge",
+        yaml_edit(lambda d: d["rounds"].update({2**70: d["rounds"].pop(2)})),
+        ["`rounds` keys must be round numbers"],
+    ),
+    (
+        "array-too-large",
+        both_rounds(lambda df: df.assign(array_nh=1024, array_nv=1024)),
+        ["`array_nh` = 1024 × `array_nv` is more than 4096 elements"],
+    ),
 ]
 
 
-@pytest.mark.parametrize(
-    ("mistake", "expected"), [(c[1], c[2]) for c in MORE_CASES], ids=[c[0] for c in MORE_CASES]
-)
+@pytest.mark.parametrize(("mistake", "expected"), [(c[1], c[2]) for c in MORE_CASES], ids=[c[0] for c in MORE_CASES])
 def test_more_malformed_scenarios(scenario_dir: Path, mistake, expected, monkeypatch, capsys) -> None:
     test_malformed_scenario_gives_one_line_and_exit_2(scenario_dir, mistake, expected, monkeypatch, capsys)
 

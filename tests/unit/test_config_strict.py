@@ -34,7 +34,9 @@ def test_nan_is_not_a_number_for_a_setting() -> None:
 def test_duplicate_keys_at_any_depth(tmp_path: Path) -> None:
     path = tmp_path / "c.yaml"
     path.write_text("train:\n  steps: 10\n  lr_decay: 0.1\n  steps: 20\n")
-    with pytest.raises(ConfigError, match=r"c.yaml line 4: key 'steps' appears twice in the same mapping \(first on line 2\)"):
+    with pytest.raises(
+        ConfigError, match=r"c.yaml line 4: key 'steps' appears twice in the same mapping \(first on line 2\)"
+    ):
         load_yaml(path)
     with pytest.raises(ConfigError, match="appears twice"):
         RFLSCM.build(str(path))  # model configs go through the same loader

@@ -101,9 +101,7 @@ class CellAntenna:
         )
 
 
-def steering_vectors(
-    array: ArrayGeometry, local_directions: torch.Tensor, wavelength_m: float
-) -> torch.Tensor:
+def steering_vectors(array: ArrayGeometry, local_directions: torch.Tensor, wavelength_m: float) -> torch.Tensor:
     """Array response ``[num_dirs, num_h * num_v]`` (complex) for antenna-frame unit vectors ``[num_dirs, 3]``.
 
     a_e(ω) = exp(j 2π/λ ⟨r_e, ω⟩), r_e the element positions (flattened h-major).

@@ -24,7 +24,9 @@ def _parse_gain(tokens: list[str], where: str) -> float:
         if not -20.0 <= value <= 50.0:  # also refuses nan and inf
             raise ValueError
     except (IndexError, ValueError):
-        raise DataError(f"{where}: GAIN needs a number in −20…50 dBi, e.g. `GAIN 17.5 dBi` (got {' '.join(tokens)!r}).") from None
+        raise DataError(
+            f"{where}: GAIN needs a number in −20…50 dBi, e.g. `GAIN 17.5 dBi` (got {' '.join(tokens)!r})."
+        ) from None
     unit = tokens[2].lower() if len(tokens) > 2 else "dbi"
     if unit not in ("dbi", "dbd"):
         raise DataError(f"{where}: GAIN unit must be dBi or dBd (got {tokens[2]!r}).")
@@ -75,7 +77,9 @@ def read_msi(path: str | Path) -> MeasuredElement:
     try:
         lines = path.read_bytes().decode("utf-8", errors="replace").splitlines()  # comments may be in any encoding
     except OSError as exc:
-        raise DataError(f"{path}: cannot read the antenna pattern file ({exc.strerror or type(exc).__name__}).") from None
+        raise DataError(
+            f"{path}: cannot read the antenna pattern file ({exc.strerror or type(exc).__name__})."
+        ) from None
     name, gain = path.stem, None
     blocks: dict[str, np.ndarray] = {}
     i = 0
@@ -90,7 +94,9 @@ def read_msi(path: str | Path) -> MeasuredElement:
             try:
                 count = int(tokens[1])
             except (IndexError, ValueError):
-                raise DataError(f"{path} line {i + 1}: `{key}` must be followed by the number of rows, e.g. `{key} 360`.") from None
+                raise DataError(
+                    f"{path} line {i + 1}: `{key}` must be followed by the number of rows, e.g. `{key} 360`."
+                ) from None
             if count < 2:
                 raise DataError(f"{path} line {i + 1}: `{key}` needs at least 2 rows (got {count}).")
             blocks[key] = _read_block(lines, i + 1, count, key, path)

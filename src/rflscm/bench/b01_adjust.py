@@ -29,7 +29,9 @@ from rflscm.eval import AdjustProtocol
 MODELS = ("rflscm", "nerf2", "wnomp")
 
 
-@register_bench("b1", "multi-cell antenna adjustment: RF-LSCM, NeRF²-LSCM, WNOMP, oracle (MAE, time, memory, throughput)")
+@register_bench(
+    "b1", "multi-cell antenna adjustment: RF-LSCM, NeRF²-LSCM, WNOMP, oracle (MAE, time, memory, throughput)"
+)
 def run(ctx: BenchContext) -> dict[str, Any]:
     return run_b1(ctx, bench_size(ctx.size))
 
@@ -41,7 +43,10 @@ def run_b1(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
     models: dict[str, Any] = {}
     reference: dict[str, Any] = {}
     for name in MODELS:
-        runs = [train_and_evaluate(data, name, AdjustProtocol(), seed=s, device=ctx.device) for s in (seeds if name != "wnomp" else seeds[:1])]
+        runs = [
+            train_and_evaluate(data, name, AdjustProtocol(), seed=s, device=ctx.device)
+            for s in (seeds if name != "wnomp" else seeds[:1])
+        ]
         models[name] = _model_entry(data, runs)
         reference = reference or mae_summary(runs[0].metrics)
         reference["counts"] = runs[0].metrics["counts"]
@@ -78,7 +83,10 @@ def _model_entry(data: BenchData, runs: list[Any]) -> dict[str, Any]:
 def _plot(ctx: BenchContext, models: dict[str, Any], oracle: dict[str, Any], trivial: dict[str, Any]) -> str:
     fig, (ax,) = new_figure(width=8.0)
     groups = [("ssb", "all"), ("ssb", "changed"), ("csi", "all"), ("csi", "changed")]
-    series = {name: e["mae_db"] for name, e in models.items()} | {"oracle": oracle["mae_db"], "trivial": trivial["mae_db"]}
+    series = {name: e["mae_db"] for name, e in models.items()} | {
+        "oracle": oracle["mae_db"],
+        "trivial": trivial["mae_db"],
+    }
     width = 0.8 / len(series)
     x = np.arange(len(groups))
     for i, (name, mae) in enumerate(series.items()):

@@ -47,7 +47,9 @@ TARGET_MARGIN_DB = 1.0
 GRID_POINTS = 60
 
 
-@register_bench("b2", "convergence: validation MAE vs wall time, RF-LSCM and NeRF²-LSCM with/without HiTAM, several seeds")
+@register_bench(
+    "b2", "convergence: validation MAE vs wall time, RF-LSCM and NeRF²-LSCM with/without HiTAM, several seeds"
+)
 def run(ctx: BenchContext) -> dict[str, Any]:
     return run_b2(ctx, bench_size(ctx.size))
 
@@ -70,7 +72,9 @@ def run_b2(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
                 if row["step"] % every == 0 or row["step"] == 1:
                     curve.append((row["time_s"], row["step"], float(m.validation_mae())))
 
-            r = train_and_evaluate(data, model, AdjustProtocol(), extra, seed, ctx.device, on_step=on_step, time_budget_s=budget)
+            r = train_and_evaluate(
+                data, model, AdjustProtocol(), extra, seed, ctx.device, on_step=on_step, time_budget_s=budget
+            )
             curve.append((r.history[-1]["time_s"], r.history[-1]["step"], float(r.model.validation_mae())))
             runs.append(r)
             curves.append(curve)

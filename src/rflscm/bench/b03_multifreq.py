@@ -92,7 +92,13 @@ def _plot(ctx: BenchContext, percents: tuple[float, ...], arms: dict[str, Any], 
         for arm, entries in arms.items():
             mae = [np.nan if e["mae_db"][bt] is None else e["mae_db"][bt] for e in entries.values()]
             ax.plot(percents, mae, marker="o", label=arm.replace("_", " "))
-        ax.plot(percents, [np.nan if v[bt] is None else v[bt] for v in oracle.values()], color="grey", linestyle=":", label="oracle")
+        ax.plot(
+            percents,
+            [np.nan if v[bt] is None else v[bt] for v in oracle.values()],
+            color="grey",
+            linestyle=":",
+            label="oracle",
+        )
         ax.set_xlabel("p [% of 2.1 GHz grids trained on]")
         ax.set_ylabel(f"{bt.upper()} MAE on the 2.1 GHz test grids [dB]")
         ax.legend()

@@ -73,7 +73,8 @@ def run_b4(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
     out["oracle"] = {"mae_db": reference["oracle"]}
     out["trivial"] = {"mae_db": reference["trivial"]}
     out["prior_gain_db"] = {
-        bt: _diff(variants["prior_off"]["mae_db"][bt]["all"], variants["prior_on"]["mae_db"][bt]["all"]) for bt in ("ssb", "csi")
+        bt: _diff(variants["prior_off"]["mae_db"][bt]["all"], variants["prior_on"]["mae_db"][bt]["all"])
+        for bt in ("ssb", "csi")
     }
     out["plots"] = [_plot_mae(ctx, variants), _plot_maps(ctx, maps, runs[0].model)]
     return out

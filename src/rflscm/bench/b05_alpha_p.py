@@ -54,7 +54,9 @@ def run_b5(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
             "mae_db": agg["mean"]["mae_db"],
             "mae_std_db": agg["std"]["mae_db"],
             "val_mae_db": agg["mean"]["val_mae_db"],
-            "missing_above_threshold": float(np.mean([r for r in rates if r is not None])) if all(r is not None for r in rates) else None,
+            "missing_above_threshold": float(np.mean([r for r in rates if r is not None]))
+            if all(r is not None for r in rates)
+            else None,
             "train_time_s": agg["mean"]["train_time_s"],
         }
         reference = reference or mae_summary(runs[0].metrics)

@@ -92,7 +92,10 @@ def _plot(ctx: BenchContext, models: dict[str, Any], oracle: dict[str, Any], tri
     axes[0].set_xticks(x + 0.2, names)
     axes[0].set_ylabel("MAE at unseen grids [dB] (: oracle, -- trivial)")
     axes[0].legend()
-    for ax, metric, label in ((axes[1], "nmse_db", "APS NMSE [dB]"), (axes[2], "angle_error_deg", "APS angle error [deg]")):
+    for ax, metric, label in (
+        (axes[1], "nmse_db", "APS NMSE [dB]"),
+        (axes[2], "angle_error_deg", "APS angle error [deg]"),
+    ):
         for i, where in enumerate(("aps_seen", "aps_unseen")):
             vals = [models[n][where].get(metric) for n in names]
             ax.bar(x + 0.4 * i, [np.nan if v is None else v for v in vals], 0.4, label=where.replace("aps_", ""))

@@ -40,9 +40,7 @@ def run(ctx: BenchContext) -> dict[str, Any]:
 
     path, source = scenario_path(ctx)
     full = load_scenario(path)
-    size = dataclasses.replace(
-        bench_size(ctx.size), max_sites=None, max_grids=None, crop_margin_m=None
-    )
+    size = dataclasses.replace(bench_size(ctx.size), max_sites=None, max_grids=None, crop_margin_m=None)
     data = BenchData(
         full,
         full,
@@ -53,9 +51,7 @@ def run(ctx: BenchContext) -> dict[str, Any]:
     return run_b7(ctx, data, MODELS)
 
 
-def run_b7(
-    ctx: BenchContext, data: BenchData, models: tuple[str, ...], restarts: int = 2
-) -> dict[str, Any]:
+def run_b7(ctx: BenchContext, data: BenchData, models: tuple[str, ...], restarts: int = 2) -> dict[str, Any]:
     from rflscm.network.kpi import KPIConfig
     from rflscm.network.space import build_space
     from rflscm.sim.truth import truth_folder
@@ -73,9 +69,7 @@ def run_b7(
     runs: dict[str, Any] = {}
     for name in ("oracle", *models):
         model, train_s, reused = _model(ctx, data, name, folder)
-        entry, result, cache = _optimise(
-            scen, model, space, kpi, folder / f"{name}_aps.pt", restarts
-        )
+        entry, result, cache = _optimise(scen, model, space, kpi, folder / f"{name}_aps.pt", restarts)
         entry.update(train_time_s=train_s, checkpoint_reused=reused)
         out["models"][name] = entry
         runs[name] = (result, cache)
@@ -93,9 +87,7 @@ def run_b7(
     return out
 
 
-def _model(
-    ctx: BenchContext, data: BenchData, name: str, folder: Path
-) -> tuple[Any, float, bool]:
+def _model(ctx: BenchContext, data: BenchData, name: str, folder: Path) -> tuple[Any, float, bool]:
     from rflscm.errors import CheckpointError
     from rflscm.models import load_model
 
@@ -127,19 +119,13 @@ def _model(
     return model, elapsed, False
 
 
-def _optimise(
-    scen: Any, model: Any, space: Any, kpi: Any, cache_path: Path, restarts: int
-) -> tuple[dict, Any, Any]:
+def _optimise(scen: Any, model: Any, space: Any, kpi: Any, cache_path: Path, restarts: int) -> tuple[dict, Any, Any]:
     from rflscm.network.optimize import load_or_cache_aps, run_optimize
 
     if model.name == "oracle":
-        cache_path.unlink(
-            missing_ok=True
-        )  # the truth is cheap to read, and a stale cache must not stand in
+        cache_path.unlink(missing_ok=True)  # the truth is cheap to read, and a stale cache must not stand in
     cache, cache_s = load_or_cache_aps(model, scen, cache_path)
-    result = run_optimize(
-        scen, cache, space, 1, "coverage", "cd", kpi, verify=True, restarts=restarts
-    )
+    result = run_optimize(scen, cache, space, 1, "coverage", "cd", kpi, verify=True, restarts=restarts)
     s = result.summary()
     entry = {
         "kpi_pairs": s["kpi_pairs"],
@@ -157,9 +143,7 @@ def _optimise(
     return entry, result, cache
 
 
-def _compare_optimisers(
-    scen: Any, oracle_run: tuple[Any, Any], space: Any, kpi: Any
-) -> dict[str, Any]:
+def _compare_optimisers(scen: Any, oracle_run: tuple[Any, Any], space: Any, kpi: Any) -> dict[str, Any]:
     """Coordinate descent against scipy DE on the oracle's APS, DE given CD's wall time."""
     from rflscm.network.search import NetworkEvaluator, differential_evolution
 

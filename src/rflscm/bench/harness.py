@@ -63,7 +63,13 @@ class BenchSize:
 
 
 def _train(steps: int, batch: int, val_every: int, val_pairs: int = 64) -> dict[str, Any]:
-    return {"steps": steps, "batch_pairs": batch, "val_every": val_every, "val_pairs": val_pairs, "checkpoint_every": 10**6}
+    return {
+        "steps": steps,
+        "batch_pairs": batch,
+        "val_every": val_every,
+        "val_pairs": val_pairs,
+        "checkpoint_every": 10**6,
+    }
 
 
 def quick_size() -> BenchSize:
@@ -124,7 +130,9 @@ def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def model_config(model: str, size: BenchSize, extra: dict[str, Any] | None = None, seed: int | None = None) -> dict[str, Any]:
+def model_config(
+    model: str, size: BenchSize, extra: dict[str, Any] | None = None, seed: int | None = None
+) -> dict[str, Any]:
     """The config mapping of ``model`` at ``size``: preset YAML (if shipped) ← size overrides ← ``extra``
     ← ``train.seed``."""
     from rflscm.models.rflscm_config import preset_path
@@ -272,7 +280,9 @@ class RunResult:
     """The model as evaluation saw it: an :class:`~rflscm.eval.cache.APSCache` holding the rendered test APS."""
 
 
-def build_model(data: BenchData, name: str, extra: dict[str, Any] | None = None, seed: int = 0, device: str = "cpu") -> Any:
+def build_model(
+    data: BenchData, name: str, extra: dict[str, Any] | None = None, seed: int = 0, device: str = "cpu"
+) -> Any:
     """A fresh model ``name`` at the benchmark's size with ``extra`` overrides."""
     from rflscm.models import MODEL_REGISTRY
 

@@ -24,7 +24,9 @@ def run(ctx: BenchContext) -> dict[str, Any]:
             sensing_matrix(antenna, SSBCodebook(), grid, wl, dtype=dtype, device=ctx.device)
             sensing_matrix(antenna, DFTCodebook(), grid, wl, dtype=dtype, device=ctx.device)
 
-        results[str(dtype).removeprefix("torch.")] = time_call(both, repeats=30 if ctx.size == "quick" else 100, device=ctx.device)
+        results[str(dtype).removeprefix("torch.")] = time_call(
+            both, repeats=30 if ctx.size == "quick" else 100, device=ctx.device
+        )
     results["target_ms"] = 50.0
     results["meets_target"] = results["float32"]["median_ms"] < 50.0
     return results

@@ -23,4 +23,9 @@ def time_call(fn: Callable[[], object], repeats: int = 20, warmup: int = 3, devi
             torch.cuda.synchronize()
         times.append((time.perf_counter() - t0) * 1e3)
     arr = np.asarray(times)
-    return {"min_ms": float(arr.min()), "median_ms": float(np.median(arr)), "max_ms": float(arr.max()), "repeats": repeats}
+    return {
+        "min_ms": float(arr.min()),
+        "median_ms": float(np.median(arr)),
+        "max_ms": float(arr.max()),
+        "repeats": repeats,
+    }

@@ -58,8 +58,12 @@ def synthetic_rsrp_mw(a: torch.Tensor, num_problems: int, seed: int = 0) -> np.n
 
 
 def run_wnomp_speed(
-    num_problems: int, num_beams: int = 40, num_bins: int = 6552, config: WNOMPConfig | None = None,
-    device: str = "cpu", repeats: int = 3,
+    num_problems: int,
+    num_beams: int = 40,
+    num_bins: int = 6552,
+    config: WNOMPConfig | None = None,
+    device: str = "cpu",
+    repeats: int = 3,
 ) -> dict[str, Any]:
     """Time WNOMP on ``num_problems`` synthetic (cell, grid) problems; best of ``repeats`` runs.
 
@@ -71,7 +75,9 @@ def run_wnomp_speed(
     a = sensing_for(num_beams, grid).to(device)
     rsrp_mw = synthetic_rsrp_mw(a.cpu(), num_problems)
     chunk = config.chunk_size
-    jobs = [(0, np.arange(s, min(s + chunk, num_problems)), rsrp_mw[s : s + chunk]) for s in range(0, num_problems, chunk)]
+    jobs = [
+        (0, np.arange(s, min(s + chunk, num_problems)), rsrp_mw[s : s + chunk]) for s in range(0, num_problems, chunk)
+    ]
     best: dict[str, float] = {}
     atoms = 0.0
     for _ in range(repeats):

@@ -35,7 +35,9 @@ def _flatten(prefix: str, value: Any, rows: list[tuple[str, str]]) -> None:
 
 def _machine() -> dict[str, Any]:
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5).stdout.strip()
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         commit = ""
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
@@ -74,9 +76,18 @@ def bench(
     seed_everything(seed)
     dev = resolve_device(device)
     out.mkdir(parents=True, exist_ok=True)
-    ctx = BenchContext(size=size, seeds=seeds, out_dir=out, device=str(dev), scenario=str(scenario) if scenario else None)
+    ctx = BenchContext(
+        size=size, seeds=seeds, out_dir=out, device=str(dev), scenario=str(scenario) if scenario else None
+    )
     summary, fn = BENCHMARKS[name]
-    result = {"bench": name, "summary": summary, "size": size, "device": str(dev), "machine": _machine(), "results": fn(ctx)}
+    result = {
+        "bench": name,
+        "summary": summary,
+        "size": size,
+        "device": str(dev),
+        "machine": _machine(),
+        "results": fn(ctx),
+    }
     (out / f"{name}.json").write_text(json.dumps(result, indent=2, default=float))
     table = Table(title=f"rflscm bench {name} ({size}, {dev})")
     table.add_column("metric")

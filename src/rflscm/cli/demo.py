@@ -51,14 +51,22 @@ def demo_table(results: dict[str, dict], title: str) -> Table:
     for bt, name in (("ssb", "SSB"), ("csi", "CSI-RS")):
         bias = [_fmt(r.get("bias_db", {}).get(bt, {}).get("all")) for r in results.values()]
         table.add_row(f"{name} mean signed error [dB]", *bias, "", "", "")
-    table.add_row("training time [s]", *[f"{(r['model']['fit'] or {}).get('train_time_s', float('nan')):.0f}" for r in results.values()], "", "", "")
+    table.add_row(
+        "training time [s]",
+        *[f"{(r['model']['fit'] or {}).get('train_time_s', float('nan')):.0f}" for r in results.values()],
+        "",
+        "",
+        "",
+    )
     return table
 
 
 @app.command()
 def demo(
     out: Path = typer.Option(Path("rflscm-demo"), "--out", help="Folder for checkpoints, metrics JSON and reports."),
-    scenario: Path | None = typer.Option(None, "--scenario", help="Scenario folder (default: the shipped munich scenario)."),
+    scenario: Path | None = typer.Option(
+        None, "--scenario", help="Scenario folder (default: the shipped munich scenario)."
+    ),
     config: str = typer.Option("quick", "--config", help="RF-LSCM preset or YAML file."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
     device: str = DeviceOption,
@@ -78,7 +86,9 @@ def demo(
     dev = resolve_device(device)
     scen = load_scenario(scenario or default_scenario_path())
     output_folder(out, "--out")
-    console.print(f"scenario [bold]{scen.meta.name}[/bold]: {len(scen.cell_ids())} cells, {len(scen.grid_ids())} grids; device {dev}")
+    console.print(
+        f"scenario [bold]{scen.meta.name}[/bold]: {len(scen.cell_ids())} cells, {len(scen.grid_ids())} grids; device {dev}"
+    )
     results: dict[str, dict] = {}
     from rflscm.models.wnomp_select import select_wnomp
 

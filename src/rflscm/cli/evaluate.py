@@ -31,7 +31,9 @@ def evaluate(
     ),
     json_out: Path | None = typer.Option(None, "--json", help="Write the metrics as JSON to this file."),
     report: Path | None = typer.Option(None, "--report", help="Write report.md and PNG figures into this folder."),
-    oracle: bool = typer.Option(True, "--oracle/--no-oracle", help="Compute the oracle floor where ground truth exists."),
+    oracle: bool = typer.Option(
+        True, "--oracle/--no-oracle", help="Compute the oracle floor where ground truth exists."
+    ),
     device: str = DeviceOption,
     seed: int = SeedOption,
 ) -> None:

@@ -32,17 +32,13 @@ def search_spec(search: Path | None, tilt: str | None, elec: str | None, azimuth
         if text is not None:
             defaults[key] = parse_range(text, flag)
     if codebooks is not None:
-        defaults["ssb_codebooks"] = [
-            c.strip() for c in codebooks.split(",") if c.strip()
-        ]
+        defaults["ssb_codebooks"] = [c.strip() for c in codebooks.split(",") if c.strip()]
     spec["defaults"] = defaults
     if freeze is not None:
         try:
             spec["frozen"] = [int(v) for v in freeze.split(",") if v.strip()]
         except ValueError:
-            raise ConfigError(
-                f"--freeze takes comma-separated cell ids (got {freeze!r})."
-            ) from None
+            raise ConfigError(f"--freeze takes comma-separated cell ids (got {freeze!r}).") from None
     if max_changed is not None:
         spec["max_changed_cells"] = max_changed
     return spec
@@ -50,63 +46,31 @@ def search_spec(search: Path | None, tilt: str | None, elec: str | None, azimuth
 
 @app.command()
 def optimize(
-    checkpoint: Path = typer.Argument(
-        ..., help="Model checkpoint written by `rflscm train`."
-    ),
+    checkpoint: Path = typer.Argument(..., help="Model checkpoint written by `rflscm train`."),
     scenario: Path = typer.Argument(..., help="The scenario the model was trained on."),
-    objective: str = typer.Option(
-        "coverage", "--objective", help="coverage, sinr or weighted."
-    ),
-    out: Path = typer.Option(
-        Path("optimize-out"), "--out", help="Output folder: new round, changes, report."
-    ),
-    search: Path | None = typer.Option(
-        None, "--search", help="YAML search spec (defaults, per-cell ranges, frozen)."
-    ),
-    tilt_range: str | None = typer.Option(
-        None, "--tilt-range", help="Mechanical tilt MIN:MAX[:STEP] [deg] (0:15:1)."
-    ),
-    elec_range: str | None = typer.Option(
-        None, "--elec-tilt-range", help="Electrical tilt MIN:MAX[:STEP] (0:15:1)."
-    ),
+    objective: str = typer.Option("coverage", "--objective", help="coverage, sinr or weighted."),
+    out: Path = typer.Option(Path("optimize-out"), "--out", help="Output folder: new round, changes, report."),
+    search: Path | None = typer.Option(None, "--search", help="YAML search spec (defaults, per-cell ranges, frozen)."),
+    tilt_range: str | None = typer.Option(None, "--tilt-range", help="Mechanical tilt MIN:MAX[:STEP] [deg] (0:15:1)."),
+    elec_range: str | None = typer.Option(None, "--elec-tilt-range", help="Electrical tilt MIN:MAX[:STEP] (0:15:1)."),
     azimuth_range: str | None = typer.Option(
         None, "--azimuth-range", help="Azimuth offsets MIN:MAX[:STEP] (-30:30:5)."
     ),
-    codebooks: str | None = typer.Option(
-        None, "--codebooks", help="Comma-separated SSB codebooks (default: all)."
-    ),
-    freeze: str | None = typer.Option(
-        None, "--freeze", help="Comma-separated cell ids that must not change."
-    ),
-    max_changed: int | None = typer.Option(
-        None, "--max-changed", help="Most cells the recommendation may change."
-    ),
-    base_round: int = typer.Option(
-        1, "--round", help="Configuration the search starts from."
-    ),
-    method: str = typer.Option(
-        "cd", "--method", help="cd (coordinate descent + restarts) or de (scipy DE)."
-    ),
-    restarts: int = typer.Option(
-        2, "--restarts", min=0, help="cd: restarts from perturbed best configurations."
-    ),
-    time_budget: float = typer.Option(
-        60.0, "--time-budget", help="de: seconds of search."
-    ),
-    threshold: float = typer.Option(
-        -105.0, "--threshold", help="Coverage threshold on best-server RSRP [dBm]."
-    ),
-    noise_figure: float = typer.Option(
-        7.0, "--noise-figure", help="UE noise figure [dB] for SS-SINR."
-    ),
+    codebooks: str | None = typer.Option(None, "--codebooks", help="Comma-separated SSB codebooks (default: all)."),
+    freeze: str | None = typer.Option(None, "--freeze", help="Comma-separated cell ids that must not change."),
+    max_changed: int | None = typer.Option(None, "--max-changed", help="Most cells the recommendation may change."),
+    base_round: int = typer.Option(1, "--round", help="Configuration the search starts from."),
+    method: str = typer.Option("cd", "--method", help="cd (coordinate descent + restarts) or de (scipy DE)."),
+    restarts: int = typer.Option(2, "--restarts", min=0, help="cd: restarts from perturbed best configurations."),
+    time_budget: float = typer.Option(60.0, "--time-budget", help="de: seconds of search."),
+    threshold: float = typer.Option(-105.0, "--threshold", help="Coverage threshold on best-server RSRP [dBm]."),
+    noise_figure: float = typer.Option(7.0, "--noise-figure", help="UE noise figure [dB] for SS-SINR."),
     verify: bool | None = typer.Option(
         None,
         "--verify/--no-verify",
         help="True KPIs from truth/ (default: if present).",
     ),
-    aps_cache: Path | None = typer.Option(
-        None, "--aps-cache", help="Reuse/write the rendered APS here (.pt)."
-    ),
+    aps_cache: Path | None = typer.Option(None, "--aps-cache", help="Reuse/write the rendered APS here (.pt)."),
     device: str = DeviceOption,
     seed: int = SeedOption,
 ) -> None:
@@ -126,9 +90,7 @@ def optimize(
             f"--round {base_round}: scenario {scen.meta.name!r} has rounds {', '.join(map(str, scen.rounds()))}."
         )
     kpi = KPIConfig(threshold_dbm=threshold, noise_figure_db=noise_figure)
-    spec = search_spec(
-        search, tilt_range, elec_range, azimuth_range, codebooks, freeze, max_changed
-    )
+    spec = search_spec(search, tilt_range, elec_range, azimuth_range, codebooks, freeze, max_changed)
     space = build_space(spec, scen.cells[base_round], scen.meta.codebooks)
     if verify:
         from rflscm.sim.truth import truth_folder
@@ -149,17 +111,13 @@ def optimize(
             aps_cache,
             on_cell=lambda done, _: bar.update(task, completed=done),
         )
-        passes = (
-            (restarts + 1) * 8 * len(space.free_cells()) if method == "cd" else None
-        )
+        passes = (restarts + 1) * 8 * len(space.free_cells()) if method == "cd" else None
         task = bar.add_task(f"searching ({method}, {objective})", total=passes)
         result = run_optimize(scen, cache, space, base_round, objective, method, kpi, verify, seed, restarts,
                               time_budget, on_step=lambda: bar.advance(task))  # fmt: skip
     result.timings["aps_cache_s"] = cache_s
     folder, rnd = write_round(scen, result.cells_after, out)
-    report = write_report(
-        result, scen, out, kpi, rnd, folder, command="rflscm " + " ".join(sys.argv[1:])
-    )
+    report = write_report(result, scen, out, kpi, rnd, folder, command="rflscm " + " ".join(sys.argv[1:]))
     _print(console, result, folder, rnd, report)
 
 

@@ -113,16 +113,26 @@ def _print_kpis(scen, model, selected: pd.DataFrame, ssb: pd.DataFrame, threshol
 @app.command()
 def predict(
     checkpoint: Path = typer.Argument(..., help="Model checkpoint written by `rflscm train`."),
-    scenario: Path = typer.Argument(..., help="The scenario the model was trained on; its rounds are the antenna configurations."),
-    round: int = typer.Option(2, "--round", help="Antenna configuration (round) to predict; add a round to scenario.yaml for a what-if."),
+    scenario: Path = typer.Argument(
+        ..., help="The scenario the model was trained on; its rounds are the antenna configurations."
+    ),
+    round: int = typer.Option(
+        2, "--round", help="Antenna configuration (round) to predict; add a round to scenario.yaml for a what-if."
+    ),
     out: Path = typer.Option(Path("prediction.parquet"), "--out", help="Predicted RSRP table (.parquet or .csv)."),
     pairs: str = typer.Option("measured", "--pairs", help="measured: pairs with measurements; all: every cell × grid."),
     aps_cells: str | None = typer.Option(None, "--aps-cells", help="Comma-separated cell ids whose APS to export."),
     aps_grids: str | None = typer.Option(None, "--aps-grids", help="Comma-separated grid ids whose APS to export."),
     aps_out: Path = typer.Option(Path("aps.parquet"), "--aps-out", help="Where the exported APS goes."),
-    attenuation_map: Path | None = typer.Option(None, "--attenuation-map", help="PNG of −log|δ| seen from above (field models)."),
-    kpi: bool = typer.Option(False, "--kpi", help="Also print network KPIs (best server, SS-SINR, coverage) of the round."),
-    kpi_json: Path | None = typer.Option(None, "--kpi-json", help="Write the network KPIs as JSON here (implies --kpi)."),
+    attenuation_map: Path | None = typer.Option(
+        None, "--attenuation-map", help="PNG of −log|δ| seen from above (field models)."
+    ),
+    kpi: bool = typer.Option(
+        False, "--kpi", help="Also print network KPIs (best server, SS-SINR, coverage) of the round."
+    ),
+    kpi_json: Path | None = typer.Option(
+        None, "--kpi-json", help="Write the network KPIs as JSON here (implies --kpi)."
+    ),
     threshold: float = typer.Option(-105.0, "--threshold", help="--kpi: coverage threshold [dBm]."),
     device: str = DeviceOption,
     seed: int = SeedOption,
@@ -145,12 +155,17 @@ def predict(
     console = Console(stderr=True)
     scen = load_scenario(scenario)
     if round not in scen.cells:
-        raise ConfigError(f"--round {round}: scenario {scen.meta.name!r} has rounds {', '.join(map(str, scen.rounds()))}.")
+        raise ConfigError(
+            f"--round {round}: scenario {scen.meta.name!r} has rounds {', '.join(map(str, scen.rounds()))}."
+        )
     model = load_model(checkpoint, scen, device=dev)
     selected = prediction_pairs(scen, model, pairs)
     cached = APSCache(model)  # SSB and CSI-RS of a pair share its APS
     with console.status(f"predicting {len(selected)} (cell, grid) pairs with {model.name}…"):
-        tables = [long_form(round, bt, selected, cached.predict_rsrp(scen, round, bt, selected), scen) for bt in ("ssb", "csi")]
+        tables = [
+            long_form(round, bt, selected, cached.predict_rsrp(scen, round, bt, selected), scen)
+            for bt in ("ssb", "csi")
+        ]
     out.parent.mkdir(parents=True, exist_ok=True)
     write_table(pd.concat(tables, ignore_index=True), out)
     console.print(f"wrote {out} ({sum(len(t) for t in tables)} beams)")

@@ -75,24 +75,36 @@ def _prepare_out(out: Path, force: bool) -> None:
 def simulate(
     out: Path = typer.Option(..., "--out", help="Scenario folder to write (must be new or empty; see --force)."),
     backend: str = typer.Option("procedural", "--backend", help="Ray tracer: procedural (built in) or sionna."),
-    scene: str | None = typer.Option(None, "--scene", help="Scene: procedural city|small|ground|free_space; "
-                                     "sionna munich|etoile|… (default: city / munich)."),
+    scene: str | None = typer.Option(
+        None,
+        "--scene",
+        help="Scene: procedural city|small|ground|free_space; sionna munich|etoile|… (default: city / munich).",
+    ),
     sites: int | None = typer.Option(None, "--sites", min=1, help="Number of sites (default 7; 3 sectors each)."),
-    carriers: str | None = typer.Option(None, "--carriers", help="Carriers in Hz, comma separated; the first is "
-                                        "the primary (default 3.5e9,2.1e9)."),
+    carriers: str | None = typer.Option(
+        None, "--carriers", help="Carriers in Hz, comma separated; the first is the primary (default 3.5e9,2.1e9)."
+    ),
     grids: int | None = typer.Option(None, "--grids", min=1, help="Maximum number of 10 m grids (default 800)."),
     config: Path | None = typer.Option(None, "--config", help="SimulationConfig YAML; options given here override it."),
     force: bool = typer.Option(False, "--force", help="Replace --out if it is an existing scenario folder."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar while tracing."),
     device: str = DeviceOption,
-    seed: int | None = typer.Option(None, "--seed", help="Random seed (default: the config's, else 0); "
-                                    "the same seed gives the same scenario."),
-    measurements: str | None = typer.Option(None, "--measurements", help="Measurement regime: ideal (noise on the "
-                                            "expectation, every beam above r_th) or field (as a network reports "
-                                            "them; effects under `field_model:` in --config). Default: the config's, "
-                                            "else ideal."),
-    from_trace: Path | None = typer.Option(None, "--from-trace", help="Re-measure the paths of this simulated "
-                                           "scenario instead of tracing (only measurement keys may change)."),
+    seed: int | None = typer.Option(
+        None, "--seed", help="Random seed (default: the config's, else 0); the same seed gives the same scenario."
+    ),
+    measurements: str | None = typer.Option(
+        None,
+        "--measurements",
+        help="Measurement regime: ideal (noise on the "
+        "expectation, every beam above r_th) or field (as a network reports "
+        "them; effects under `field_model:` in --config). Default: the config's, "
+        "else ideal.",
+    ),
+    from_trace: Path | None = typer.Option(
+        None,
+        "--from-trace",
+        help="Re-measure the paths of this simulated scenario instead of tracing (only measurement keys may change).",
+    ),
 ) -> None:
     """Trace a scene once per (site, carrier) and write a complete scenario with truth/ (SPEC §6)."""
     from rflscm.sim import SimulationConfig, build_scenario, make_backend

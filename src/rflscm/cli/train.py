@@ -32,8 +32,12 @@ def train(
     out: Path = typer.Option(Path("runs/model.ckpt"), "--out", help="Checkpoint file to write."),
     protocol: str = typer.Option("adjust", "--protocol", help="adjust, unseen or multifreq: which data to train on."),
     holdout: float = typer.Option(0.1, "--holdout", help="unseen: fraction of grids held out."),
-    train_percent: float = typer.Option(10.0, "--train-percent", help="multifreq: %% of the low carrier's grids to train on."),
-    other_carriers: bool = typer.Option(True, "--other-carriers/--no-other-carriers", help="multifreq: also train on the other carriers."),
+    train_percent: float = typer.Option(
+        10.0, "--train-percent", help="multifreq: %% of the low carrier's grids to train on."
+    ),
+    other_carriers: bool = typer.Option(
+        True, "--other-carriers/--no-other-carriers", help="multifreq: also train on the other carriers."
+    ),
     split_seed: int = typer.Option(0, "--split-seed", help="Seed of the protocol's grid split."),
     resume: bool = typer.Option(False, "--resume", help="Continue exactly from --out (iterative models)."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),

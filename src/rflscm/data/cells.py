@@ -55,10 +55,37 @@ from rflscm.data.positions import XYZ, finish_table, known_columns, position_col
 from rflscm.errors import ConfigError, DataError
 
 CELL_COLUMNS = tuple(
-    ["cell_id", "site_id", "x", "y", "z", "azimuth_deg", "mech_tilt_deg", "elec_tilt_deg", "freq_hz", "tx_power_dbm", "array_nh", "array_nv", "spacing_h_m", "spacing_v_m", "ssb_codebook", "csi_codebook", "element"]
+    [
+        "cell_id",
+        "site_id",
+        "x",
+        "y",
+        "z",
+        "azimuth_deg",
+        "mech_tilt_deg",
+        "elec_tilt_deg",
+        "freq_hz",
+        "tx_power_dbm",
+        "array_nh",
+        "array_nv",
+        "spacing_h_m",
+        "spacing_v_m",
+        "ssb_codebook",
+        "csi_codebook",
+        "element",
+    ]
 )
 """Columns of a normalised cells table, in order (extra user columns follow)."""
-REQUIRED = ["cell_id", "site_id", "azimuth_deg", "mech_tilt_deg", "elec_tilt_deg", "freq_hz", "ssb_codebook", "csi_codebook"]
+REQUIRED = [
+    "cell_id",
+    "site_id",
+    "azimuth_deg",
+    "mech_tilt_deg",
+    "elec_tilt_deg",
+    "freq_hz",
+    "ssb_codebook",
+    "csi_codebook",
+]
 DEFAULT_ELEMENT = "tr38901"
 TX_POWER_RANGE_DBM = (-20.0, 40.0)
 """Plausible RS power per resource element (EPRE) [dBm]: small cells ≈ 0…10, macro cells ≈ 10…25 (TS 38.104

@@ -150,7 +150,7 @@ def _records(text: str, name: str) -> list[tuple[int, int]]:
             start = reader.line_num + 1
     except csv.Error as exc:
         raise DataError(
-            f"{name} line {reader.line_num}: {exc}; a quote (\") is not closed or is misplaced (a truncated file?)."
+            f'{name} line {reader.line_num}: {exc}; a quote (") is not closed or is misplaced (a truncated file?).'
         ) from None
     return out
 
@@ -169,9 +169,7 @@ def _check_field_counts(text: str, name: str, num_columns: int, lines: np.ndarra
     else:
         why = "an extra comma, or a decimal comma (write 12.5, not 12,5)?"
         fix = "quote text that contains commas"
-    raise DataError(
-        f"{name} line {line}: {found} field(s) where the header has {num_columns}; {why} — {fix}.{more}"
-    )
+    raise DataError(f"{name} line {line}: {found} field(s) where the header has {num_columns}; {why} — {fix}.{more}")
 
 
 def write_table(df: pd.DataFrame, path: str | Path) -> None:

@@ -183,4 +183,3 @@ def _rsrp(df: pd.DataFrame, ref: TableRef) -> np.ndarray:
     problem = f"is outside {span} (a missing beam is an empty value / NaN, not a sentinel such as -999)"
     raise_rows(ref, rsrp < RSRP_MIN_DBM, "rsrp_dbm", df["rsrp_dbm"], problem)
     return rsrp
-

@@ -76,8 +76,11 @@ def _plausible(df: pd.DataFrame, ref: TableRef, xyz: np.ndarray, geo: bool) -> N
     if far.any():
         column = "lat" if geo else ("x" if np.abs(xyz[np.flatnonzero(far)[0], 0]) > MAX_HORIZONTAL_M else "y")
         raise_rows(
-            ref, far, column, df[column], f"puts the point more than {MAX_HORIZONTAL_M / 1e3:g} km from the frame's "
-            f"origin; {COORDINATE_FIX}",
+            ref,
+            far,
+            column,
+            df[column],
+            f"puts the point more than {MAX_HORIZONTAL_M / 1e3:g} km from the frame's origin; {COORDINATE_FIX}",
         )
     column = "height_m" if geo else "z"
     lo, hi = HEIGHT_RANGE_M
@@ -96,7 +99,10 @@ def _project(df: pd.DataFrame, ref: TableRef, origin: Origin) -> np.ndarray:
     xyz = geodetic_to_enu(lat, lon, height, origin)
     far = np.hypot(xyz[:, 0], xyz[:, 1]) > MAX_GEO_DISTANCE_M
     raise_rows(
-        ref, far, "lat", df["lat"],
+        ref,
+        far,
+        "lat",
+        df["lat"],
         f"puts the point more than {MAX_GEO_DISTANCE_M / 1e3:.0f} km from the origin "
         f"({origin.lat}, {origin.lon}); are lat and lon swapped, or is `origin` wrong?",
     )

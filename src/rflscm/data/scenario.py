@@ -197,9 +197,7 @@ class Scenario:
         if validate:
             grids_name = self.meta.grids
             ref = TableRef("measurements (replacement table)")
-            measurements = normalise_measurements(
-                measurements, ref, self.meta, self.cells, self.grid_ids(), grids_name
-            )
+            measurements = normalise_measurements(measurements, ref, self.meta, self.cells, self.grid_ids(), grids_name)
         else:
             measurements = measurements.reset_index(drop=True)
         new = dataclasses.replace(self, measurements=measurements)

@@ -47,7 +47,9 @@ class APSCache(LSCMModel):
     def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
         cell_ids, grid_ids = np.asarray(cell_ids).reshape(-1), np.asarray(grid_ids).reshape(-1)
         keys = list(zip(cell_ids.tolist(), grid_ids.tolist(), strict=True))
-        todo = np.array(sorted({i for i, k in enumerate(keys) if k not in self._rows} - _later_duplicates(keys)), np.int64)
+        todo = np.array(
+            sorted({i for i, k in enumerate(keys) if k not in self._rows} - _later_duplicates(keys)), np.int64
+        )
         if todo.size:
             xyz = None if grid_xyz is None else np.asarray(grid_xyz).reshape(-1, 3)[todo]
             rows = self.inner.aps(cell_ids[todo], grid_ids[todo], xyz).detach()
@@ -62,7 +64,9 @@ class APSCache(LSCMModel):
 
     # the contract's learning and persistence belong to the wrapped model
     @classmethod
-    def build(cls, config: str | Path | dict[str, Any] | None, angle_grid: AngleGrid, device: torch.device | str) -> LSCMModel:
+    def build(
+        cls, config: str | Path | dict[str, Any] | None, angle_grid: AngleGrid, device: torch.device | str
+    ) -> LSCMModel:
         raise UnsupportedError("an APS cache wraps a fitted model")
 
     def state_dict_for_checkpoint(self) -> dict[str, Any]:

@@ -123,7 +123,9 @@ def resolve_protocol(model: LSCMModel, protocol: Protocol | str | None) -> Proto
                 f"data it was trained on (or skip data it never saw); retrain with that protocol or drop --protocol."
             )
         if not isinstance(protocol, (str, type(None))) and protocol_to_dict(protocol) != stored:
-            raise ConfigError(f"protocol settings {protocol_to_dict(protocol)} differ from the training split {stored}.")
+            raise ConfigError(
+                f"protocol settings {protocol_to_dict(protocol)} differ from the training split {stored}."
+            )
         return trained
     if name not in (None, "adjust"):
         raise ConfigError(
@@ -171,7 +173,9 @@ def run_evaluation(
     t0 = time.perf_counter()
     for beam_type in BEAM_TYPES:
         pairs, measured = test.tables[beam_type]
-        res, why = _predict_beam_type(model, oracle_model, scenario, train, test.round, beam_type, pairs, measured, seen_index)
+        res, why = _predict_beam_type(
+            model, oracle_model, scenario, train, test.round, beam_type, pairs, measured, seen_index
+        )
         res.changed = res.pairs["cell_id"].isin(changed).to_numpy()
         res.noiseless = _noiseless(scenario, test.round, beam_type, pairs, measured.shape[1])
         res.bound = _bounds(scenario, test.round, beam_type, pairs, measured)
@@ -192,7 +196,9 @@ def run_evaluation(
     return evaluation
 
 
-def _oracle(scenario: Scenario, model: LSCMModel, oracle: LSCMModel | str | None, test_round: int = 1) -> LSCMModel | None:
+def _oracle(
+    scenario: Scenario, model: LSCMModel, oracle: LSCMModel | str | None, test_round: int = 1
+) -> LSCMModel | None:
     if oracle is None or isinstance(oracle, LSCMModel):
         return oracle
     if oracle != "auto":
@@ -213,7 +219,9 @@ def _trained_pairs(train: Scenario) -> pd.MultiIndex:
     return pd.MultiIndex.from_frame(rows[["cell_id", "grid_id"]].drop_duplicates())
 
 
-def _predict(model: LSCMModel, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, width: int) -> np.ndarray:
+def _predict(
+    model: LSCMModel, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, width: int
+) -> np.ndarray:
     out = np.full((len(pairs), width), np.nan)
     if len(pairs):
         pred = model.predict_rsrp(scenario, round, beam_type, pairs.reset_index(drop=True))
@@ -241,7 +249,9 @@ class _SensingCache:
         if key not in self._cache:
             if len(self._cache) >= self._size:
                 self._cache.pop(next(iter(self._cache)))
-            self._cache[key] = self._scenario.sensing(cell_id, beam_type, directions, round=round, dtype=dtype, device=device)
+            self._cache[key] = self._scenario.sensing(
+                cell_id, beam_type, directions, round=round, dtype=dtype, device=device
+            )
         return self._cache[key]
 
 
@@ -261,8 +271,15 @@ def _predict_where_possible(
 
 
 def _predict_beam_type(
-    model: LSCMModel, oracle: LSCMModel | None, scenario: Scenario, train: Scenario, round: int, beam_type: str,
-    pairs: pd.DataFrame, measured: np.ndarray, seen_index: pd.MultiIndex,
+    model: LSCMModel,
+    oracle: LSCMModel | None,
+    scenario: Scenario,
+    train: Scenario,
+    round: int,
+    beam_type: str,
+    pairs: pd.DataFrame,
+    measured: np.ndarray,
+    seen_index: pd.MultiIndex,
 ) -> tuple[BeamResult, str | None]:
     """Model, oracle and trivial predictions of one beam type's test pairs."""
     width = measured.shape[1]
@@ -280,7 +297,9 @@ def _predict_beam_type(
         p, ok, refusal = _predict_where_possible(model, view, round, beam_type, sub, width, ask[rows])
         pred[rows], answered[rows], why = p, ok, why or refusal
         if oracle is not None and oracle_pred is not None:
-            oracle_pred[rows] = _predict_where_possible(oracle, view, round, beam_type, sub, width, np.ones(len(rows), bool))[0]
+            oracle_pred[rows] = _predict_where_possible(
+                oracle, view, round, beam_type, sub, width, np.ones(len(rows), bool)
+            )[0]
     trivial = M.trivial_prediction(train, beam_type, pairs, width) if len(pairs) else np.zeros((0, width))
     res = BeamResult(pairs, measured, pred, trivial, oracle_pred, seen, answered, np.zeros(len(pairs), dtype=bool))
     return res, why
@@ -376,7 +395,13 @@ def _per_cell(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, An
 
 
 def _unseen_block(model: LSCMModel, beams: dict[str, BeamResult]) -> dict[str, Any]:
-    block: dict[str, Any] = {"mae_db": {}, "oracle_mae_db": {}, "trivial_mae_db": {}, "noise_floor_mae_db": {}, "pairs": {}}
+    block: dict[str, Any] = {
+        "mae_db": {},
+        "oracle_mae_db": {},
+        "trivial_mae_db": {},
+        "noise_floor_mae_db": {},
+        "pairs": {},
+    }
     for beam_type, res in beams.items():
         rows = ~res.seen
         trip = _mae_triplet(res, rows) if rows.any() else dict.fromkeys(("model", "oracle", "trivial", "noise_floor"))
@@ -389,14 +414,21 @@ def _unseen_block(model: LSCMModel, beams: dict[str, BeamResult]) -> dict[str, A
 
 
 def _aps_metrics(
-    model: LSCMModel, oracle: LSCMModel | None, beams: dict[str, BeamResult], evaluation: Evaluation, top_k: int, max_pairs: int
+    model: LSCMModel,
+    oracle: LSCMModel | None,
+    beams: dict[str, BeamResult],
+    evaluation: Evaluation,
+    top_k: int,
+    max_pairs: int,
 ) -> dict[str, Any]:
     """APS recovery against the oracle's (true) APS over a seeded subsample of the scored test pairs."""
     out: dict[str, Any] = {"nmse_db": None, "nmse_db_median": None, "angle_error_deg": None, "top_k": top_k, "pairs": 0}
     if oracle is None:
         return out
     frames = [res.pairs[res.scored] for res in beams.values()]
-    pairs = pd.concat(frames).drop_duplicates().sort_values(["cell_id", "grid_id"], ignore_index=True) if frames else None
+    pairs = (
+        pd.concat(frames).drop_duplicates().sort_values(["cell_id", "grid_id"], ignore_index=True) if frames else None
+    )
     if pairs is None or not len(pairs):
         return out
     if len(pairs) > max_pairs:
@@ -404,8 +436,12 @@ def _aps_metrics(
         pairs = pairs.iloc[pick].reset_index(drop=True)
     cells, grids = pairs["cell_id"].to_numpy(), pairs["grid_id"].to_numpy()
     try:
-        est = np.concatenate([_aps_chunk(model, cells[s : s + 256], grids[s : s + 256]) for s in range(0, len(pairs), 256)])
-        true = np.concatenate([_aps_chunk(oracle, cells[s : s + 256], grids[s : s + 256]) for s in range(0, len(pairs), 256)])
+        est = np.concatenate(
+            [_aps_chunk(model, cells[s : s + 256], grids[s : s + 256]) for s in range(0, len(pairs), 256)]
+        )
+        true = np.concatenate(
+            [_aps_chunk(oracle, cells[s : s + 256], grids[s : s + 256]) for s in range(0, len(pairs), 256)]
+        )
     except UnsupportedError:
         return out
     nmse_db = M.aps_nmse_db(est, true)
@@ -417,7 +453,11 @@ def _aps_metrics(
         angle_error_deg=M.nanmean_or_none(angle),
         pairs=int(len(pairs)),
     )
-    evaluation.aps_pairs, evaluation.aps_est, evaluation.aps_true = pairs, est.astype(np.float32), true.astype(np.float32)
+    evaluation.aps_pairs, evaluation.aps_est, evaluation.aps_true = (
+        pairs,
+        est.astype(np.float32),
+        true.astype(np.float32),
+    )
     return out
 
 
@@ -443,8 +483,15 @@ def _counts(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, Any]
 
 
 def _assemble(
-    model: LSCMModel, scenario: Scenario, protocol: Protocol, test_round: int, beams: dict[str, BeamResult],
-    changed: np.ndarray, aps: dict[str, Any], unsupported: str | None, timing: dict[str, float],
+    model: LSCMModel,
+    scenario: Scenario,
+    protocol: Protocol,
+    test_round: int,
+    beams: dict[str, BeamResult],
+    changed: np.ndarray,
+    aps: dict[str, Any],
+    unsupported: str | None,
+    timing: dict[str, float],
 ) -> dict[str, Any]:
     maes = _mae_blocks(beams, any_changed=len(changed) > 0)
     return {

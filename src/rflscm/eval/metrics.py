@@ -19,6 +19,7 @@ from rflscm.geometry import AngleGrid
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
 
+
 # --- RSRP errors ------------------------------------------------------------------------------------
 def abs_error_db(pred_dbm: np.ndarray, meas_dbm: np.ndarray) -> np.ndarray:
     """|pred − meas| [dB] ``[num_pairs, max_beams]``, NaN where either is NaN (beam not reported)."""
@@ -50,7 +51,9 @@ def changed_cells(scenario: Scenario, round_a: int = 1, round_b: int = 2) -> np.
     """
     if round_a == round_b or round_b not in scenario.cells or round_a not in scenario.cells:
         return np.zeros(0, dtype=np.int64)
-    changed = [int(c) for c in scenario.cell_ids() if _cell_config(scenario, c, round_a) != _cell_config(scenario, c, round_b)]
+    changed = [
+        int(c) for c in scenario.cell_ids() if _cell_config(scenario, c, round_a) != _cell_config(scenario, c, round_b)
+    ]
     return np.asarray(changed, dtype=np.int64)
 
 

@@ -50,7 +50,11 @@ class OracleModel(LSCMModel):
 
     @classmethod
     def for_scenario(
-        cls, scenario: Scenario, angle_grid: AngleGrid, device: torch.device | str = "cpu", sample_round: int | None = None
+        cls,
+        scenario: Scenario,
+        angle_grid: AngleGrid,
+        device: torch.device | str = "cpu",
+        sample_round: int | None = None,
     ) -> OracleModel:
         """The oracle of ``scenario`` on ``angle_grid`` (a :class:`DataError` without ``truth/``); with
         ``sample_round``, the APS of that round's own UE samples where the truth folder has them (field regime)."""
@@ -73,7 +77,9 @@ class OracleModel(LSCMModel):
 
     def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
         if self._truth is None:
-            raise UnsupportedError("the oracle has not been fitted; build it with OracleModel.for_scenario(scenario, grid).")
+            raise UnsupportedError(
+                "the oracle has not been fitted; build it with OracleModel.for_scenario(scenario, grid)."
+            )
         return self._truth.aps(cell_ids, grid_ids, dtype=torch.float32, device=self.device)
 
     def state_dict_for_checkpoint(self) -> dict[str, Any]:

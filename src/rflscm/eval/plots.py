@@ -38,7 +38,9 @@ def _lattice(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
     return ij[:, 0], ij[:, 1], step
 
 
-def _map(ax: plt.Axes, xy: np.ndarray, values: np.ndarray, vmin: float, vmax: float, cmap: str) -> matplotlib.cm.ScalarMappable:
+def _map(
+    ax: plt.Axes, xy: np.ndarray, values: np.ndarray, vmin: float, vmax: float, cmap: str
+) -> matplotlib.cm.ScalarMappable:
     """Draw values at grid centres: a raster on a regular lattice, square markers otherwise."""
     lattice = _lattice(xy)
     if lattice is not None:
@@ -62,8 +64,14 @@ def _sites(ax: plt.Axes, cells_xy: np.ndarray, azimuth_deg: np.ndarray, changed:
 
 
 def coverage_maps(
-    path: Path, grid_xy: np.ndarray, measured_dbm: np.ndarray, predicted_dbm: np.ndarray, cells_xy: np.ndarray,
-    azimuth_deg: np.ndarray, changed: np.ndarray, title: str,
+    path: Path,
+    grid_xy: np.ndarray,
+    measured_dbm: np.ndarray,
+    predicted_dbm: np.ndarray,
+    cells_xy: np.ndarray,
+    azimuth_deg: np.ndarray,
+    changed: np.ndarray,
+    title: str,
 ) -> Path:
     """Measured | predicted best-beam RSRP per grid on one colour scale, and predicted − measured.
 
@@ -102,7 +110,11 @@ def error_histograms(path: Path, errors: dict[str, dict[str, np.ndarray]], title
         errors: beam type → predictor (``model``, ``oracle``, ``trivial``) → flat signed errors [dB].
     """
     fig, axes = plt.subplots(1, len(errors), figsize=(6.5 * len(errors), 4.3), constrained_layout=True, squeeze=False)
-    styles = {"model": ("tab:blue", "stepfilled", 0.45), "oracle": ("black", "step", 1.0), "trivial": ("tab:gray", "step", 1.0)}
+    styles = {
+        "model": ("tab:blue", "stepfilled", 0.45),
+        "oracle": ("black", "step", 1.0),
+        "trivial": ("tab:gray", "step", 1.0),
+    }
     bins = np.arange(-20.5, 21.5, 1.0)
     for ax, (beam_type, by_name) in zip(axes[0], errors.items()):
         for name, err in by_name.items():
@@ -154,8 +166,13 @@ def per_cell_bars(path: Path, per_cell: dict[str, dict], title: str) -> Path:
 
 
 def aps_heatmaps(
-    path: Path, angle_grid: AngleGrid, labels: list[str], true: np.ndarray, est: np.ndarray,
-    boresight_az_deg: list[float] | None = None, floor_db: float = 40.0,
+    path: Path,
+    angle_grid: AngleGrid,
+    labels: list[str],
+    true: np.ndarray,
+    est: np.ndarray,
+    boresight_az_deg: list[float] | None = None,
+    floor_db: float = 40.0,
 ) -> Path:
     """True | estimated APS (elevation × azimuth, dB of path gain) for a few pairs, one row each.
 

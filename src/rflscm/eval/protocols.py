@@ -41,7 +41,6 @@ if TYPE_CHECKING:
     from rflscm.models.base import LSCMModel
 
 
-
 @dataclass
 class TestSet:
     """What a protocol tests: measured RSRP of one round.
@@ -107,7 +106,7 @@ def split_grids(scenario: Scenario, fraction: float, seed: int) -> np.ndarray:
     num = int(round(fraction * len(grids)))
     num = max(num, 1) if fraction > 0 and len(grids) > 1 else num
     num = min(num, len(grids) - 1)  # always leave something to train on
-    held = np.random.default_rng(seed).permutation(grids)[:max(num, 0)]
+    held = np.random.default_rng(seed).permutation(grids)[: max(num, 0)]
     return np.sort(held)
 
 
@@ -175,7 +174,9 @@ class MultiFreqProtocol:
             return float(freqs[0])
         if not np.isclose(freqs, self.carrier_hz).any():
             listed = ", ".join(f"{f:g}" for f in freqs)
-            raise ConfigError(f"`protocol.carrier_hz` = {self.carrier_hz:g} is not a carrier of the scenario ({listed}).")
+            raise ConfigError(
+                f"`protocol.carrier_hz` = {self.carrier_hz:g} is not a carrier of the scenario ({listed})."
+            )
         return float(freqs[np.isclose(freqs, self.carrier_hz)][0])
 
     def split(self, scenario: Scenario) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -232,7 +233,9 @@ def protocol_from_dict(data: dict[str, Any]) -> Protocol:
     return from_dict(PROTOCOLS[data["name"]], data, prefix="protocol")
 
 
-def fit_with_protocol(model: LSCMModel, scenario: Scenario, protocol: Protocol | None = None, **fit_kwargs: Any) -> dict[str, float]:
+def fit_with_protocol(
+    model: LSCMModel, scenario: Scenario, protocol: Protocol | None = None, **fit_kwargs: Any
+) -> dict[str, float]:
     """Fit ``model`` on ``protocol.training_scenario(scenario)`` and record the split.
 
     Sets ``model.fingerprint`` to the *full* scenario's (so that ``load_model(ckpt, scenario)``

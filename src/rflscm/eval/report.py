@@ -49,7 +49,9 @@ def metric_rows(metrics: dict[str, Any]) -> list[tuple[str, str, str, str]]:
     if aps["pairs"]:
         rows.append((f"APS NMSE [dB] (mean / median over {aps['pairs']} pairs)",
                      f"{_fmt(aps['nmse_db'])} / {_fmt(aps['nmse_db_median'])}", "0 (reference)", "–"))  # fmt: skip
-        rows.append((f"APS angle error, top {aps['top_k']} bins [deg]", _fmt(aps["angle_error_deg"]), "0 (reference)", "–"))
+        rows.append(
+            (f"APS angle error, top {aps['top_k']} bins [deg]", _fmt(aps["angle_error_deg"]), "0 (reference)", "–")
+        )
     return rows
 
 
@@ -106,7 +108,12 @@ def _signed_errors(evaluation: Evaluation) -> dict[str, dict[str, np.ndarray]]:
 
 
 def _aps_figure(evaluation: Evaluation, scenario: Scenario, model: Any, out: Path) -> Path | None:
-    if evaluation.aps_pairs is None or not len(evaluation.aps_pairs) or evaluation.aps_true is None or evaluation.aps_est is None:
+    if (
+        evaluation.aps_pairs is None
+        or not len(evaluation.aps_pairs)
+        or evaluation.aps_true is None
+        or evaluation.aps_est is None
+    ):
         return None
     power = evaluation.aps_true.astype(np.float64).sum(1)
     order = np.argsort(-power)
@@ -116,7 +123,11 @@ def _aps_figure(evaluation: Evaluation, scenario: Scenario, model: Any, out: Pat
     cells = scenario.cells[1].set_index("cell_id")
     _, boresight = engineering_to_internal(cells.loc[pairs["cell_id"], "azimuth_deg"].to_numpy(), 0.0)
     return plots.aps_heatmaps(
-        out / "aps.png", model.angle_grid, labels, evaluation.aps_true[picks], evaluation.aps_est[picks],
+        out / "aps.png",
+        model.angle_grid,
+        labels,
+        evaluation.aps_true[picks],
+        evaluation.aps_est[picks],
         boresight_az_deg=list(np.degrees(boresight)),
     )
 

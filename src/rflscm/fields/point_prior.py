@@ -18,7 +18,9 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 
-def grid_span(box_lo: np.ndarray, box_hi: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
+def grid_span(
+    box_lo: np.ndarray, box_hi: np.ndarray, voxel_m: float
+) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
     """``(lo, hi, shape)`` of the regular grid with spacing ``voxel_m`` that starts at ``box_lo`` and covers
     ``box_hi`` (at least 2 points per axis): point (i, j, k) sits at ``lo + (i, j, k)·voxel_m``."""
     lo = np.asarray(box_lo, np.float64)
@@ -66,7 +68,9 @@ class PointPrior(nn.Module):
     box_lo: torch.Tensor
     box_hi: torch.Tensor
 
-    def __init__(self, density: torch.Tensor, box_lo: torch.Tensor, box_hi: torch.Tensor, threshold: float, beta: float) -> None:
+    def __init__(
+        self, density: torch.Tensor, box_lo: torch.Tensor, box_hi: torch.Tensor, threshold: float, beta: float
+    ) -> None:
         super().__init__()
         grid = torch.as_tensor(density, dtype=torch.float32).permute(2, 1, 0)  # [nz, ny, nx] for grid_sample
         self.register_buffer("density_grid", grid[None, None].contiguous())
@@ -87,7 +91,9 @@ class PointPrior(nn.Module):
     def density(self, points: torch.Tensor) -> torch.Tensor:
         """Interpolated D ``[S]`` at world points ``[S, 3]`` [m]; 0 outside the grid."""
         u = 2.0 * (points.to(self.box_lo.dtype) - self.box_lo) / (self.box_hi - self.box_lo) - 1.0
-        out = F.grid_sample(self.density_grid, u.view(1, -1, 1, 1, 3), mode="bilinear", padding_mode="zeros", align_corners=True)
+        out = F.grid_sample(
+            self.density_grid, u.view(1, -1, 1, 1, 3), mode="bilinear", padding_mode="zeros", align_corners=True
+        )
         return out.view(-1)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:

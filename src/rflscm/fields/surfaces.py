@@ -76,7 +76,9 @@ class SurfaceOrientation(nn.Module):
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         u = 2.0 * (points.to(self.box_lo.dtype) - self.box_lo) / (self.box_hi - self.box_lo) - 1.0
-        out = F.grid_sample(self.grid, u.view(1, -1, 1, 1, 3), mode="bilinear", padding_mode="zeros", align_corners=True)
+        out = F.grid_sample(
+            self.grid, u.view(1, -1, 1, 1, 3), mode="bilinear", padding_mode="zeros", align_corners=True
+        )
         return out.view(6, -1).T
 
     def grid_numpy(self) -> np.ndarray:

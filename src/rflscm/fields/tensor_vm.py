@@ -64,16 +64,16 @@ class TensorVM(nn.Module):
     ) -> None:
         super().__init__()
         if rank < 1 or out_dim < 1 or min(resolution) < 2:
-            raise ConfigError(f"a VM tensor needs rank ≥ 1, D ≥ 1 and ≥ 2 points per axis (got {rank}, {out_dim}, {resolution}).")
+            raise ConfigError(
+                f"a VM tensor needs rank ≥ 1, D ≥ 1 and ≥ 2 points per axis (got {rank}, {out_dim}, {resolution})."
+            )
         self.register_buffer("box_lo", torch.as_tensor(box_lo, dtype=torch.float32).clone())
         self.register_buffer("box_hi", torch.as_tensor(box_hi, dtype=torch.float32).clone())
         self.rank, self.out_dim, self.basis_kind = rank, out_dim, basis
         self.resolution = tuple(int(r) for r in resolution)
         res = self.resolution
         rank = rank * out_dim if basis == "per_channel" else rank  # stored components per mode
-        self.lines = nn.ParameterList(
-            [nn.Parameter(init_scale * torch.randn(1, rank, res[a], 1)) for a in LINE_AXES]
-        )
+        self.lines = nn.ParameterList([nn.Parameter(init_scale * torch.randn(1, rank, res[a], 1)) for a in LINE_AXES])
         # plane [1, R, H, W]: H indexes the plane's second axis, W its first (grid_sample's y, x)
         self.planes = nn.ParameterList(
             [nn.Parameter(init_scale * torch.randn(1, rank, res[v], res[u])) for u, v in PLANE_AXES]

@@ -39,7 +39,12 @@ class AngleGrid:
 
     def to_dict(self) -> dict[str, int | float]:
         """``{"num_el", "num_az", "el_min_deg", "el_step_deg"}``: how checkpoints and ``scenario.yaml`` store a grid."""
-        return {"num_el": self.num_el, "num_az": self.num_az, "el_min_deg": self.el_min_deg, "el_step_deg": self.el_step_deg}
+        return {
+            "num_el": self.num_el,
+            "num_az": self.num_az,
+            "el_min_deg": self.el_min_deg,
+            "el_step_deg": self.el_step_deg,
+        }
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | list[Any] | tuple[Any, ...]) -> AngleGrid:

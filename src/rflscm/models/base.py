@@ -95,7 +95,9 @@ class LSCMModel(abc.ABC):
     # --- learning ---------------------------------------------------------------------------
     @classmethod
     @abc.abstractmethod
-    def build(cls, config: str | Path | dict[str, Any] | None, angle_grid: AngleGrid, device: torch.device | str) -> LSCMModel:
+    def build(
+        cls, config: str | Path | dict[str, Any] | None, angle_grid: AngleGrid, device: torch.device | str
+    ) -> LSCMModel:
         """A fresh model from a preset name (``"quick"``/``"full"``), a YAML path, a mapping or ``None`` (defaults)."""
 
     def fit(
@@ -147,7 +149,9 @@ class LSCMModel(abc.ABC):
         cell_ids = pairs["cell_id"].to_numpy()
         grid_ids = pairs["grid_id"].to_numpy()
         grid_xyz = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
-        max_beams = max(scenario.codebook(c, beam_type, round).num_beams for c in np.unique(cell_ids)) if len(pairs) else 0
+        max_beams = (
+            max(scenario.codebook(c, beam_type, round).num_beams for c in np.unique(cell_ids)) if len(pairs) else 0
+        )
         out = np.full((len(pairs), max_beams), np.nan)
         for cell in np.unique(cell_ids):
             rows = np.flatnonzero(cell_ids == cell)

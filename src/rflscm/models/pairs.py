@@ -121,7 +121,9 @@ def build_pair_data(
     )
 
 
-def _hold_out(rsrp: np.ndarray, mask: np.ndarray, num_pairs: int, fraction: float, rng: np.random.Generator) -> np.ndarray:
+def _hold_out(
+    rsrp: np.ndarray, mask: np.ndarray, num_pairs: int, fraction: float, rng: np.random.Generator
+) -> np.ndarray:
     """Validation mask: in up to ``num_pairs`` pairs with ≥ 2 reported beams, hide ``fraction`` of them
     (at least one, never all)."""
     val = np.zeros_like(mask)

@@ -201,7 +201,10 @@ class RadianceDecoder(nn.Module):
     def _query_inputs(self, rays: RayBatch, queries: Queries, grid_features: torch.Tensor | None) -> torch.Tensor:
         cfg = self.cfg
         log_wl = torch.log(rays.wavelength_m / self.frame.reference_wavelength_m)[queries.ray, None]
-        parts = [positional_encoding(rays.direction[queries.ray], cfg.dir_freqs), positional_encoding(log_wl, cfg.wavelength_freqs)]
+        parts = [
+            positional_encoding(rays.direction[queries.ray], cfg.dir_freqs),
+            positional_encoding(log_wl, cfg.wavelength_freqs),
+        ]
         if cfg.inputs in ("paper", "offset+grid"):
             unit = 2.0 * (queries.grid_xyz - self.box_lo) / (self.box_hi - self.box_lo) - 1.0
             parts.append(positional_encoding(unit, cfg.grid_freqs))
@@ -220,7 +223,11 @@ class RadianceDecoder(nn.Module):
         logs = torch.stack((torch.log1p(dist / self.step_m), torch.log1p(along / self.step_m), miss), -1) / scale
         half = to_grid - direction
         half = half / half.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-        parts = [positional_encoding(to_grid, cfg.dir_freqs), positional_encoding(half, cfg.dir_freqs), positional_encoding(logs, cfg.pos_freqs)]
+        parts = [
+            positional_encoding(to_grid, cfg.dir_freqs),
+            positional_encoding(half, cfg.dir_freqs),
+            positional_encoding(logs, cfg.pos_freqs),
+        ]
         if cfg.specular_powers:
             spec = specularity(surface, half).clamp(0.0, 1.0) if surface is not None else torch.zeros_like(dist)
             parts.append(torch.stack([spec**p for p in cfg.specular_powers], -1))
@@ -244,7 +251,9 @@ class RadianceDecoder(nn.Module):
         hidden = self.sample_in(features)[join_sample] + query[join_query]
         if self.pair_in is not None:
             direction = rays.direction[queries.ray][join_query]
-            pair = self._pair_inputs(offset / dist[:, None], dist, along, miss, direction, None if surface is None else surface[join_sample])
+            pair = self._pair_inputs(
+                offset / dist[:, None], dist, along, miss, direction, None if surface is None else surface[join_sample]
+            )
             hidden = hidden + self.pair_in(pair)
         out = self.mlp(torch.relu(hidden))  # [J, 2]
         log_spread = torch.zeros_like(dist)
@@ -309,8 +318,14 @@ class RadianceStage(nn.Module):
         join_query, join_sample = join_queries(queries.ray, ray_live, packed.num_rays)
         self.decoder_evals += int(join_query.numel())
         features = self.fields.features(code[live])
-        grid_features = self.fields.features(self.fields.encode(queries.grid_xyz)) if self.decoder.cfg.grid_features else None
-        wants_surface = self.surfaces_fn is not None and self.decoder.pair_in is not None and self.decoder.cfg.specular_powers
+        grid_features = (
+            self.fields.features(self.fields.encode(queries.grid_xyz)) if self.decoder.cfg.grid_features else None
+        )
+        wants_surface = (
+            self.surfaces_fn is not None and self.decoder.pair_in is not None and self.decoder.cfg.specular_powers
+        )
         surface = self.surfaces_fn(points[live]) if wants_surface and self.surfaces_fn is not None else None
-        radiance = self.decoder(features, points[live], along[live], rays, queries, join_query, join_sample, grid_features, surface)
+        radiance = self.decoder(
+            features, points[live], along[live], rays, queries, join_query, join_sample, grid_features, surface
+        )
         return accumulate_power(weight[join_sample] * radiance, join_query, queries.ray.numel())

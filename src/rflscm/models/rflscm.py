@@ -120,13 +120,17 @@ class RFLSCM(LSCMModel):
         def stage() -> RadianceStage:
             fields = self.fields(frame, self.medium(frame).num_channels)
             cfg = self.config
-            decoder = RadianceDecoder(cfg.decoder, fields.feature_dim, frame, cfg.render.step_m, self.fields.head_hidden)
+            decoder = RadianceDecoder(
+                cfg.decoder, fields.feature_dim, frame, cfg.render.step_m, self.fields.head_hidden
+            )
             return RadianceStage(fields, self.medium(frame), decoder, cfg.render, self.surfaces)
 
         names = ("coarse", "fine") if self.hitam is not None else ("fine",)
         self.stages = nn.ModuleDict({n: stage() for n in names}).to(self.device)
         assert self.scene is not None
-        self.renderer = APSRenderer(self.config, self.angle_grid, self.hitam, self.scene, self.prior, self.stages, self.device)
+        self.renderer = APSRenderer(
+            self.config, self.angle_grid, self.hitam, self.scene, self.prior, self.stages, self.device
+        )
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """``{"tensors": VM vectors, matrices and basis vectors, "networks": the decoders}``
@@ -319,7 +323,9 @@ class RFLSCM(LSCMModel):
         else:
             bins, valid = self._frozen_selection(pairs)
         if alpha > 0.0:
-            l2 = self._loss(self._columns(cells, bins, valid), self._renderer().fine_power(cells, xyz, bins, valid), pairs)
+            l2 = self._loss(
+                self._columns(cells, bins, valid), self._renderer().fine_power(cells, xyz, bins, valid), pairs
+            )
             total = total + alpha * l2["total"]
             out.update({"fine": l2["total"], **{k: v for k, v in l2.items() if k != "total"}})
         out["total"] = total
@@ -342,7 +348,9 @@ class RFLSCM(LSCMModel):
         todo = pairs[~known[pairs]].unique()
         if todo.numel():
             cells = d.cell_index[todo]
-            bins[todo], valid[todo] = self._renderer().expand(cells, self._renderer().coarse_power(cells, d.grid_xyz[todo]))
+            bins[todo], valid[todo] = self._renderer().expand(
+                cells, self._renderer().coarse_power(cells, d.grid_xyz[todo])
+            )
             known[todo] = True
         return bins[pairs], valid[pairs]
 
@@ -411,7 +419,9 @@ class RFLSCM(LSCMModel):
             raise RuntimeError("the model has not been fitted")
         R = self.renderer
         cells = self.scene.cell_index(cell_ids)
-        xyz = self.scene.grid_positions(grid_ids) if grid_xyz is None else np.asarray(grid_xyz, np.float64).reshape(-1, 3)
+        xyz = (
+            self.scene.grid_positions(grid_ids) if grid_xyz is None else np.asarray(grid_xyz, np.float64).reshape(-1, 3)
+        )
         keys = [(int(c), *np.round(p, 3).tolist()) for c, p in zip(cells, xyz)]
         first: dict[tuple, int] = {}
         for i, key in enumerate(keys):
@@ -479,8 +489,12 @@ class RFLSCM(LSCMModel):
             self._train.selection = None
 
 
-_REMOVED_OPTIONS = {("decoder", "grid_code_dim"): 0, ("decoder", "grid_code_neighbours"): None,
-                    ("render", "coherent"): True, ("hitam", "coarse_bins"): "block"}
+_REMOVED_OPTIONS = {
+    ("decoder", "grid_code_dim"): 0,
+    ("decoder", "grid_code_neighbours"): None,
+    ("render", "coherent"): True,
+    ("hitam", "coarse_bins"): "block",
+}
 """Options removed in issue 11 → the one value this version implements (None: any)."""
 
 
@@ -491,11 +505,17 @@ def _without_removed_options(config: dict[str, Any]) -> dict[str, Any]:
         if isinstance(config.get(section), dict) and key in config[section]:
             value = config[section].pop(key)
             if kept is not None and value != kept:
-                raise CheckpointError(f"the checkpoint uses `{section}.{key}: {value}`, an option this version no longer has.")
+                raise CheckpointError(
+                    f"the checkpoint uses `{section}.{key}: {value}`, an option this version no longer has."
+                )
     return config
 
 
-_OLD_KEYS = ((".delta_field.net.", ".fields."), (".delta_field.", ".fields.delta_vm."), (".feature_field.", ".fields.feature_vm."))
+_OLD_KEYS = (
+    (".delta_field.net.", ".fields."),
+    (".delta_field.", ".fields.delta_vm."),
+    (".feature_field.", ".fields.feature_vm."),
+)
 """Stage weight names before the field seam (issue 11) → now: NeRF²'s shared trunk, RF-LSCM's two VM tensors."""
 
 

@@ -123,7 +123,9 @@ class DecoderConfig:
             _positive(f"model.decoder.{name}", getattr(self, name), allow_zero=True)
         _positive("model.decoder.specular_voxel_m", self.specular_voxel_m)
         if any(p < 1 for p in self.specular_powers):
-            raise ConfigError(f"`model.decoder.specular_powers` must be positive integers (got {list(self.specular_powers)}).")
+            raise ConfigError(
+                f"`model.decoder.specular_powers` must be positive integers (got {list(self.specular_powers)})."
+            )
 
 
 @dataclass(frozen=True)
@@ -254,7 +256,9 @@ class TrainConfig:
             raise ConfigError(f"`train.val_beam_fraction` must be in [0, 1) (got {self.val_beam_fraction}).")
         for name, value in self.lr.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ConfigError(f"`train.lr.{name}` must be a number (got {value!r}; write 1.0e-3, not 1e-3, in YAML).")
+                raise ConfigError(
+                    f"`train.lr.{name}` must be a number (got {value!r}; write 1.0e-3, not 1e-3, in YAML)."
+                )
             _positive(f"train.lr.{name}", value)
 
 
@@ -291,9 +295,7 @@ def load_rflscm_config(
         elif Path(text).suffix.lower() in (".yaml", ".yml") or Path(text).exists():
             path = Path(text)
         else:
-            raise ConfigError(
-                f"unknown config {text!r}: give a preset ({', '.join(PRESETS)}) or a YAML file path."
-            )
+            raise ConfigError(f"unknown config {text!r}: give a preset ({', '.join(PRESETS)}) or a YAML file path.")
         data = load_yaml(path)
         try:
             return from_dict(cls, data)

@@ -103,14 +103,18 @@ class APSRenderer:
             xyz, _ = self.cells()
             frame, cfg = self.scene.frame, self.config
             parts = [
-                build_ray_samples(xyz[c], rays.directions, frame.num_samples, cfg.render.step_m, self.prior, cfg.prior.skip_below)
+                build_ray_samples(
+                    xyz[c], rays.directions, frame.num_samples, cfg.render.step_m, self.prior, cfg.prior.skip_below
+                )
                 for c in range(xyz.shape[0])
             ]
             rays.samples = RaySamples.concat(parts).to(self.device)
             rays.live = rays.samples.live_counts()
         return rays
 
-    def render(self, stage: str, kind: RayKind, cells: torch.Tensor, bins: torch.Tensor, grid_xyz: torch.Tensor) -> torch.Tensor:
+    def render(
+        self, stage: str, kind: RayKind, cells: torch.Tensor, bins: torch.Tensor, grid_xyz: torch.Tensor
+    ) -> torch.Tensor:
         """x̃ ``[Qn]`` (normalised) of rays (cell ``cells[Qn]``, direction ``bins[Qn]``) seen from ``grid_xyz [Qn, 3]``.
 
         Queries on the same ray share its fields; without gradients the work is chunked to
@@ -162,7 +166,9 @@ class APSRenderer:
         bins = torch.arange(self.hitam.num_coarse, device=self.device).expand(cells.numel(), -1)
         return self.power_on("coarse", "coarse", cells, grid_xyz, bins, torch.ones_like(bins, dtype=torch.bool))
 
-    def fine_power(self, cells: torch.Tensor, grid_xyz: torch.Tensor, bins: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    def fine_power(
+        self, cells: torch.Tensor, grid_xyz: torch.Tensor, bins: torch.Tensor, valid: torch.Tensor
+    ) -> torch.Tensor:
         """Refinement APS ``[B, K]`` at fine ``bins [B, K]`` (0 where not ``valid``)."""
         return self.power_on("fine", "fine", cells, grid_xyz, bins, valid)
 

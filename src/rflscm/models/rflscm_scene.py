@@ -92,7 +92,10 @@ def visible_bins(a_mw: torch.Tensor, min_gain_db: float | None) -> np.ndarray:
 
 def scene_box(scenario: Scenario, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned box ``(lo, hi)`` [m] holding the point cloud, the cells and the grids, plus a margin."""
-    parts = [scenario.cells[1][["x", "y", "z"]].to_numpy(np.float64), scenario.grids[["x", "y", "z"]].to_numpy(np.float64)]
+    parts = [
+        scenario.cells[1][["x", "y", "z"]].to_numpy(np.float64),
+        scenario.grids[["x", "y", "z"]].to_numpy(np.float64),
+    ]
     if scenario.point_cloud is not None and len(scenario.point_cloud.xyz):
         parts.append(scenario.point_cloud.xyz)
     pts = np.concatenate(parts)
@@ -176,7 +179,9 @@ def make_prior(cfg: RFLSCMConfig, scenario: Scenario, lo: np.ndarray, hi: np.nda
     return PointPrior(torch.from_numpy(density), torch.from_numpy(grid_lo), torch.from_numpy(grid_hi), threshold, beta)
 
 
-def make_surfaces(cfg: Any, scenario: Scenario, lo: np.ndarray, hi: np.ndarray, seed: int = 0) -> SurfaceOrientation | None:
+def make_surfaces(
+    cfg: Any, scenario: Scenario, lo: np.ndarray, hi: np.ndarray, seed: int = 0
+) -> SurfaceOrientation | None:
     """The scan's surface orientation for the decoder's specular cue; ``None`` when the decoder takes none
     (``decoder.specular_powers`` empty) or the scenario has no point cloud (the cue is then 0)."""
     cloud = scenario.point_cloud
@@ -190,7 +195,11 @@ def make_surfaces(cfg: Any, scenario: Scenario, lo: np.ndarray, hi: np.ndarray, 
 def surfaces_state(surfaces: SurfaceOrientation | None) -> dict[str, Any] | None:
     if surfaces is None:
         return None
-    return {"grid": torch.from_numpy(surfaces.grid_numpy()).half(), "box_lo": surfaces.box_lo.cpu().clone(), "box_hi": surfaces.box_hi.cpu().clone()}
+    return {
+        "grid": torch.from_numpy(surfaces.grid_numpy()).half(),
+        "box_lo": surfaces.box_lo.cpu().clone(),
+        "box_hi": surfaces.box_hi.cpu().clone(),
+    }
 
 
 def surfaces_from_state(state: dict[str, Any] | None) -> SurfaceOrientation | None:

@@ -91,7 +91,9 @@ def wnomp_config(config: str | Path | dict[str, Any] | WNOMPConfig | None) -> WN
     if isinstance(config, (str, Path)):
         path = Path(config)
         if path.suffix.lower() not in (".yaml", ".yml") and not path.is_file():
-            raise ConfigError(f"WNOMP config {str(config)!r} is neither a preset ({', '.join(PRESETS)}) nor a YAML file.")
+            raise ConfigError(
+                f"WNOMP config {str(config)!r} is neither a preset ({', '.join(PRESETS)}) nor a YAML file."
+            )
         data = load_yaml(path)
         try:
             return wnomp_config(data)
@@ -139,7 +141,9 @@ class WNOMPModel(LSCMModel):
         start = time.perf_counter()
         require_round1_reports(scenario, "WNOMP")
         pairs, rsrp_dbm, beams_of_cell = round1_problems(scenario)
-        threshold_mw = 10.0 ** (scenario.meta.rsrp_threshold_dbm / 10.0) if self.config.use_threshold_constraint else None
+        threshold_mw = (
+            10.0 ** (scenario.meta.rsrp_threshold_dbm / 10.0) if self.config.use_threshold_constraint else None
+        )
         cell_of_pair = pairs["cell_id"].to_numpy()
         matrices = CellMatrices(lambda cell: _stacked_sensing(scenario, cell, self.angle_grid, self.device))
         jobs = []
@@ -237,7 +241,10 @@ class WNOMPModel(LSCMModel):
     def from_checkpoint(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> WNOMPModel:
         model = cls(from_dict(WNOMPConfig, state["config"], prefix="model"), AngleGrid(), device)
         model._store(
-            state["cell_ids"].numpy(), state["grid_ids"].numpy(), state["indices"].numpy(), state["values"].double().numpy()
+            state["cell_ids"].numpy(),
+            state["grid_ids"].numpy(),
+            state["indices"].numpy(),
+            state["values"].double().numpy(),
         )
         return model
 
@@ -320,7 +327,14 @@ def solve_jobs(
         a = matrices.get(cell)
         r = torch.as_tensor(rsrp_mw, dtype=torch.float64, device=a.device)
         idx, val = wnomp_solve(
-            a, r, config.k_max, config.tolerance, config.weighting, threshold_mw, config.chunk_size, config.residual_floor,
+            a,
+            r,
+            config.k_max,
+            config.tolerance,
+            config.weighting,
+            threshold_mw,
+            config.chunk_size,
+            config.residual_floor,
             config.gain_prior,
         )
         matrices.release(cell)

@@ -60,7 +60,11 @@ def candidate_configs(base: WNOMPConfig | None = None) -> list[tuple[dict[str, A
 
 
 def select_wnomp(
-    scenario: Any, angle_grid: AngleGrid, fraction: float = 0.2, seed: int = 0, device: str = "cpu",
+    scenario: Any,
+    angle_grid: AngleGrid,
+    fraction: float = 0.2,
+    seed: int = 0,
+    device: str = "cpu",
     base: WNOMPConfig | None = None,
 ) -> tuple[WNOMPConfig, pd.DataFrame]:
     """The candidate with the lowest MAE on held-aside round-1 beams, and the table of every candidate

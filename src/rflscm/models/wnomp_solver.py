@@ -123,7 +123,9 @@ def spd_solve(gram: Tensor, rhs: Tensor) -> Tensor:
     return z
 
 
-def _add_best(gram: Tensor, rhs: Tensor, x: Tensor, passive: Tensor, tol: Tensor, check: Tensor) -> tuple[Tensor, Tensor]:
+def _add_best(
+    gram: Tensor, rhs: Tensor, x: Tensor, passive: Tensor, tol: Tensor, check: Tensor
+) -> tuple[Tensor, Tensor]:
     """Lawson–Hanson outer step: add the most violating index where ``check``; report finished problems."""
     grad = rhs - (gram @ x[:, :, None])[:, :, 0]
     cand = ~passive & (grad > tol)
@@ -194,9 +196,7 @@ def _residual(x: Tensor, cols: Tensor, rows: _Rows, ids: Tensor) -> tuple[Tensor
     return residual, violated
 
 
-def _solve_support(
-    a_t: Tensor, support: Tensor, rows: _Rows, ids: Tensor, x0: Tensor
-) -> tuple[Tensor, Tensor]:
+def _solve_support(a_t: Tensor, support: Tensor, rows: _Rows, ids: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
     """NNLS on the support; with the threshold constraint, semismooth-Newton passes on the hinge rows.
 
     Each pass treats the missing rows violated at the current iterate as targets at the threshold
@@ -222,7 +222,10 @@ def _solve_support(
     hinge = torch.zeros_like(hinge)  # first pass: observed rows only
     for _ in range(_THRESHOLD_PASSES if rows.omega_th is not None else 1):
         if rows.omega_th is not None and rows.target_th is not None:
-            w_eff, t_eff = torch.where(hinge, rows.omega_th[ids], omega), torch.where(hinge, rows.target_th[ids], target)
+            w_eff, t_eff = (
+                torch.where(hinge, rows.omega_th[ids], omega),
+                torch.where(hinge, rows.target_th[ids], target),
+            )
         else:
             w_eff, t_eff = omega, target
         b = cols * w_eff[:, None, :]  # weighted columns [Pa, k, M]
@@ -295,8 +298,16 @@ def wnomp_solve(
 
 
 def _solve_chunk(
-    a32: Tensor, a32_sq: Tensor, a_t: Tensor, r: Tensor, k_max: int, tolerance: float, weighting: str,
-    threshold_mw: float | None, residual_floor: float, gain_prior: float,
+    a32: Tensor,
+    a32_sq: Tensor,
+    a_t: Tensor,
+    r: Tensor,
+    k_max: int,
+    tolerance: float,
+    weighting: str,
+    threshold_mw: float | None,
+    residual_floor: float,
+    gain_prior: float,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """WNOMP on one chunk in normalised units; returns ``(indices, x_normalised, r_ref)``."""
     num = r.shape[0]

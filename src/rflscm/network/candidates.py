@@ -61,18 +61,14 @@ def measured_grids(scenario: Any, cell_id: int) -> np.ndarray:
     return np.unique(m["grid_id"].to_numpy()[sel])
 
 
-def cache_aps(
-    model: Any, scenario: Any, chunk: int = 1024, on_cell: Any = None
-) -> ApsCache:
+def cache_aps(model: Any, scenario: Any, chunk: int = 1024, on_cell: Any = None) -> ApsCache:
     """Render the APS of every (cell, grid) pair once (field models) or of the measured pairs (models
     without unseen grids, i.e. WNOMP) and keep the bins any grid uses.
 
     ``on_cell(done, total)`` is called after each cell (progress bars).
     """
     cell_ids, grid_ids = scenario.cell_ids(), scenario.grid_ids()
-    xyz_all = (
-        scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
-    )
+    xyz_all = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
     known = np.zeros((len(cell_ids), len(grid_ids)), dtype=bool)
     bins, aps = [], []
     for i, cell in enumerate(cell_ids):
@@ -110,9 +106,7 @@ class CellSensing:
                  options: CellOptions) -> None:  # fmt: skip
         self.antenna = scenario.antenna(cell_id, base_round)
         self.wavelength_m = scenario.wavelength_m(cell_id)
-        self.codebooks = [
-            scenario.meta.codebooks[name] for name in options.values["ssb_codebook"]
-        ]
+        self.codebooks = [scenario.meta.codebooks[name] for name in options.values["ssb_codebook"]]
         self.max_beams = max(cb.num_beams for cb in self.codebooks)
         self.directions = directions
         self.options = options
@@ -122,9 +116,7 @@ class CellSensing:
         """Unit-power weights ``[num_beams, num_elements]`` (complex64, electrical tilt included)."""
         key = (i_book, i_elec)
         if key not in self._weights:
-            antenna = dataclasses.replace(
-                self.antenna, elec_tilt_deg=self.options.values["elec_tilt_deg"][i_elec]
-            )
+            antenna = dataclasses.replace(self.antenna, elec_tilt_deg=self.options.values["elec_tilt_deg"][i_elec])
             w = beam_weights(
                 self.codebooks[i_book],
                 antenna,
@@ -151,12 +143,8 @@ class CellSensing:
             rot = torch.as_tensor(antenna.rotation(), dtype=torch.float32)
             local = self.directions @ rot  # world → antenna frame    [num_kept, 3]
             gain = antenna.element.gain_lin(local) * antenna.tx_power_mw  # [num_kept]
-            steer = steering_vectors(
-                antenna.array, local, self.wavelength_m
-            )  # [num_kept, num_elements]
-            weights = [
-                self._beam_weights(indices[k][0], indices[k][1]) for k in members
-            ]
+            steer = steering_vectors(antenna.array, local, self.wavelength_m)  # [num_kept, num_elements]
+            weights = [self._beam_weights(indices[k][0], indices[k][1]) for k in members]
             response = steer @ torch.cat(weights).T  # [num_kept, sum of beams]
             power = (response.real.square() + response.imag.square()) * gain[:, None]
             start = 0
@@ -170,7 +158,5 @@ def best_beam_power(aps: torch.Tensor, matrices: torch.Tensor) -> torch.Tensor:
     """Best-beam RSRP ``[num_candidates, num_grids]`` [mW]: max over beams of A x for APS
     ``[num_grids, num_kept]`` and candidate matrices ``[num_candidates, num_beams, num_kept]``."""
     c, b, n = matrices.shape
-    power = (
-        aps @ matrices.reshape(c * b, n).T
-    )  # [num_grids, num_candidates * num_beams]
+    power = aps @ matrices.reshape(c * b, n).T  # [num_grids, num_candidates * num_beams]
     return power.reshape(-1, c, b).amax(dim=-1).T.contiguous()

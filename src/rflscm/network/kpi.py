@@ -63,15 +63,11 @@ class KPIConfig:
 
     def __post_init__(self) -> None:
         if self.overlap_servers < 2:
-            raise ConfigError(
-                f"`overlap_servers` must be >= 2 (got {self.overlap_servers})."
-            )
+            raise ConfigError(f"`overlap_servers` must be >= 2 (got {self.overlap_servers}).")
         if self.overlap_db <= 0:
             raise ConfigError(f"`overlap_db` must be > 0 dB (got {self.overlap_db}).")
         if not 0.0 <= self.noise_figure_db <= 30.0:
-            raise ConfigError(
-                f"`noise_figure_db` must lie in 0…30 dB (got {self.noise_figure_db})."
-            )
+            raise ConfigError(f"`noise_figure_db` must lie in 0…30 dB (got {self.noise_figure_db}).")
 
     def noise_per_re_dbm(self, freq_hz: float) -> float:
         """Thermal noise per SSB resource element [dBm]: −174 + 10 log10(SCS) + NF."""
@@ -86,9 +82,7 @@ class KPIConfig:
             carriers[f"{f / 1e9:g} GHz"] = {
                 "scs_khz": self.scs_hz.get(f, default_scs_hz(f)) / 1e3,
                 "noise_per_re_dbm": round(noise_re, 2),
-                "noise_ssb_bw_dbm": round(
-                    noise_re + 10.0 * math.log10(SSB_SUBCARRIERS), 2
-                ),
+                "noise_ssb_bw_dbm": round(noise_re + 10.0 * math.log10(SSB_SUBCARRIERS), 2),
             }
         return {
             "threshold_dbm": self.threshold_dbm,
@@ -137,9 +131,7 @@ def carrier_samples(
         ``best_mw``, ``sinr_lin``, ``overlap`` (bool), ``server`` (cell position) ``[..., num_grids]``
         and ``valid`` ``[num_grids]`` (grids with at least one known pair).
     """
-    power_mw = torch.where(
-        power_mw >= SIGNAL_FLOOR_MW, power_mw, torch.zeros_like(power_mw)
-    )
+    power_mw = torch.where(power_mw >= SIGNAL_FLOOR_MW, power_mw, torch.zeros_like(power_mw))
     if known is not None:
         power_mw = power_mw * known.to(power_mw.dtype)
     best_mw, server = power_mw.max(dim=-2)
@@ -148,11 +140,7 @@ def carrier_samples(
     near = power_mw >= best_mw.unsqueeze(-2) * 10.0 ** (-cfg.overlap_db / 10.0)
     overlap = (near & (power_mw > 0)).sum(dim=-2) >= cfg.overlap_servers
     num_grids = power_mw.shape[-1]
-    valid = (
-        known.any(dim=0)
-        if known is not None
-        else torch.ones(num_grids, dtype=torch.bool, device=power_mw.device)
-    )
+    valid = known.any(dim=0) if known is not None else torch.ones(num_grids, dtype=torch.bool, device=power_mw.device)
     return {
         "best_mw": best_mw,
         "sinr_lin": sinr,
@@ -180,13 +168,9 @@ def area_kpis(
     overlap = torch.cat([s["overlap"][..., s["valid"]] for s in samples], dim=-1)
     n = best.shape[-1]
     if n == 0:
-        raise ConfigError(
-            "no (grid, carrier) sample has a known pair; the network KPIs are undefined."
-        )
+        raise ConfigError("no (grid, carrier) sample has a known pair; the network KPIs are undefined.")
     rsrp_dbm = 10.0 * torch.log10(best.clamp_min(MIN_POWER_MW))
-    sinr_db = (10.0 * torch.log10(sinr.clamp_min(MIN_POWER_MW))).clamp_min(
-        SINR_FLOOR_DB
-    )
+    sinr_db = (10.0 * torch.log10(sinr.clamp_min(MIN_POWER_MW))).clamp_min(SINR_FLOOR_DB)
     lo, hi = SINR_CLIP_DB
     return {
         "coverage": (rsrp_dbm >= cfg.threshold_dbm).to(best.dtype).mean(dim=-1),
@@ -217,16 +201,12 @@ def network_kpis(
     """
     cfg = cfg or KPIConfig()
     power = torch.as_tensor(np.asarray(power_mw), dtype=torch.float64)
-    known_t = (
-        None if known is None else torch.as_tensor(np.asarray(known), dtype=torch.bool)
-    )
+    known_t = None if known is None else torch.as_tensor(np.asarray(known), dtype=torch.bool)
     per_carrier, samples = {}, []
     for freq, rows in carrier_groups(cell_freq_hz):
         idx = torch.as_tensor(rows)
         noise = 10.0 ** (cfg.noise_per_re_dbm(freq) / 10.0)
-        s = carrier_samples(
-            power[idx], noise, None if known_t is None else known_t[idx], cfg
-        )
+        s = carrier_samples(power[idx], noise, None if known_t is None else known_t[idx], cfg)
         samples.append(s)
         per_carrier[f"{freq / 1e9:g} GHz"] = _floats(area_kpis([s], cfg))
     out: dict[str, Any] = dict(_floats(area_kpis(samples, cfg)))
@@ -247,11 +227,7 @@ def grid_maps(
     maps = []
     for freq, rows in carrier_groups(cell_freq_hz):
         noise = 10.0 ** (cfg.noise_per_re_dbm(freq) / 10.0)
-        k = (
-            None
-            if known is None
-            else torch.as_tensor(np.asarray(known)[rows], dtype=torch.bool)
-        )
+        k = None if known is None else torch.as_tensor(np.asarray(known)[rows], dtype=torch.bool)
         s = carrier_samples(power[torch.as_tensor(rows)], noise, k, cfg)
         valid = s["valid"].numpy()
         server = np.where(valid, np.asarray(cell_ids)[rows][s["server"].numpy()], -1)

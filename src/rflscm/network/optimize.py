@@ -64,15 +64,11 @@ class OptimizeResult:
         }  # fmt: skip
         if self.truth is not None:
             out["truth"] = self.truth
-            out["true_gain"] = {
-                k: self.truth["after"][k] - self.truth["before"][k] for k in keys
-            }
+            out["true_gain"] = {k: self.truth["after"][k] - self.truth["before"][k] for k in keys}
         return out
 
 
-def load_or_cache_aps(
-    model: Any, scenario: Any, path: Path | None, on_cell: Any = None
-) -> tuple[ApsCache, float]:
+def load_or_cache_aps(model: Any, scenario: Any, path: Path | None, on_cell: Any = None) -> tuple[ApsCache, float]:
     """The model's APS cache (read from ``path`` when it holds this model's cache, else rendered and written)."""
     t0 = time.perf_counter()
     if path is not None and Path(path).is_file():
@@ -114,22 +110,16 @@ def run_optimize(
         on_step: called after every cell visit (cd) or generation (de), for progress bars.
     """
     if method not in METHODS:
-        raise ConfigError(
-            f"--method must be one of {', '.join(METHODS)} (got {method!r})."
-        )
+        raise ConfigError(f"--method must be one of {', '.join(METHODS)} (got {method!r}).")
     kpi = kpi or KPIConfig()
     truth_verifier = _verifier(scenario, verify)
     t0 = time.perf_counter()
-    ev = NetworkEvaluator(
-        scenario, base_round, cache, space, kpi, objective, sinr_weight
-    )
+    ev = NetworkEvaluator(scenario, base_round, cache, space, kpi, objective, sinr_weight)
     before_kpis, power_before = ev.kpis(), ev.power.double().numpy().copy()
     if method == "cd":
         result = coordinate_descent(ev, restarts=restarts, seed=seed, on_cell=on_step)
     else:
-        result = differential_evolution(
-            ev, time_budget_s=time_budget_s, seed=seed, on_generation=on_step
-        )
+        result = differential_evolution(ev, time_budget_s=time_budget_s, seed=seed, on_generation=on_step)
     after_kpis, power_after = ev.kpis(), ev.power.double().numpy().copy()
     timings = {"search_s": time.perf_counter() - t0}
     base = scenario.cells[base_round]
@@ -162,10 +152,7 @@ def _verifier(scenario: Any, verify: bool | None) -> Any:
 
     if verify is False:
         return None
-    has_truth = (
-        scenario.meta.truth is not None
-        and (scenario.root / scenario.meta.truth).is_dir()
-    )
+    has_truth = scenario.meta.truth is not None and (scenario.root / scenario.meta.truth).is_dir()
     if verify is None and not has_truth:
         return None
     return TruthVerifier(scenario)  # raises DataError without truth/
@@ -182,24 +169,16 @@ def write_round(scenario: Any, cells: pd.DataFrame, out_dir: Path) -> tuple[Path
     rnd = max(scenario.rounds()) + 1
     meta = scenario.meta.to_dict()
     root = Path(scenario.root).resolve()
-    meta["rounds"] = {
-        r: {"cells": str(root / f["cells"])} for r, f in meta["rounds"].items()
-    }
+    meta["rounds"] = {r: {"cells": str(root / f["cells"])} for r, f in meta["rounds"].items()}
     meta["rounds"][rnd] = {"cells": f"cells_round{rnd}.parquet"}
     for key in ("grids", "measurements", "point_cloud", "truth"):
         if meta[key] is not None:
             meta[key] = str(root / meta[key])
-    meta["description"] = (
-        meta.get("description") or ""
-    ) + f" Round {rnd}: written by `rflscm optimize`."
+    meta["description"] = (meta.get("description") or "") + f" Round {rnd}: written by `rflscm optimize`."
     cols = [c for c in cells.columns]
-    write_table(
-        cells[cols].reset_index(drop=True), folder / f"cells_round{rnd}.parquet"
-    )
+    write_table(cells[cols].reset_index(drop=True), folder / f"cells_round{rnd}.parquet")
     (folder / "scenario.yaml").write_text(
-        yaml.safe_dump(
-            _plain(meta), sort_keys=False, allow_unicode=True, default_flow_style=None
-        )
+        yaml.safe_dump(_plain(meta), sort_keys=False, allow_unicode=True, default_flow_style=None)
     )
     return folder, rnd
 
@@ -216,8 +195,6 @@ def _plain(value: Any) -> Any:
 
 def replace_cells(scenario: Any, rnd: int, cells: pd.DataFrame) -> Any:
     """``scenario`` with round ``rnd`` set to ``cells`` (in memory)."""
-    new = dataclasses.replace(
-        scenario, cells={**scenario.cells, rnd: cells.reset_index(drop=True)}
-    )
+    new = dataclasses.replace(scenario, cells={**scenario.cells, rnd: cells.reset_index(drop=True)})
     new._elements.update(scenario._elements)
     return new

@@ -120,9 +120,7 @@ def _maps(result: Any, scenario: Any, out_dir: Path, kpi: KPIConfig) -> list[str
             for col, (values, title, cmap, lim) in enumerate(panels):
                 ax = axes[row, col]
                 if lim is None:
-                    codes = np.searchsorted(
-                        cell_ids, values[v]
-                    )  # the same colour per cell before and after
+                    codes = np.searchsorted(cell_ids, values[v])  # the same colour per cell before and after
                     sc = ax.scatter(
                         xy[v, 0],
                         xy[v, 1],

@@ -36,9 +36,7 @@ OBJECTIVES = ("coverage", "sinr", "weighted")
 Config = list[tuple[int, ...]]
 
 
-def objective_value(
-    kpis: dict[str, torch.Tensor], objective: str, sinr_weight: float = 0.1
-) -> torch.Tensor:
+def objective_value(kpis: dict[str, torch.Tensor], objective: str, sinr_weight: float = 0.1) -> torch.Tensor:
     """The scalar to maximise ``[...]`` from :func:`~rflscm.network.kpi.area_kpis` output."""
     if objective == "coverage":
         return kpis["coverage"] + 0.4 / kpis["num_samples"] * kpis["margin"]
@@ -46,9 +44,7 @@ def objective_value(
         return kpis["mean_sinr_clipped_db"]
     if objective == "weighted":
         return kpis["coverage"] + sinr_weight * kpis["mean_sinr_clipped_db"] / 10.0
-    raise ConfigError(
-        f"--objective must be one of {', '.join(OBJECTIVES)} (got {objective!r})."
-    )
+    raise ConfigError(f"--objective must be one of {', '.join(OBJECTIVES)} (got {objective!r}).")
 
 
 class NetworkEvaluator:
@@ -72,9 +68,7 @@ class NetworkEvaluator:
         self.group_of = np.zeros(len(cache.cell_ids), dtype=np.int64)
         for g, (_, rows) in enumerate(self.groups):
             self.group_of[rows] = g
-        self.noise_mw = [
-            10.0 ** (kpi.noise_per_re_dbm(f) / 10.0) for f, _ in self.groups
-        ]
+        self.noise_mw = [10.0 ** (kpi.noise_per_re_dbm(f) / 10.0) for f, _ in self.groups]
         self.known = torch.as_tensor(cache.known)
         self.all_known = bool(cache.known.all())
         dirs = cache.angle_grid.directions(dtype=torch.float32)
@@ -83,13 +77,8 @@ class NetworkEvaluator:
         self.base: Config = [c.current for c in space.cells]
         self.evaluations = 0
         self.config: Config = list(self.base)
-        self.power = torch.stack(
-            [self._powers(i, [idx])[0] for i, idx in enumerate(self.base)]
-        )
-        self._samples = [
-            self._carrier(g, self.power[rows])
-            for g, (_, rows) in enumerate(self.groups)
-        ]
+        self.power = torch.stack([self._powers(i, [idx])[0] for i, idx in enumerate(self.base)])
+        self._samples = [self._carrier(g, self.power[rows]) for g, (_, rows) in enumerate(self.groups)]
 
     # --- building blocks -----------------------------------------------------------------------------
     def _powers(self, pos: int, indices: Config) -> torch.Tensor:
@@ -112,30 +101,19 @@ class NetworkEvaluator:
         cand = self._powers(pos, indices)  # [C, num_grids]
         g = int(self.group_of[pos])
         rows = self.groups[g][1]
-        power = (
-            self.power[torch.as_tensor(rows)].unsqueeze(0).repeat(len(indices), 1, 1)
-        )  # [C, n_g, grids]
+        power = self.power[torch.as_tensor(rows)].unsqueeze(0).repeat(len(indices), 1, 1)  # [C, n_g, grids]
         power[:, int(np.flatnonzero(rows == pos)[0])] = cand
-        samples = [
-            s if k != g else self._carrier(g, power)
-            for k, s in enumerate(self._samples)
-        ]
+        samples = [s if k != g else self._carrier(g, power) for k, s in enumerate(self._samples)]
         samples = [_expand(s, len(indices)) for s in samples]
         kpis = area_kpis(samples, self.kpi, percentile=False)  # no objective uses the percentile
         return objective_value(kpis, self.objective, self.sinr_weight)
 
-    def set_cell(
-        self, pos: int, index: tuple[int, ...], power: torch.Tensor | None = None
-    ) -> None:
+    def set_cell(self, pos: int, index: tuple[int, ...], power: torch.Tensor | None = None) -> None:
         """Move cell ``pos`` to ``index`` (``power [num_grids]`` if already known)."""
         self.config[pos] = tuple(index)
-        self.power[pos] = (
-            self._powers(pos, [tuple(index)])[0] if power is None else power
-        )
+        self.power[pos] = self._powers(pos, [tuple(index)])[0] if power is None else power
         g = int(self.group_of[pos])
-        self._samples[g] = self._carrier(
-            g, self.power[torch.as_tensor(self.groups[g][1])]
-        )
+        self._samples[g] = self._carrier(g, self.power[torch.as_tensor(self.groups[g][1])])
 
     def set_config(self, config: Config) -> None:
         for pos, index in enumerate(config):
@@ -144,11 +122,7 @@ class NetworkEvaluator:
 
     def score(self) -> float:
         """Objective of the current configuration."""
-        return float(
-            objective_value(
-                area_kpis(self._samples, self.kpi), self.objective, self.sinr_weight
-            )
-        )
+        return float(objective_value(area_kpis(self._samples, self.kpi), self.objective, self.sinr_weight))
 
     def kpis(self) -> dict[str, Any]:
         """Network KPIs (pooled and per carrier) of the current configuration."""
@@ -180,9 +154,7 @@ def _line(ev: NetworkEvaluator, pos: int, var: int) -> Config:
     """Candidates of cell ``pos`` along variable ``var`` that respect the changed-cells limit."""
     current = ev.config[pos]
     opts = ev.space.cells[pos]
-    cands = [
-        (*current[:var], k, *current[var + 1 :]) for k in range(opts.sizes()[var])
-    ]
+    cands = [(*current[:var], k, *current[var + 1 :]) for k in range(opts.sizes()[var])]
     limit = ev.space.max_changed_cells
     if limit is not None and current == ev.base[pos] and ev.num_changed() >= limit:
         cands = [c for c in cands if c == ev.base[pos]]
@@ -228,10 +200,7 @@ def coordinate_descent(
                         continue
                     scores = ev.score_cell(pos, cands)
                     k = int(torch.argmax(scores))
-                    if (
-                        float(scores[k]) > current + 1e-12
-                        and cands[k] != ev.config[pos]
-                    ):
+                    if float(scores[k]) > current + 1e-12 and cands[k] != ev.config[pos]:
                         ev.set_cell(pos, cands[k])
                         current, improved = ev.score(), True
                 if on_cell is not None:
@@ -253,20 +222,12 @@ def coordinate_descent(
     )
 
 
-def _perturb(
-    ev: NetworkEvaluator, rng: np.random.Generator, free: list[int], n: int
-) -> None:
+def _perturb(ev: NetworkEvaluator, rng: np.random.Generator, free: list[int], n: int) -> None:
     for pos in rng.permutation(free)[:n]:
         limit = ev.space.max_changed_cells
-        if (
-            limit is not None
-            and ev.config[pos] == ev.base[pos]
-            and ev.num_changed() >= limit
-        ):
+        if limit is not None and ev.config[pos] == ev.base[pos] and ev.num_changed() >= limit:
             continue
-        ev.set_cell(
-            int(pos), tuple(int(rng.integers(s)) for s in ev.space.cells[pos].sizes())
-        )
+        ev.set_cell(int(pos), tuple(int(rng.integers(s)) for s in ev.space.cells[pos].sizes()))
 
 
 def differential_evolution(
@@ -282,9 +243,7 @@ def differential_evolution(
     from scipy.optimize import differential_evolution as scipy_de
 
     free = ev.space.free_cells()
-    sizes = np.array(
-        [ev.space.cells[p].sizes() for p in free], dtype=np.float64
-    )  # [free, 4]
+    sizes = np.array([ev.space.cells[p].sizes() for p in free], dtype=np.float64)  # [free, 4]
     t0 = time.perf_counter()
     ev.set_config(ev.base)
     base_obj = ev.score()
@@ -297,10 +256,7 @@ def differential_evolution(
         changed = 0
         for p, row in zip(free, idx):
             cand = tuple(int(v) for v in row)
-            if cand != ev.base[p] and (
-                ev.space.max_changed_cells is None
-                or changed < ev.space.max_changed_cells
-            ):
+            if cand != ev.base[p] and (ev.space.max_changed_cells is None or changed < ev.space.max_changed_cells):
                 config[p], changed = cand, changed + 1
         return config
 

@@ -82,14 +82,10 @@ def load_spec(path: str | Path | None) -> dict[str, Any]:
 
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(
-            f"--search {path}: file not found; give a YAML search spec (see `rflscm optimize --help`)."
-        )
+        raise ConfigError(f"--search {path}: file not found; give a YAML search spec (see `rflscm optimize --help`).")
     spec = load_yaml(path) or {}
     if not isinstance(spec, dict):
-        raise ConfigError(
-            f"{path.name}: a search spec is a mapping with keys {', '.join(sorted(_TOP_KEYS))}."
-        )
+        raise ConfigError(f"{path.name}: a search spec is a mapping with keys {', '.join(sorted(_TOP_KEYS))}.")
     return spec
 
 
@@ -99,9 +95,7 @@ def parse_range(text: str, option: str) -> dict[str, float]:
     try:
         values = [float(p) for p in parts]
     except ValueError:
-        raise ConfigError(
-            f"{option} takes MIN:MAX[:STEP] in degrees (got {text!r})."
-        ) from None
+        raise ConfigError(f"{option} takes MIN:MAX[:STEP] in degrees (got {text!r}).") from None
     if len(values) not in (2, 3):
         raise ConfigError(f"{option} takes MIN:MAX[:STEP] in degrees (got {text!r}).")
     return {
@@ -111,9 +105,7 @@ def parse_range(text: str, option: str) -> dict[str, float]:
     }
 
 
-def build_space(
-    spec: dict[str, Any], cells: pd.DataFrame, codebooks: dict[str, Any]
-) -> SearchSpace:
+def build_space(spec: dict[str, Any], cells: pd.DataFrame, codebooks: dict[str, Any]) -> SearchSpace:
     """Per-cell options from a spec mapping and the base round's cells table.
 
     Raises:
@@ -122,9 +114,7 @@ def build_space(
     """
     unknown = set(spec) - _TOP_KEYS
     if unknown:
-        raise ConfigError(
-            f"search spec: unknown key(s) {sorted(unknown)}; valid: {', '.join(sorted(_TOP_KEYS))}."
-        )
+        raise ConfigError(f"search spec: unknown key(s) {sorted(unknown)}; valid: {', '.join(sorted(_TOP_KEYS))}.")
     ids = cells["cell_id"].to_numpy()
     valid_ids = ", ".join(str(i) for i in ids)
     defaults = _cell_spec(spec.get("defaults") or {}, "defaults")
@@ -133,25 +123,17 @@ def build_space(
         raise ConfigError("search spec `cells` must map cell ids to option overrides.")
     overrides = {}
     for key, value in per_cell.items():
-        overrides[_cell_id(key, ids, valid_ids, "cells")] = _cell_spec(
-            value or {}, f"cells.{key}"
-        )
+        overrides[_cell_id(key, ids, valid_ids, "cells")] = _cell_spec(value or {}, f"cells.{key}")
     frozen = {_cell_id(c, ids, valid_ids, "frozen") for c in (spec.get("frozen") or [])}
-    ssb_books = [
-        name for name, cb in codebooks.items() if getattr(cb, "type", None) == "ssb"
-    ]
+    ssb_books = [name for name, cb in codebooks.items() if getattr(cb, "type", None) == "ssb"]
     out = []
     for row in cells.itertuples(index=False):
         cell_id = int(row.cell_id)
         opts = {**defaults, **overrides.get(cell_id, {})}
         out.append(_cell_options(row, opts, ssb_books, cell_id in frozen))
     max_changed = spec.get("max_changed_cells")
-    if max_changed is not None and (
-        not isinstance(max_changed, int) or max_changed < 1
-    ):
-        raise ConfigError(
-            f"search spec `max_changed_cells` must be a whole number >= 1 or null (got {max_changed!r})."
-        )
+    if max_changed is not None and (not isinstance(max_changed, int) or max_changed < 1):
+        raise ConfigError(f"search spec `max_changed_cells` must be a whole number >= 1 or null (got {max_changed!r}).")
     space = SearchSpace(tuple(out), max_changed)
     if not space.free_cells():
         raise ConfigError(
@@ -165,21 +147,15 @@ def _cell_id(value: Any, ids: np.ndarray, valid: str, where: str) -> int:
     try:
         cell = int(value)
     except (TypeError, ValueError):
-        raise ConfigError(
-            f"search spec `{where}`: {value!r} is not a cell id; cells: {valid}."
-        ) from None
+        raise ConfigError(f"search spec `{where}`: {value!r} is not a cell id; cells: {valid}.") from None
     if cell not in ids:
-        raise ConfigError(
-            f"search spec `{where}`: unknown cell {cell}; cells of the scenario: {valid}."
-        )
+        raise ConfigError(f"search spec `{where}`: unknown cell {cell}; cells of the scenario: {valid}.")
     return cell
 
 
 def _cell_spec(spec: Any, where: str) -> dict[str, Any]:
     if not isinstance(spec, dict):
-        raise ConfigError(
-            f"search spec `{where}` must be a mapping with keys {', '.join(sorted(_CELL_KEYS))}."
-        )
+        raise ConfigError(f"search spec `{where}` must be a mapping with keys {', '.join(sorted(_CELL_KEYS))}.")
     unknown = set(spec) - _CELL_KEYS
     if unknown:
         raise ConfigError(
@@ -192,27 +168,17 @@ def _cell_spec(spec: Any, where: str) -> dict[str, Any]:
 
 
 def _range(value: Any, where: str) -> dict[str, float]:
-    if (
-        not isinstance(value, dict)
-        or not {"min", "max"} <= set(value)
-        or set(value) - {"min", "max", "step"}
-    ):
-        raise ConfigError(
-            f"search spec `{where}` must be {{min: A, max: B, step: S}} in degrees (got {value!r})."
-        )
+    if not isinstance(value, dict) or not {"min", "max"} <= set(value) or set(value) - {"min", "max", "step"}:
+        raise ConfigError(f"search spec `{where}` must be {{min: A, max: B, step: S}} in degrees (got {value!r}).")
     lo, hi, step = (
         float(value["min"]),
         float(value["max"]),
         float(value.get("step", 1.0)),
     )
     if lo > hi:
-        raise ConfigError(
-            f"search spec `{where}`: range reversed (min {lo:g} > max {hi:g}); swap the bounds."
-        )
+        raise ConfigError(f"search spec `{where}`: range reversed (min {lo:g} > max {hi:g}); swap the bounds.")
     if step <= 0:
-        raise ConfigError(
-            f"search spec `{where}`: step must be > 0 degrees (got {step:g})."
-        )
+        raise ConfigError(f"search spec `{where}`: step must be > 0 degrees (got {step:g}).")
     return {"min": lo, "max": hi, "step": step}
 
 
@@ -221,14 +187,10 @@ def _values(rng: dict[str, float], current: float) -> tuple[tuple[float, ...], i
     n = int(np.floor((rng["max"] - rng["min"]) / rng["step"] + 1e-9)) + 1
     values = np.round(rng["min"] + rng["step"] * np.arange(n), 6)
     values = np.unique(np.append(values, round(float(current), 6)))
-    return tuple(float(v) for v in values), int(
-        np.flatnonzero(values == round(float(current), 6))[0]
-    )
+    return tuple(float(v) for v in values), int(np.flatnonzero(values == round(float(current), 6))[0])
 
 
-def _cell_options(
-    row: Any, opts: dict[str, Any], ssb_books: list[str], frozen: bool
-) -> CellOptions:
+def _cell_options(row: Any, opts: dict[str, Any], ssb_books: list[str], frozen: bool) -> CellOptions:
     cell_id = int(row.cell_id)
     current_book = str(row.ssb_codebook)
     if frozen:
@@ -247,21 +209,14 @@ def _cell_options(
                 f"SSB codebooks: {', '.join(ssb_books) or 'none'}."
             )
     books = [b for b in ssb_books if b in books or b == current_book]
-    elec, i_elec = _values(
-        opts.get("elec_tilt_deg", DEFAULT_RANGES["elec_tilt_deg"]), row.elec_tilt_deg
-    )
-    mech, i_mech = _values(
-        opts.get("mech_tilt_deg", DEFAULT_RANGES["mech_tilt_deg"]), row.mech_tilt_deg
-    )
-    offsets, i_az = _values(
-        opts.get("azimuth_offset_deg", DEFAULT_RANGES["azimuth_offset_deg"]), 0.0
-    )
+    elec, i_elec = _values(opts.get("elec_tilt_deg", DEFAULT_RANGES["elec_tilt_deg"]), row.elec_tilt_deg)
+    mech, i_mech = _values(opts.get("mech_tilt_deg", DEFAULT_RANGES["mech_tilt_deg"]), row.mech_tilt_deg)
+    offsets, i_az = _values(opts.get("azimuth_offset_deg", DEFAULT_RANGES["azimuth_offset_deg"]), 0.0)
     azimuths = tuple(float(np.round((row.azimuth_deg + o) % 360.0, 6)) for o in offsets)
     for name, vals in (("elec_tilt_deg", elec), ("mech_tilt_deg", mech)):
         if min(vals) < -90 or max(vals) > 90:
             raise ConfigError(
-                f"search spec: cell {cell_id}: `{name}` values must lie in −90…90° "
-                f"(got {min(vals)}…{max(vals)})."
+                f"search spec: cell {cell_id}: `{name}` values must lie in −90…90° (got {min(vals)}…{max(vals)})."
             )
     values = {
         "ssb_codebook": tuple(books),
@@ -269,14 +224,10 @@ def _cell_options(
         "mech_tilt_deg": mech,
         "azimuth_deg": azimuths,
     }
-    return CellOptions(
-        cell_id, values, (books.index(current_book), i_elec, i_mech, i_az)
-    )
+    return CellOptions(cell_id, values, (books.index(current_book), i_elec, i_mech, i_az))
 
 
-def cells_table(
-    base: pd.DataFrame, space: SearchSpace, config: list[tuple[int, ...]]
-) -> pd.DataFrame:
+def cells_table(base: pd.DataFrame, space: SearchSpace, config: list[tuple[int, ...]]) -> pd.DataFrame:
     """The base round's cells table with every cell set to ``config`` (one index tuple per cell)."""
     table = base.copy()
     for pos, (opts, index) in enumerate(zip(space.cells, config)):
@@ -299,7 +250,5 @@ def changes_table(base: pd.DataFrame, new: pd.DataFrame) -> pd.DataFrame:
         for v in VARIABLES:
             row[f"{v}_before"], row[f"{v}_after"] = b[v], n[v]
         rows.append(row)
-    columns = ["cell_id", "site_id", "freq_hz"] + [
-        f"{v}_{w}" for v in VARIABLES for w in ("before", "after")
-    ]
+    columns = ["cell_id", "site_id", "freq_hz"] + [f"{v}_{w}" for v in VARIABLES for w in ("before", "after")]
     return pd.DataFrame(rows, columns=columns)

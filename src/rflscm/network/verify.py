@@ -36,9 +36,7 @@ class TruthVerifier:
         folder = truth_folder(scenario)
         ppg = scenario.meta.simulation.get("points_per_grid")
         if ppg is None:
-            raise DataError(
-                "scenario.yaml `simulation.points_per_grid` is missing; the true RSRP cannot be computed."
-            )
+            raise DataError("scenario.yaml `simulation.points_per_grid` is missing; the true RSRP cannot be computed.")
         paths = read_table(folder / PATHS_FILE).astype({"power_lin": "float64", "aod_el_rad": "float64",
                                                         "aod_az_rad": "float64"})  # fmt: skip
         self.scenario = scenario
@@ -63,22 +61,14 @@ class TruthVerifier:
             row = scen.cell_row(int(cell_id), 0)
             key = (int(cell_id), *(row[v] for v in VARIABLES))
             if key not in self._cache:
-                sub = self.groups.get(
-                    (int(row["site_id"]), float(row["freq_hz"])), self.empty
-                )
+                sub = self.groups.get((int(row["site_id"]), float(row["freq_hz"])), self.empty)
                 rsrp = path_rsrp_mw(sub, scen.antenna(int(cell_id), 0), scen.codebook(int(cell_id), "ssb", 0),
                                     scen.wavelength_m(int(cell_id)), grid_ids, self.points_per_grid)  # fmt: skip
-                self._cache[key] = (
-                    rsrp.max(axis=1) if rsrp.shape[1] else np.zeros(len(grid_ids))
-                )
+                self._cache[key] = rsrp.max(axis=1) if rsrp.shape[1] else np.zeros(len(grid_ids))
             out[i] = self._cache[key]
         return out
 
-    def kpis(
-        self, cells: pd.DataFrame, kpi: KPIConfig, known: np.ndarray | None = None
-    ) -> dict[str, Any]:
+    def kpis(self, cells: pd.DataFrame, kpi: KPIConfig, known: np.ndarray | None = None) -> dict[str, Any]:
         """True network KPIs of ``cells`` (on the pairs ``known`` when given, e.g. WNOMP's)."""
         freqs = cells.sort_values("cell_id")["freq_hz"].to_numpy()
-        return network_kpis(
-            self.best_power(cells.sort_values("cell_id")), freqs, kpi, known
-        )
+        return network_kpis(self.best_power(cells.sort_values("cell_id")), freqs, kpi, known)

@@ -52,7 +52,9 @@ def transmittance(
     return torch.exp(torch.complex(cum.real.clamp(max=max_log_gain), cum.imag))
 
 
-def accumulate_power(contrib: torch.Tensor, target: torch.Tensor, num_targets: int, coherent: bool = True) -> torch.Tensor:
+def accumulate_power(
+    contrib: torch.Tensor, target: torch.Tensor, num_targets: int, coherent: bool = True
+) -> torch.Tensor:
     """x̃ ``[num_targets]`` from complex ``contrib [J]`` of targets ``target [J]``: |Σ contributions|² (the
     paper's eq. (18), ``coherent``) or Σ |contribution|² (``coherent=False``: the scatterers of one angular
     bin add in power, as the binned paths of a measured or ray-traced APS do)."""

@@ -22,7 +22,9 @@ def num_samples_for(box_lo: torch.Tensor, box_hi: torch.Tensor, origins: torch.T
     return int(math.ceil(float(reach) / step_m)) + 1
 
 
-def ray_points(origins: torch.Tensor, directions: torch.Tensor, sample_index: torch.Tensor, step_m: float) -> torch.Tensor:
+def ray_points(
+    origins: torch.Tensor, directions: torch.Tensor, sample_index: torch.Tensor, step_m: float
+) -> torch.Tensor:
     """Positions ``[..., 3]`` [m] of samples ``sample_index [...]`` on rays ``origins, directions [..., 3]``."""
     return origins + (sample_index.to(directions.dtype) * step_m)[..., None] * directions
 
@@ -59,9 +61,7 @@ class RaySamples:
         """Rays of ``parts`` one after another."""
         shifts = torch.cumsum(torch.tensor([0] + [p.index.numel() for p in parts[:-1]]), 0)
         offsets = [parts[0].offsets[:1]] + [p.offsets[1:] + int(s) for p, s in zip(parts, shifts)]
-        return RaySamples(
-            torch.cat(offsets), torch.cat([p.index for p in parts]), torch.cat([p.phi for p in parts])
-        )
+        return RaySamples(torch.cat(offsets), torch.cat([p.index for p in parts]), torch.cat([p.phi for p in parts]))
 
 
 def select_samples(phi: torch.Tensor, threshold: float = 0.0, halo: int = 1) -> RaySamples:

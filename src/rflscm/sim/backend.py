@@ -73,9 +73,7 @@ class SceneBackend(Protocol):
         """Boolean ``[num_points]``: True where ``xy`` is not inside a building."""
         ...
 
-    def sample_point_cloud(
-        self, points_per_m2: float, noise_std_m: float, seed: int
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def sample_point_cloud(self, points_per_m2: float, noise_std_m: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """A LiDAR-like scan of the scene surfaces.
 
         Returns ``(xyz [num_points, 3] float64, classification [num_points] uint8)``
@@ -83,9 +81,7 @@ class SceneBackend(Protocol):
         """
         ...
 
-    def trace(
-        self, tx_position: np.ndarray, rx_positions: np.ndarray, freq_hz: float, seed: int
-    ) -> pd.DataFrame:
+    def trace(self, tx_position: np.ndarray, rx_positions: np.ndarray, freq_hz: float, seed: int) -> pd.DataFrame:
         """Trace paths from ``tx_position[3]`` to every row of ``rx_positions[num_rx, 3]``
         at carrier ``freq_hz`` [Hz]; returns a path table (see module docstring)."""
         ...

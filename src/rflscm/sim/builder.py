@@ -318,7 +318,11 @@ def receiver_points(backend: SceneBackend, grids: pd.DataFrame, config: Simulati
 
 # ---- tracing ---------------------------------------------------------------------------------------------
 def trace_all(
-    backend: SceneBackend, sites: np.ndarray, rx: np.ndarray, grid_ids: np.ndarray, config: SimulationConfig,
+    backend: SceneBackend,
+    sites: np.ndarray,
+    rx: np.ndarray,
+    grid_ids: np.ndarray,
+    config: SimulationConfig,
     progress: bool = True,
 ) -> tuple[pd.DataFrame, dict[str, float]]:
     """One trace per (site, carrier) → the paths table of ``truth/paths.parquet`` and timing facts."""
@@ -359,8 +363,12 @@ def trace_all(
 
 # ---- the whole build ---------------------------------------------------------------------------------------
 def build_scenario(
-    backend: SceneBackend, config: SimulationConfig, out_dir: str | Path, progress: bool = True,
-    scene: str | None = None, stats: dict[str, float] | None = None,
+    backend: SceneBackend,
+    config: SimulationConfig,
+    out_dir: str | Path,
+    progress: bool = True,
+    scene: str | None = None,
+    stats: dict[str, float] | None = None,
 ) -> Path:
     """Simulate a scenario with ground truth into ``out_dir`` (created; must be empty or absent).
 
@@ -374,7 +382,9 @@ def build_scenario(
         raise ConfigError(f"{out}: folder exists and is not empty; choose another --out or pass --force.")
     rng = np.random.default_rng(config.seed)
     centre = area_center(backend, config)
-    scan = PointCloud(*backend.sample_point_cloud(config.point_cloud_points_per_m2, config.point_cloud_noise_m, config.seed))
+    scan = PointCloud(
+        *backend.sample_point_cloud(config.point_cloud_points_per_m2, config.point_cloud_noise_m, config.seed)
+    )
     sites = choose_sites(backend, config, rng, scan)
     cells1 = make_cells(sites, config, rng)
     cells2, changes = make_round2(cells1, config, rng)
@@ -417,7 +427,9 @@ def write_measurements(
     samples = None
     if config.measurements == "field":
         field_rng = np.random.default_rng([config.seed, 12])
-        true_rsrp, noiseless, samples = field_rsrp(scenario, paths, config.points_per_grid, config.field_model, field_rng)
+        true_rsrp, noiseless, samples = field_rsrp(
+            scenario, paths, config.points_per_grid, config.field_model, field_rng
+        )
         measurements = report(true_rsrp, scenario, config.field_model, rng)
         meta = dataclasses.replace(scenario.meta, reporting=config.field_model.reporting())
         scenario = dataclasses.replace(scenario, meta=meta)
@@ -434,7 +446,11 @@ def write_measurements(
 
 
 def write_sample_truth(
-    folder: Path, scenario: Scenario, paths: pd.DataFrame, samples: pd.DataFrame, points_per_grid: int,
+    folder: Path,
+    scenario: Scenario,
+    paths: pd.DataFrame,
+    samples: pd.DataFrame,
+    points_per_grid: int,
     angle_grid: AngleGrid,
 ) -> None:
     """``truth/samples.parquet`` (the UE samples of every round) and ``truth/aps_samples.parquet``: the true
@@ -491,8 +507,11 @@ def _provenance(backend, config: SimulationConfig, scene, changes) -> dict[str, 
         "seed": config.seed,
         "angle_grid": grid.to_dict(),
         "measurements": config.measurements,
-        "noise": {"sigma_db": config.noise_sigma_db, "quantization_db": config.quantization_db,
-                  "threshold_dbm": config.rsrp_threshold_dbm},
+        "noise": {
+            "sigma_db": config.noise_sigma_db,
+            "quantization_db": config.quantization_db,
+            "threshold_dbm": config.rsrp_threshold_dbm,
+        },
         **({"field": to_dict(config.field_model)} if config.measurements == "field" else {}),
         "points_per_grid": config.points_per_grid,
         "round2_changes": changes,

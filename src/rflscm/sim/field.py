@@ -101,7 +101,10 @@ class FieldConfig:
             (self.ssb_detection in ("sinr", "threshold"), "`field.ssb_detection` must be sinr or threshold"),
             (self.ssb_top_n is None or self.ssb_top_n >= 1, "`field.ssb_top_n` must be >= 1 or null"),
             (self.csi_top_n is None or self.csi_top_n >= 1, "`field.csi_top_n` must be >= 1 or null"),
-            (self.drive_routes >= 0 and self.drive_route_grids >= 1, "`field.drive_routes` >= 0, `drive_route_grids` >= 1"),
+            (
+                self.drive_routes >= 0 and self.drive_route_grids >= 1,
+                "`field.drive_routes` >= 0, `drive_route_grids` >= 1",
+            ),
         ]
         for ok, message in checks:
             if not ok:
@@ -296,7 +299,9 @@ def field_rsrp(
                     measured.append(_long(zeros, rnd, int(cell_id), grid_ids, beam_type))
                     expected.append(measured[-1])
                     continue
-                q = path_beam_power(groups[key], antenna, book, scenario.wavelength_m(int(cell_id)), gains[int(cell_id)])
+                q = path_beam_power(
+                    groups[key], antenna, book, scenario.wavelength_m(int(cell_id)), gains[int(cell_id)]
+                )
                 mean = sums[key].mean @ q
                 faded = sums[key].faded(q) if config.fading else mean
                 measured.append(_long(to_dbm(faded), rnd, int(cell_id), grid_ids, beam_type))
@@ -304,9 +309,7 @@ def field_rsrp(
     return pd.concat(measured, ignore_index=True), pd.concat(expected, ignore_index=True), samples
 
 
-def report(
-    true_rsrp: pd.DataFrame, scenario, config: FieldConfig, rng: np.random.Generator
-) -> pd.DataFrame:
+def report(true_rsrp: pd.DataFrame, scenario, config: FieldConfig, rng: np.random.Generator) -> pd.DataFrame:
     """The measurements table from the true grid RSRP (long form, as :func:`field_rsrp` returns it).
 
     Report error and threshold (:class:`MeasurementModel`, one normal draw per row in table order, as

@@ -56,9 +56,7 @@ def trim_paths(paths: pd.DataFrame, floor_db: float | None) -> pd.DataFrame:
     return paths[keep].reset_index(drop=True)
 
 
-def bin_paths(
-    paths: pd.DataFrame, angle_grid: AngleGrid, points_per_grid: pd.Series | int
-) -> pd.DataFrame:
+def bin_paths(paths: pd.DataFrame, angle_grid: AngleGrid, points_per_grid: pd.Series | int) -> pd.DataFrame:
     """True APS of one (site, carrier): path power binned by AoD, averaged over each grid's points.
 
     Args:
@@ -205,8 +203,13 @@ def _long(rsrp_dbm: np.ndarray, rnd: int, cell_id: int, grid_ids: np.ndarray, be
 
 
 def write_truth(
-    folder: Path, scenario: Scenario, paths: pd.DataFrame, noiseless: pd.DataFrame, points_per_grid: pd.Series,
-    angle_grid: AngleGrid, rsrp_floor_dbm: float | None = None,
+    folder: Path,
+    scenario: Scenario,
+    paths: pd.DataFrame,
+    noiseless: pd.DataFrame,
+    points_per_grid: pd.Series,
+    angle_grid: AngleGrid,
+    rsrp_floor_dbm: float | None = None,
 ) -> None:
     """Write ``truth/``: the paths, the true APS of every (cell, grid) on ``angle_grid``, and the
     noiseless RSRP rounded to 0.01 dB — without the (round, cell, grid) pairs whose strongest beam

@@ -437,8 +437,11 @@ class ProceduralCity:
         for j in range(order):
             images.append(w.mirror(images[-1], seqs[:, j]))
         last = seqs[:, -1]
-        front = w.sign[last][:, None] * (rx[None, :, 0] * (w.axis[last] == 0)[:, None]
-                                         + rx[None, :, 1] * (w.axis[last] == 1)[:, None] - w.coord[last][:, None])
+        front = w.sign[last][:, None] * (
+            rx[None, :, 0] * (w.axis[last] == 0)[:, None]
+            + rx[None, :, 1] * (w.axis[last] == 1)[:, None]
+            - w.coord[last][:, None]
+        )
         s_idx, r_idx = np.nonzero(front > 1e-6)  # candidates: receiver in front of the last wall
         hops = [rx[r_idx]]  # hops from the receiver backwards: P_order+1 = rx, P_order, …, P_1
         for j in range(order - 1, -1, -1):

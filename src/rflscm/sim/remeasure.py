@@ -30,7 +30,9 @@ def trace_config(source: str | Path) -> SimulationConfig:
     scenario = load_scenario(source)
     recorded = scenario.meta.simulation.get("config")
     if not isinstance(recorded, dict):
-        raise DataError(f"{source}: scenario.yaml has no `simulation.config`; only `rflscm simulate` output can be re-measured.")
+        raise DataError(
+            f"{source}: scenario.yaml has no `simulation.config`; only `rflscm simulate` output can be re-measured."
+        )
     return from_dict(SimulationConfig, recorded, prefix="simulation.config")
 
 

@@ -141,9 +141,7 @@ def _cells_under(p: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, ...
     return tri_id, iy, ix
 
 
-def _rasterize_max_z(
-    tri: np.ndarray, origin: np.ndarray, cell_m: float, shape: tuple[int, int]
-) -> np.ndarray:
+def _rasterize_max_z(tri: np.ndarray, origin: np.ndarray, cell_m: float, shape: tuple[int, int]) -> np.ndarray:
     """Highest surface ``z`` [m] over each cell centre, ``[ny, nx]``; NaN where none.
 
     ``tri`` ``[num_tri, 3, 3]``; cell ``(iy, ix)`` is centred at ``origin + cell_m * (ix, iy)``.
@@ -238,9 +236,7 @@ def _as_points(array: np.ndarray, dim: int, what: str) -> np.ndarray:
     """``array`` as finite float64 ``[num_points, dim]``, or a DataError naming ``what``."""
     points = np.asarray(array, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != dim or not np.isfinite(points).all():
-        raise DataError(
-            f"`{what}` must be a finite array of shape [num_points, {dim}] (got {points.shape})."
-        )
+        raise DataError(f"`{what}` must be a finite array of shape [num_points, {dim}] (got {points.shape}).")
     return points
 
 
@@ -285,8 +281,12 @@ class SionnaSceneBackend:
         roof_margin_m: float = 3.0,
         device: str = "cpu",
     ) -> None:
-        counts = dict(samples_per_src=samples_per_src, rx_batch_size=rx_batch_size,
-                      max_num_paths_per_src=max_num_paths_per_src, max_depth=max_depth)
+        counts = dict(
+            samples_per_src=samples_per_src,
+            rx_batch_size=rx_batch_size,
+            max_num_paths_per_src=max_num_paths_per_src,
+            max_depth=max_depth,
+        )
         for key, value in counts.items():
             if int(value) != value or value < 1:
                 raise ConfigError(f"`{key}` must be a positive integer (got {value!r}).")
@@ -296,18 +296,21 @@ class SionnaSceneBackend:
         path = _scene_file(scene)
         self.name = path.stem if scene.endswith(".xml") else scene
         self._solver_args = dict(
-            max_depth=int(max_depth), samples_per_src=int(samples_per_src),
-            max_num_paths_per_src=int(max_num_paths_per_src), los=True,
-            specular_reflection=True, diffuse_reflection=bool(diffuse_reflection),
-            refraction=bool(refraction), diffraction=bool(diffraction), synthetic_array=True,
+            max_depth=int(max_depth),
+            samples_per_src=int(samples_per_src),
+            max_num_paths_per_src=int(max_num_paths_per_src),
+            los=True,
+            specular_reflection=True,
+            diffuse_reflection=bool(diffuse_reflection),
+            refraction=bool(refraction),
+            diffraction=bool(diffraction),
+            synthetic_array=True,
         )
         self.rx_batch_size = int(rx_batch_size)
         if deterministic:
             lanes = int(max_depth) * int(samples_per_src)
             self.rx_batch_size = min(self.rx_batch_size, max(1, _DETERMINISTIC_LANES // lanes))
-        self._scene = self._rt.load_scene(
-            str(path), merge_shapes=True, merge_shapes_exclude_regex=_GROUND_REGEX
-        )
+        self._scene = self._rt.load_scene(str(path), merge_shapes=True, merge_shapes_exclude_regex=_GROUND_REGEX)
         # Isotropic elements; vertical at the site, V + H at the receiver so that
         # summing |a|^2 over the receive ports collects the power of every polarization.
         iso = dict(num_rows=1, num_cols=1, pattern="iso")
@@ -359,9 +362,7 @@ class SionnaSceneBackend:
         rc = np.clip(rc, 0, shape - 1)
         return ~(self._building[rc[0], rc[1]] & inside)
 
-    def sample_point_cloud(
-        self, points_per_m2: float, noise_std_m: float, seed: int
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def sample_point_cloud(self, points_per_m2: float, noise_std_m: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """Area-weighted random points on the mesh surfaces plus Gaussian noise [m].
 
         Surfaces no scanner can see are skipped: ground inside building footprints
@@ -376,9 +377,7 @@ class SionnaSceneBackend:
         normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         area = 0.5 * np.linalg.norm(normal, axis=1)
         centroid = tri.mean(axis=1)
-        floor = (np.abs(normal[:, 2]) > 0.9 * 2 * area) & (
-            centroid[:, 2] < self.ground_height(centroid[:, :2]) + 0.5
-        )
+        floor = (np.abs(normal[:, 2]) > 0.9 * 2 * area) & (centroid[:, 2] < self.ground_height(centroid[:, :2]) + 0.5)
         area = np.where(floor & ~self._tri_ground, 0.0, area)
         t = rng.choice(len(tri), size=int(round(points_per_m2 * area.sum())), p=area / area.sum())
         u, v = rng.random((2, len(t)))

@@ -32,6 +32,7 @@ from rflscm.sim.paths import APS_FILE, PATHS_FILE, RSRP_FILE, true_aps_table, wr
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
 
+
 class TrueAPS:
     """The true APS of (cell, grid) pairs, dense on request.
 
@@ -70,7 +71,10 @@ class TrueAPS:
         return pos
 
     def aps(
-        self, cell_ids: np.ndarray, grid_ids: np.ndarray, dtype: torch.dtype = torch.float32,
+        self,
+        cell_ids: np.ndarray,
+        grid_ids: np.ndarray,
+        dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
     ) -> torch.Tensor:
         """Dense APS ``[num_pairs, num_bins]`` (linear path gain) of pairs ``cell_ids[i]``, ``grid_ids[i]``."""
@@ -134,13 +138,21 @@ def load_true_aps(scenario: Scenario, angle_grid: AngleGrid | None = None, sampl
         table = table[(table["round"] == sample_round).to_numpy()].drop(columns="round")
         return TrueAPS(table, native, scenario.cells[1]["cell_id"].to_numpy(), scenario.grid_ids())
     return read_true_aps(
-        truth_folder(scenario), scenario.cells[1], scenario.grid_ids(), simulation_angle_grid(simulation),
-        simulation.get("points_per_grid"), angle_grid,
+        truth_folder(scenario),
+        scenario.cells[1],
+        scenario.grid_ids(),
+        simulation_angle_grid(simulation),
+        simulation.get("points_per_grid"),
+        angle_grid,
     )
 
 
 def read_true_aps(
-    folder: Path, cells: pd.DataFrame, grid_ids: np.ndarray, native: AngleGrid, points_per_grid: int | None,
+    folder: Path,
+    cells: pd.DataFrame,
+    grid_ids: np.ndarray,
+    native: AngleGrid,
+    points_per_grid: int | None,
     angle_grid: AngleGrid | None = None,
 ) -> TrueAPS:
     """Read ``folder/aps.parquet`` (binned on ``native``), or re-bin ``folder/paths.parquet`` onto

@@ -105,7 +105,9 @@ def fit(
 class Trainer:
     """Adam over named parameter groups, exponential learning-rate decay, periodic validation and checkpoints."""
 
-    def __init__(self, model: Trainable, cfg: TrainConfig, train_pairs: torch.Tensor, groups: torch.Tensor | None = None) -> None:
+    def __init__(
+        self, model: Trainable, cfg: TrainConfig, train_pairs: torch.Tensor, groups: torch.Tensor | None = None
+    ) -> None:
         self.model, self.cfg = model, cfg
         self.train_pairs = train_pairs.cpu()
         self.groups = groups.cpu() if groups is not None else None

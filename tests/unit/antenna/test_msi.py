@@ -17,7 +17,10 @@ def test_shipped_sample_msi_loads_and_peaks_at_boresight():
 
 def test_msi_round_trip(tmp_path):
     e = MeasuredElement(
-        max_gain_dbi=17.15, horizontal_loss_db=tuple(np.linspace(0, 20, 8)), vertical_loss_db=(0.0, 3.0, 30.0, 3.0), name="x"
+        max_gain_dbi=17.15,
+        horizontal_loss_db=tuple(np.linspace(0, 20, 8)),
+        vertical_loss_db=(0.0, 3.0, 30.0, 3.0),
+        name="x",
     )
     write_msi(e, tmp_path / "a.msi", frequency_mhz=3500)
     back = read_msi(tmp_path / "a.msi")

@@ -75,8 +75,10 @@ def test_save_load_round_trip(tiny: Scenario, tmp_path: Path, table_format: str)
     assert back == tiny
     assert back.fingerprint() == tiny.fingerprint()
     suffix = ".parquet" if table_format == "parquet" else ".csv"
-    assert back.meta.grids == f"grids{suffix}" and back.meta.rounds == {1: f"cells_round1{suffix}",
-                                                                          2: f"cells_round2{suffix}"}
+    assert back.meta.grids == f"grids{suffix}" and back.meta.rounds == {
+        1: f"cells_round1{suffix}",
+        2: f"cells_round2{suffix}",
+    }
     assert back.meta.simulation == tiny.meta.simulation
     # a second generation is identical too (the written form is a fixed point)
     again = load_scenario(save_scenario(back, tmp_path / "again", table_format="csv"))

@@ -67,7 +67,9 @@ def test_mae_recomputed_independently_and_wnomp_beats_trivial(adjust_run, sim_sc
     for beam_type in ("ssb", "csi"):
         pairs, measured = sim_scenario.rsrp_table(2, beam_type)
         seen = set(zip(model.cell_ids, model.grid_ids))
-        keep = np.array([(c, g) in seen for c, g in zip(pairs["cell_id"], pairs["grid_id"])]) & np.isfinite(measured).any(1)
+        keep = np.array([(c, g) in seen for c, g in zip(pairs["cell_id"], pairs["grid_id"])]) & np.isfinite(
+            measured
+        ).any(1)
         predicted = model.predict_rsrp(sim_scenario, 2, beam_type, pairs[keep].reset_index(drop=True))
         err = np.abs(predicted - measured[keep][:, : predicted.shape[1]])
         assert metrics["mae_db"][beam_type]["all"] == pytest.approx(np.nanmean(err))

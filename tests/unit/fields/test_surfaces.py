@@ -38,4 +38,6 @@ def test_specularity_is_squared_cosine_to_the_normal() -> None:
     # a tilted plane: T = n nᵀ for n = (1, 1, 0)/√2, components in (xx, yy, zz, xy, xz, yz) order
     tilted = torch.tensor([[0.5, 0.5, 0.0, 0.5, 0.0, 0.0]])
     assert torch.allclose(specularity(tilted, h[2:]), torch.tensor([0.0]), atol=1e-6)
-    assert torch.allclose(specularity(tilted, torch.nn.functional.normalize(torch.tensor([[1.0, 1, 0]]), dim=-1)), torch.tensor([1.0]))
+    assert torch.allclose(
+        specularity(tilted, torch.nn.functional.normalize(torch.tensor([[1.0, 1, 0]]), dim=-1)), torch.tensor([1.0])
+    )

@@ -53,7 +53,7 @@ def test_upsampling_keeps_values_at_grid_points() -> None:
     after = field(points).detach()
     assert torch.allclose(before, after, atol=1e-5)
     # and the new tensor is the linear interpolant: a midpoint is the mean of its neighbours along x
-    mid = (points[:1] + torch.tensor([[5.0, 0.0, 0.0]]))  # half an old cell (old spacing 10 m along x)
+    mid = points[:1] + torch.tensor([[5.0, 0.0, 0.0]])  # half an old cell (old spacing 10 m along x)
     ends = torch.cat([points[:1], points[:1] + torch.tensor([[10.0, 0.0, 0.0]])])
     assert torch.allclose(field(mid).detach()[0], field(ends).detach().mean(0), atol=1e-5)
 

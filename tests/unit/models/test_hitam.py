@@ -64,7 +64,12 @@ def test_block_columns_make_spread_power_consistent() -> None:
     a = torch.rand(3, GRID.num_bins, dtype=torch.float64)
     x_coarse = torch.rand(9, dtype=torch.float64)
     share = h.valid / h.valid.sum(-1, keepdim=True)
-    x_fine = scatter_fine((x_coarse[:, None] * share).reshape(1, -1).double(), h.children.reshape(1, -1), torch.ones(1, 81, dtype=torch.bool), GRID.num_bins)[0]
+    x_fine = scatter_fine(
+        (x_coarse[:, None] * share).reshape(1, -1).double(),
+        h.children.reshape(1, -1),
+        torch.ones(1, 81, dtype=torch.bool),
+        GRID.num_bins,
+    )[0]
     assert torch.allclose(h.coarse_columns(a) @ x_coarse, a @ x_fine)
 
 
@@ -75,5 +80,7 @@ def test_alpha_schedule() -> None:
 
 
 def test_scatter_fine_ignores_invalid_slots() -> None:
-    out = scatter_fine(torch.tensor([[1.0, 2.0, 3.0]]), torch.tensor([[4, 0, 2]]), torch.tensor([[True, False, True]]), 6)
+    out = scatter_fine(
+        torch.tensor([[1.0, 2.0, 3.0]]), torch.tensor([[4, 0, 2]]), torch.tensor([[True, False, True]]), 6
+    )
     assert out.tolist() == [[0.0, 0.0, 3.0, 0.0, 1.0, 0.0]]

@@ -119,7 +119,9 @@ def test_gradient_reaches_every_parameter(scenario) -> None:
         names = [n for n, p in model.stages.named_parameters() if p.grad is None or not bool(p.grad.abs().sum() > 0)]
         assert not names, f"no gradient reaches {names} (hitam={hitam})"
         assert set(model.parameter_groups()) == {"networks"}
-        assert sum(p.numel() for p in model.parameter_groups()["networks"]) == sum(p.numel() for p in model.stages.parameters())
+        assert sum(p.numel() for p in model.parameter_groups()["networks"]) == sum(
+            p.numel() for p in model.stages.parameters()
+        )
 
 
 def test_tiny_scenario_loss_decreases(scenario) -> None:

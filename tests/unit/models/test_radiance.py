@@ -26,7 +26,9 @@ def make_stage(inputs: str = "offset+grid") -> RadianceStage:
 def rays_for(n: int) -> RayBatch:
     g = torch.Generator().manual_seed(1)
     d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
-    return RayBatch(torch.zeros(n, 3) + torch.tensor([0.0, 0.0, 20.0]), d, torch.full((n,), 0.1), torch.full((n,), 0.05))
+    return RayBatch(
+        torch.zeros(n, 3) + torch.tensor([0.0, 0.0, 20.0]), d, torch.full((n,), 0.1), torch.full((n,), 0.05)
+    )
 
 
 def test_shared_rays_equal_separate_rays() -> None:
@@ -38,7 +40,9 @@ def test_shared_rays_equal_separate_rays() -> None:
     shared = stage(rays, gather_samples(samples, torch.arange(3)), Queries(torch.tensor([0, 0, 2, 1]), grids))
     # the same four queries with one private copy of the ray each
     copies = torch.tensor([0, 0, 2, 1])
-    separate_rays = RayBatch(rays.origin[copies], rays.direction[copies], rays.wavelength_m[copies], rays.radius_rad[copies])
+    separate_rays = RayBatch(
+        rays.origin[copies], rays.direction[copies], rays.wavelength_m[copies], rays.radius_rad[copies]
+    )
     separate = stage(separate_rays, gather_samples(samples, copies), Queries(torch.arange(4), grids))
     assert torch.allclose(shared, separate, rtol=1e-5, atol=1e-12)
     assert shared[0] != shared[1]  # same ray, different grids
@@ -65,7 +69,10 @@ def test_early_termination_drops_only_negligible_samples() -> None:
             p.mul_(6.0)
     phi = torch.rand(3, 12, generator=torch.Generator().manual_seed(3))
     samples = select_samples(phi)
-    rays, queries = rays_for(3), Queries(torch.tensor([0, 1, 2]), torch.tensor([[10.0, 5.0, 1.5], [-20.0, 7.0, 1.5], [3.0, -30.0, 1.5]]))
+    rays, queries = (
+        rays_for(3),
+        Queries(torch.tensor([0, 1, 2]), torch.tensor([[10.0, 5.0, 1.5], [-20.0, 7.0, 1.5], [3.0, -30.0, 1.5]])),
+    )
     full_cfg = dataclasses.replace(stage.render_cfg, min_weight=0.0)
     stage.render_cfg = full_cfg
     evals0 = stage.decoder_evals

@@ -29,7 +29,14 @@ def tiny_config(**sections) -> dict:
         "decoder": {"hidden": 16},
         "render": {"step_m": 8.0},
         "hitam": {"top_k": 3, "warmup_steps": 4, "ramp_steps": 2},
-        "train": {"steps": 8, "batch_pairs": 4, "pairs_per_cell": 2, "val_pairs": 2, "val_every": 4, "checkpoint_every": 4},
+        "train": {
+            "steps": 8,
+            "batch_pairs": 4,
+            "pairs_per_cell": 2,
+            "val_pairs": 2,
+            "val_every": 4,
+            "checkpoint_every": 4,
+        },
     }
     for name, values in sections.items():
         cfg[name] = {**cfg.get(name, {}), **values}
@@ -76,7 +83,13 @@ def test_gradients_reach_every_parameter(scenario) -> None:
 def test_loss_falls_by_a_large_factor(scenario) -> None:
     """Full batches of the 6 pairs (the tiny data drops strong beams at random, so no missing-beam penalty)."""
     cfg = tiny_config(
-        train={"steps": 150, "val_every": 50, "batch_pairs": 6, "pairs_per_cell": 3, "lr": {"tensors": 0.01, "networks": 0.01}},
+        train={
+            "steps": 150,
+            "val_every": 50,
+            "batch_pairs": 6,
+            "pairs_per_cell": 3,
+            "lr": {"tensors": 0.01, "networks": 0.01},
+        },
         hitam={"warmup_steps": 60, "ramp_steps": 20},
         loss={"missing_penalty": 0.0},
     )
@@ -106,7 +119,13 @@ def test_resume_continues_exactly(scenario, tmp_path) -> None:
                                 checkpoint_path=ckpt, resume=True)  # fmt: skip
     assert resumed == reference[4:]
     with pytest.raises(CheckpointError, match="another config"):
-        fit(RFLSCM.build(tiny_config(decoder={"hidden": 8}), GRID), scenario, progress=False, checkpoint_path=ckpt, resume=True)
+        fit(
+            RFLSCM.build(tiny_config(decoder={"hidden": 8}), GRID),
+            scenario,
+            progress=False,
+            checkpoint_path=ckpt,
+            resume=True,
+        )
 
 
 def test_save_load_round_trip_and_contract(scenario, tmp_path) -> None:

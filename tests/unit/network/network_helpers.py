@@ -44,20 +44,11 @@ def pencil_scenario(root: Path) -> Path:
     return root
 
 
-def single_bin_cache(
-    scenario, el_deg: float, az_ccw_east_deg: float, power: float
-) -> ApsCache:
+def single_bin_cache(scenario, el_deg: float, az_ccw_east_deg: float, power: float) -> ApsCache:
     """An APS cache where every (cell, grid) pair has one path of gain ``power`` at one direction."""
     el, az = GRID.bin_angles()
-    n = int(
-        np.argmin(
-            np.abs(np.rad2deg(el) - el_deg) + np.abs(np.rad2deg(az) - az_ccw_east_deg)
-        )
-    )
-    assert (
-        abs(np.rad2deg(el[n]) - el_deg) < 1e-6
-        and abs(np.rad2deg(az[n]) - az_ccw_east_deg) < 1e-6
-    )
+    n = int(np.argmin(np.abs(np.rad2deg(el) - el_deg) + np.abs(np.rad2deg(az) - az_ccw_east_deg)))
+    assert abs(np.rad2deg(el[n]) - el_deg) < 1e-6 and abs(np.rad2deg(az[n]) - az_ccw_east_deg) < 1e-6
     cells, grids = scenario.cell_ids(), scenario.grid_ids()
     aps = [torch.full((len(grids), 1), power) for _ in cells]
     return ApsCache(cells, grids, [np.array([n]) for _ in cells], aps, np.ones((len(cells), len(grids)), bool),

@@ -39,9 +39,7 @@ def test_candidate_matrices_equal_scenario_sensing(scen) -> None:
         config = [c.current for c in space.cells]
         config[pos] = index
         table = cells_table(scen.cells[1], space, config)
-        ref = replace_cells(scen, 9, table).sensing(12, "ssb", GRID, round=9)[
-            :, bins
-        ]  # [beams, bins]
+        ref = replace_cells(scen, 9, table).sensing(12, "ssb", GRID, round=9)[:, bins]  # [beams, bins]
         nb = ref.shape[0]
         torch.testing.assert_close(got[k, :nb], ref, rtol=2e-4, atol=1e-12)
         assert torch.all(got[k, nb:] == 0)
@@ -63,9 +61,7 @@ def test_search_finds_the_obvious_tilt(scen) -> None:
     chosen = space.cells[0].config(result.config[0])
     assert chosen["mech_tilt_deg"] == 12.0
     assert result.objective > result.base_objective
-    assert (
-        ev.num_changed() == 1 and result.config[1] == space.cells[1].current
-    )  # cell 12 frozen
+    assert ev.num_changed() == 1 and result.config[1] == space.cells[1].current  # cell 12 frozen
 
 
 def _brute_force(ev: NetworkEvaluator, pos: int) -> tuple[float, tuple[int, ...]]:
@@ -81,17 +77,13 @@ def test_coordinate_descent_reaches_the_brute_force_optimum(scen) -> None:
                                   "elec_tilt_deg": {"min": 0, "max": 0},
                                   "azimuth_offset_deg": {"min": -30, "max": 30, "step": 5},
                                   "ssb_codebooks": ["pencil"]})  # fmt: skip
-    cache = single_bin_cache(
-        scen, -8.0, 45.0, 1e-15
-    )  # 15° off the present azimuth, 8° down
+    cache = single_bin_cache(scen, -8.0, 45.0, 1e-15)  # 15° off the present azimuth, 8° down
     ev = NetworkEvaluator(scen, 1, cache, space, KPIConfig(), "sinr")
     best, _ = _brute_force(ev, 0)
     result = coordinate_descent(ev, restarts=2)
     assert result.objective == pytest.approx(best, abs=1e-6)
     values = space.cells[0].config(result.config[0])
-    assert (
-        values["mech_tilt_deg"] == 8.0 and values["azimuth_deg"] == 45.0
-    )  # 60° − 15°: 45° from north
+    assert values["mech_tilt_deg"] == 8.0 and values["azimuth_deg"] == 45.0  # 60° − 15°: 45° from north
 
 
 def test_differential_evolution_improves_and_respects_the_space(scen) -> None:

@@ -20,14 +20,9 @@ def test_defaults_are_a_planners(scen) -> None:
     space = build_space({}, scen.cells[1], scen.meta.codebooks)
     cell12 = space.cells[1]
     assert cell12.values["mech_tilt_deg"] == tuple(float(v) for v in range(16))
-    assert (
-        len(cell12.values["azimuth_deg"]) == 13
-        and cell12.values["azimuth_deg"][0] == 150.0
-    )
+    assert len(cell12.values["azimuth_deg"]) == 13 and cell12.values["azimuth_deg"][0] == 150.0
     assert set(cell12.values["ssb_codebook"]) == {"ssb8", "pencil"}
-    assert cell12.config(cell12.current) == {
-        v: scen.cells[1].iloc[1][v] for v in VARIABLES
-    }
+    assert cell12.config(cell12.current) == {v: scen.cells[1].iloc[1][v] for v in VARIABLES}
 
 
 @pytest.mark.parametrize(

@@ -24,7 +24,9 @@ def test_ray_points_follow_paper_eq9() -> None:
 
 
 def test_num_samples_reach_farthest_corner() -> None:
-    q = num_samples_for(torch.tensor([0.0, 0.0, 0.0]), torch.tensor([30.0, 40.0, 0.0]), torch.tensor([[0.0, 0.0, 0.0]]), 4.0)
+    q = num_samples_for(
+        torch.tensor([0.0, 0.0, 0.0]), torch.tensor([30.0, 40.0, 0.0]), torch.tensor([[0.0, 0.0, 0.0]]), 4.0
+    )
     assert (q - 1) * 4.0 >= 50.0 > (q - 2) * 4.0
 
 
@@ -59,7 +61,9 @@ def test_join_pairs_each_query_with_its_rays_samples() -> None:
     query_ray = torch.tensor([2, 0, 1, 2, 3])
     q, s = join_queries(query_ray, sample_ray, num_rays=4)
     pairs = sorted(zip(q.tolist(), s.tolist()))
-    expect = sorted((qi, si) for qi, r in enumerate(query_ray.tolist()) for si, sr in enumerate(sample_ray.tolist()) if sr == r)
+    expect = sorted(
+        (qi, si) for qi, r in enumerate(query_ray.tolist()) for si, sr in enumerate(sample_ray.tolist()) if sr == r
+    )
     assert pairs == expect
 
 

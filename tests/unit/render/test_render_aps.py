@@ -23,7 +23,9 @@ from rflscm.render import (
 
 def random_log_delta(n: int, seed: int = 0) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
-    return torch.complex(-torch.rand(n, generator=g, dtype=torch.float64), 6.0 * torch.randn(n, generator=g, dtype=torch.float64))
+    return torch.complex(
+        -torch.rand(n, generator=g, dtype=torch.float64), 6.0 * torch.randn(n, generator=g, dtype=torch.float64)
+    )
 
 
 def test_transmittance_is_the_cumulative_product_per_ray() -> None:

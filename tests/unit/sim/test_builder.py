@@ -17,7 +17,12 @@ from rflscm.sim import ProceduralCity, SimulationConfig, build_scenario
 from rflscm.sim.builder import choose_sites
 
 TINY = SimulationConfig(
-    name="tiny-sim", num_sites=2, max_grids=60, seed=11, site_radius_m=120.0, point_cloud_points_per_m2=0.05,
+    name="tiny-sim",
+    num_sites=2,
+    max_grids=60,
+    seed=11,
+    site_radius_m=120.0,
+    point_cloud_points_per_m2=0.05,
     angle_grid=AngleGrid(num_el=31, num_az=36, el_min_deg=-90.0, el_step_deg=6.0),
 )
 

@@ -22,7 +22,12 @@ from rflscm.sim.paths import noiseless_rsrp
 from rflscm.sim.remeasure import remeasure
 
 TINY = SimulationConfig(
-    name="tiny-field", num_sites=2, max_grids=40, seed=5, site_radius_m=120.0, point_cloud_points_per_m2=0.05,
+    name="tiny-field",
+    num_sites=2,
+    max_grids=40,
+    seed=5,
+    site_radius_m=120.0,
+    point_cloud_points_per_m2=0.05,
     angle_grid=AngleGrid(num_el=31, num_az=36, el_min_deg=-90.0, el_step_deg=6.0),
 )
 
@@ -113,13 +118,27 @@ def test_top_n_and_sinr_detection_report_exactly_the_expected_beams() -> None:
     cfg = FieldConfig(**quiet, ssb_detection="threshold", ssb_top_n=2, csi_serving_only=False, csi_top_n=None)
     got = report(table, toy, cfg, np.random.default_rng(0))
     ssb = got[got["beam_type"] == "ssb"].set_index(["cell_id", "beam_id"])["rsrp_dbm"]
-    assert ssb.notna().to_dict() == {(1, 0): True, (1, 1): True, (1, 2): False, (2, 0): True, (2, 1): True, (2, 2): False}
+    assert ssb.notna().to_dict() == {
+        (1, 0): True,
+        (1, 1): True,
+        (1, 2): False,
+        (2, 0): True,
+        (2, 1): True,
+        (2, 2): False,
+    }
     # SS-SINR of beam m against the other cell's beam m (noise −120.2 dBm): γ = −6 dB
     cfg = FieldConfig(**quiet, ssb_detection="sinr", ssb_sinr_db=-6.0, csi_serving_only=True, csi_top_n=1)
     got = report(table, toy, cfg, np.random.default_rng(0))
     ssb = got[got["beam_type"] == "ssb"].set_index(["cell_id", "beam_id"])["rsrp_dbm"]
     # beam 0: 1 at +15 dB, 2 at −15 dB; beam 1: 1 at −5 dB (kept), 2 at +5 dB; beam 2: 1 at +10, 2 at −10
-    assert ssb.notna().to_dict() == {(1, 0): True, (1, 1): True, (1, 2): True, (2, 0): False, (2, 1): True, (2, 2): False}
+    assert ssb.notna().to_dict() == {
+        (1, 0): True,
+        (1, 1): True,
+        (1, 2): True,
+        (2, 0): False,
+        (2, 1): True,
+        (2, 2): False,
+    }
     csi = got[got["beam_type"] == "csi"]
     assert set(csi["cell_id"]) == {1}  # serving cell: strongest reported SSB
     assert csi.set_index("beam_id")["rsrp_dbm"].notna().to_dict() == {0: True, 1: False, 2: False}
@@ -150,7 +169,9 @@ def test_zero_array_errors_give_the_nominal_sensing_matrix() -> None:
     assert gains is None
     nominal = sensing_matrix(antenna, book, grid, wl, dtype=torch.float64)
     ones = torch.ones(8, 4, dtype=torch.complex128)
-    torch.testing.assert_close(sensing_matrix(antenna, book, grid, wl, dtype=torch.float64, element_gains=ones), nominal)
+    torch.testing.assert_close(
+        sensing_matrix(antenna, book, grid, wl, dtype=torch.float64, element_gains=ones), nominal
+    )
     real = sensing_matrix(antenna, book, grid, wl, dtype=torch.float64,
                           element_gains=array_errors(8, 4, FieldConfig(), np.random.default_rng(0)))  # fmt: skip
     assert not torch.allclose(real, nominal)

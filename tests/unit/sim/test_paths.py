@@ -47,7 +47,10 @@ def test_free_space_los_rsrp_matches_friis_through_the_pipeline(codebook, freq_h
     tx, rx = np.array([10.0, -5.0, 30.0]), np.array([[180.0, 60.0, 1.5]])
     table = city.trace(tx, rx, freq_hz, seed=0).assign(grid_id=7)
     antenna = CellAntenna(
-        azimuth_deg=62.0, mech_tilt_deg=4.0, elec_tilt_deg=2.0, array=ArrayGeometry.for_frequency(3.5e9),
+        azimuth_deg=62.0,
+        mech_tilt_deg=4.0,
+        elec_tilt_deg=2.0,
+        array=ArrayGeometry.for_frequency(3.5e9),
         tx_power_dbm=18.0,
     )
     got = to_dbm(path_rsrp_mw(table, antenna, codebook, C / freq_hz, np.array([7]), 1))[0]

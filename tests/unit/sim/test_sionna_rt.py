@@ -59,9 +59,7 @@ def test_unknown_scene_lists_valid_names() -> None:
 @pytest.fixture(scope="module")
 def canyon() -> SionnaSceneBackend:
     # Six buildings along a street at y ~ 0, floor at z ~ -0.03 m.
-    return SionnaSceneBackend(
-        "simple_street_canyon", samples_per_src=100_000, rx_batch_size=2, deterministic=True
-    )
+    return SionnaSceneBackend("simple_street_canyon", samples_per_src=100_000, rx_batch_size=2, deterministic=True)
 
 
 @needs_rt

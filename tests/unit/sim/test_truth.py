@@ -103,7 +103,9 @@ def test_scenario_without_truth_is_a_data_error(scenario) -> None:
         load_true_aps(no_truth)
 
 
-def test_oracle_is_not_a_registered_model_and_predicts_the_noiseless_rsrp_up_to_binning(scenario, tmp_path: Path) -> None:
+def test_oracle_is_not_a_registered_model_and_predicts_the_noiseless_rsrp_up_to_binning(
+    scenario, tmp_path: Path
+) -> None:
     assert "oracle" not in MODEL_REGISTRY
     model = OracleModel.for_scenario(scenario, GRID)
     assert model.fingerprint == scenario.fingerprint()

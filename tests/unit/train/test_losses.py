@@ -21,7 +21,9 @@ def setup():
 
 def test_log_form_terms() -> None:
     pred, rsrp, mask, aps, scale = setup()
-    out = lscm_loss(pred, rsrp, mask, aps, scale, bound=0.05, fidelity="log", sparsity_weight=0.1, penalty_weight=0.5, floor=0.0)
+    out = lscm_loss(
+        pred, rsrp, mask, aps, scale, bound=0.05, fidelity="log", sparsity_weight=0.1, penalty_weight=0.5, floor=0.0
+    )
     fid = (math.log10(0.1) ** 2 + math.log10(2.0) ** 2) / 2  # bels², observed beams only
     pen = (math.log10(0.5 / 0.05) ** 2 + math.log10(1.0 / 0.05) ** 2) / 2  # missing beams above r_th
     sparsity = 0.1 * (3.0 / 2.0 + 1.0 / 1.0) / 2
@@ -33,7 +35,9 @@ def test_log_form_terms() -> None:
 
 def test_linear_form_terms() -> None:
     pred, rsrp, mask, aps, scale = setup()
-    out = lscm_loss(pred, rsrp, mask, aps, scale, bound=0.05, fidelity="linear", sparsity_weight=0.1, penalty_weight=0.5)
+    out = lscm_loss(
+        pred, rsrp, mask, aps, scale, bound=0.05, fidelity="linear", sparsity_weight=0.1, penalty_weight=0.5
+    )
     assert math.isclose(float(out["fidelity"]), (0.9**2 + 1.0) / 2, rel_tol=1e-6)
     assert math.isclose(float(out["penalty"]), (0.45**2 + 0.95**2) / 2, rel_tol=1e-6)
     assert math.isclose(float(out["sparsity"]), 0.1 * 4.0 / 2, rel_tol=1e-6)
@@ -52,7 +56,9 @@ def test_penalty_is_one_sided() -> None:
 def test_gradient_reaches_predictions_of_missing_beams_only_above_threshold() -> None:
     pred = torch.tensor([[0.01, 0.2, 1.0]], requires_grad=True)
     rsrp = torch.tensor([[NAN, NAN, 2.0]])
-    out = lscm_loss(pred, rsrp, torch.ones(1, 3, dtype=torch.bool), torch.zeros(1, 1), torch.ones(1), 0.05, "log", 0.0, 0.5)
+    out = lscm_loss(
+        pred, rsrp, torch.ones(1, 3, dtype=torch.bool), torch.zeros(1, 1), torch.ones(1), 0.05, "log", 0.0, 0.5
+    )
     out["total"].backward()
     assert pred.grad[0, 0] == 0 and pred.grad[0, 1] > 0 and pred.grad[0, 2] < 0
 

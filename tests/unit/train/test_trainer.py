@@ -61,7 +61,9 @@ def test_grouped_epochs_cover_every_pair_once_in_runs_of_one_group() -> None:
 
 
 def test_training_decays_lr_and_state_round_trips() -> None:
-    cfg = TrainConfig(steps=200, batch_pairs=3, pairs_per_cell=1, lr={"tensors": 0.1, "networks": 0.1}, lr_decay=0.1, val_every=100)
+    cfg = TrainConfig(
+        steps=200, batch_pairs=3, pairs_per_cell=1, lr={"tensors": 0.1, "networks": 0.1}, lr_decay=0.1, val_every=100
+    )
     model = Quadratic()
     trainer = Trainer(model, cfg, torch.arange(1, 9))
     summary = trainer.run(progress=False)
