@@ -6,7 +6,6 @@ faster than a subprocess each); two cases run ``python -m rflscm.cli`` in a real
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 import sys
 from collections.abc import Callable
@@ -16,46 +15,14 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from check_helpers import run_check, table
 
-from rflscm.cli import main
-from rflscm.data import enu_to_geodetic, read_table, write_point_cloud, write_table
+from rflscm.data import enu_to_geodetic, read_table, write_point_cloud
 from rflscm.data.examples import tiny_scenario
 from rflscm.data.geo import Origin
 from rflscm.data.pointcloud import PointCloud
 
-
-@pytest.fixture(scope="module")
-def template(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return tiny_scenario(tmp_path_factory.mktemp("check") / "tiny", seed=5)
-
-
-@pytest.fixture
-def scenario_dir(template: Path, tmp_path: Path) -> Path:
-    return Path(shutil.copytree(template, tmp_path / "tiny"))
-
-
-def run_check(path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    """Run ``rflscm check PATH`` through the console-script entry point; returns (exit code, stdout, stderr)."""
-    monkeypatch.setattr(sys, "argv", ["rflscm", "check", str(path)])
-    code: int | str | None = 0
-    try:
-        main()
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return (0 if code is None else int(code)), out, err
-
-
 # ---- helpers that make one mistake in the scenario folder ---------------------------------------------
-
-
-def table(name: str, change: Callable[[pd.DataFrame], pd.DataFrame | None]) -> Callable[[Path], None]:
-    def apply(root: Path) -> None:
-        df = read_table(root / name)
-        out = change(df)
-        write_table(df if out is None else out, root / name)
-
-    return apply
 
 
 def set_cell(name: str, row: int, column: str, value: object) -> Callable[[Path], None]:

@@ -6,7 +6,6 @@ behaviour), never a traceback.
 
 from __future__ import annotations
 
-import shutil
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -15,43 +14,13 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from check_helpers import run_check, table
 
 from rflscm.cli import main
-from rflscm.data import read_table, write_point_cloud, write_table
-from rflscm.data.examples import tiny_scenario
+from rflscm.data import read_table, write_point_cloud
 from rflscm.data.pointcloud import PointCloud, read_point_cloud
 
 M, C1, C2, G, Y = "measurements.csv", "cells_round1.csv", "cells_round2.csv", "grids.csv", "scenario.yaml"
-
-
-@pytest.fixture(scope="module")
-def template(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return tiny_scenario(tmp_path_factory.mktemp("validation") / "tiny", seed=5)
-
-
-@pytest.fixture
-def scenario_dir(template: Path, tmp_path: Path) -> Path:
-    return Path(shutil.copytree(template, tmp_path / "tiny"))
-
-
-def run_check(path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    monkeypatch.setattr(sys, "argv", ["rflscm", "check", str(path)])
-    code: int | str | None = 0
-    try:
-        main()
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return (0 if code is None else int(code)), out, err
-
-
-def table(name: str, change: Callable[[pd.DataFrame], pd.DataFrame | None]) -> Callable[[Path], None]:
-    def apply(root: Path) -> None:
-        df = read_table(root / name)
-        out = change(df)
-        write_table(df if out is None else out, root / name)
-
-    return apply
 
 
 def both_rounds(change: Callable[[pd.DataFrame], pd.DataFrame | None]) -> Callable[[Path], None]:
