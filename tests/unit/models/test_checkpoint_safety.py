@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tiny_rflscm import tiny_config
 
 from rflscm.data import load_scenario
 from rflscm.data.examples import tiny_scenario
@@ -27,21 +28,6 @@ from rflscm.models.rflscm_scene import check_scene_box
 from rflscm.train import fit
 
 SMALL = AngleGrid.full_sphere(10, 12)
-
-
-def tiny_config(**sections) -> dict:
-    cfg = {
-        "prior": {"enabled": False},
-        "field": {"voxel_m": 20.0, "delta_rank": 2, "feature_rank": 2, "feature_dim": 4},
-        "decoder": {"hidden": 16},
-        "render": {"step_m": 8.0},
-        "hitam": {"top_k": 3, "warmup_steps": 4, "ramp_steps": 2},
-        "train": {"steps": 8, "batch_pairs": 4, "pairs_per_cell": 2, "val_pairs": 2, "val_every": 4,
-                  "checkpoint_every": 4},
-    }  # fmt: skip
-    for name, values in sections.items():
-        cfg[name] = {**cfg.get(name, {}), **values}
-    return cfg
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from tiny_rflscm import tiny_config
 
 from rflscm.data import load_scenario
 from rflscm.data.examples import tiny_scenario
@@ -20,27 +21,6 @@ from rflscm.models.rflscm_config import RFLSCMConfig, load_rflscm_config, preset
 from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)
-
-
-def tiny_config(**sections) -> dict:
-    cfg = {
-        "prior": {"enabled": False},
-        "field": {"voxel_m": 20.0, "delta_rank": 2, "feature_rank": 2, "feature_dim": 4},
-        "decoder": {"hidden": 16},
-        "render": {"step_m": 8.0},
-        "hitam": {"top_k": 3, "warmup_steps": 4, "ramp_steps": 2},
-        "train": {
-            "steps": 8,
-            "batch_pairs": 4,
-            "pairs_per_cell": 2,
-            "val_pairs": 2,
-            "val_every": 4,
-            "checkpoint_every": 4,
-        },
-    }
-    for name, values in sections.items():
-        cfg[name] = {**cfg.get(name, {}), **values}
-    return cfg
 
 
 @pytest.fixture(scope="module")
