@@ -16,7 +16,7 @@ from typing import Any, TypeVar
 
 import yaml
 
-from rflscm.errors import ConfigError
+from rflscm.errors import ConfigError, RflscmError
 
 T = TypeVar("T")
 
@@ -150,19 +150,24 @@ def parse_yaml(text: str) -> Any:
     return yaml.load(text, Loader=StrictLoader)
 
 
-def read_text_file(path: str | Path, what: str = "file") -> str:
-    """UTF-8 text of a file; a missing file, a folder, no permission or another encoding is a :class:`ConfigError`."""
+def read_file_bytes(path: str | Path, what: str = "file", error: type[RflscmError] = ConfigError) -> bytes:
+    """The bytes of ``path``; a missing file, a folder or an unreadable file raises ``error`` in one line."""
     path = Path(path)
     if path.is_dir():
-        raise ConfigError(f"{path}: is a folder, not a {what}; give the {what} itself.")
+        raise error(f"{path}: is a folder, not a {what}; give the {what} itself.")
     if not path.exists():
-        raise ConfigError(f"{path}: file not found.")
+        raise error(f"{path}: {what} not found.")
     try:
-        data = path.read_bytes()
+        return path.read_bytes()
     except PermissionError:
-        raise ConfigError(f"{path}: cannot read the {what} (permission denied); make it readable.") from None
+        raise error(f"{path}: cannot read the {what} (permission denied); make it readable.") from None
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the {what} ({exc.strerror or type(exc).__name__}).") from None
+        raise error(f"{path}: cannot read the {what} ({exc.strerror or type(exc).__name__}).") from None
+
+
+def read_text_file(path: str | Path, what: str = "file") -> str:
+    """UTF-8 text of a file; a missing file, a folder, no permission or another encoding is a :class:`ConfigError`."""
+    data = read_file_bytes(path, what)
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:

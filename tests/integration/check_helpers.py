@@ -34,3 +34,14 @@ def table(name: str, change: Callable[[pd.DataFrame], pd.DataFrame | None]) -> C
         write_table(df if out is None else out, root / name)
 
     return apply
+
+
+def assert_one_line_error(code: int, out: str, err: str, expected: list[str]) -> None:
+    """Exit 2, no traceback, exactly one `DataError:`/`ConfigError:` line on stderr holding every ``expected`` text."""
+    assert code == 2, (out, err)
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith(("DataError: ", "ConfigError: ")), lines[0]
+    for text in expected:
+        assert text in lines[0], lines[0]

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from check_helpers import run_check, table
+from check_helpers import assert_one_line_error, run_check, table
 
 from rflscm.data import enu_to_geodetic, read_table, write_point_cloud
 from rflscm.data.examples import tiny_scenario
@@ -277,14 +277,7 @@ def test_user_mistake_gives_one_line_and_exit_2(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     mistake(scenario_dir)
-    code, out, err = run_check(scenario_dir, monkeypatch, capsys)
-    assert code == 2, (out, err)
-    assert "Traceback" not in err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    assert lines[0].startswith(("DataError: ", "ConfigError: "))
-    for text in expected:
-        assert text in lines[0], lines[0]
+    assert_one_line_error(*run_check(scenario_dir, monkeypatch, capsys), expected)
 
 
 def test_parquet_rows_have_no_line_numbers(tmp_path: Path, monkeypatch, capsys) -> None:

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from check_helpers import run_check, table
+from check_helpers import assert_one_line_error, run_check, table
 
 from rflscm.cli import main
 from rflscm.data import read_table, write_point_cloud
@@ -280,14 +280,7 @@ def test_malformed_scenario_gives_one_line_and_exit_2(
     scenario_dir: Path, mistake: Callable[[Path], None], expected: list[str], monkeypatch, capsys
 ) -> None:
     mistake(scenario_dir)
-    code, out, err = run_check(scenario_dir, monkeypatch, capsys)
-    assert code == 2, (out, err)
-    assert "Traceback" not in err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    assert lines[0].startswith(("DataError: ", "ConfigError: ")), lines[0]
-    for text in expected:
-        assert text in lines[0], lines[0]
+    assert_one_line_error(*run_check(scenario_dir, monkeypatch, capsys), expected)
 
 
 def test_unused_column_is_listed_as_ignored(scenario_dir: Path, monkeypatch, capsys) -> None:

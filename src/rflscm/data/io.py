@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from rflscm.config import read_file_bytes
 from rflscm.errors import DataError
 
 TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
@@ -49,17 +50,7 @@ def table_kind(path: str | Path) -> str:
 
 def read_bytes(path: str | Path, what: str = "file") -> bytes:
     """The bytes of ``path``; a missing file, a folder or an unreadable file is a :class:`DataError`."""
-    path = Path(path)
-    if path.is_dir():
-        raise DataError(f"{path}: is a folder, not a {what}; give the {what} itself.")
-    if not path.exists():
-        raise DataError(f"{path}: {what} not found.")
-    try:
-        return path.read_bytes()
-    except PermissionError:
-        raise DataError(f"{path}: cannot read the {what} (permission denied); make it readable.") from None
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read the {what} ({exc.strerror or type(exc).__name__}).") from None
+    return read_file_bytes(path, what, DataError)
 
 
 def decode_text(data: bytes, name: str) -> str:
