@@ -74,7 +74,7 @@ def demo(
     ),
     config: str = typer.Option("quick", "--config", help="RF-LSCM preset or YAML file."),
     minutes: float = typer.Option(
-        DEMO_MINUTES, "--minutes", help="RF-LSCM's training budget [min] (its schedule follows the budget)."
+        DEMO_MINUTES, "--minutes", help="RF-LSCM's training budget in minutes (its schedule follows the budget)."
     ),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
     device: str = DeviceOption,
