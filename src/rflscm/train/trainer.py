@@ -102,6 +102,7 @@ def fit(
     :class:`Trainer`); ``train.steps`` is then only the length of the nominal schedule.
     """
     started = clock()
+    checked_budget(budget_s)  # before minutes of data preparation
     if model.fingerprint is None:
         model.fingerprint = scenario.fingerprint()
     if not isinstance(model, Trainable):
@@ -125,6 +126,13 @@ def fit(
     return summary
 
 
+def checked_budget(budget_s: float | None) -> float | None:
+    """``budget_s`` if it is None or a positive finite number of seconds, else a :class:`ConfigError`."""
+    if budget_s is not None and not (math.isfinite(budget_s) and budget_s > 0):
+        raise ConfigError(f"the training time budget must be a positive number of seconds (got {budget_s}).")
+    return budget_s
+
+
 class Trainer:
     """Adam over named parameter groups, exponential learning-rate decay, periodic validation and checkpoints.
 
@@ -142,10 +150,8 @@ class Trainer:
         budget_s: float | None = None,
         clock: Callable[[], float] = time.perf_counter,
     ) -> None:
-        if budget_s is not None and not (math.isfinite(budget_s) and budget_s > 0):
-            raise ConfigError(f"the training time budget must be a positive number of seconds (got {budget_s}).")
         self.model, self.cfg = model, cfg
-        self.budget_s, self.clock = budget_s, clock
+        self.budget_s, self.clock = checked_budget(budget_s), clock
         self.train_pairs = train_pairs.cpu()
         self.groups = groups.cpu() if groups is not None else None
         self.step = 0
