@@ -112,13 +112,39 @@ FEW_PASSES = 4.0
 """Below this many passes over the training pairs a radiance-field model is far from trained (BENCHMARKS.md)."""
 
 
+def budget_seconds(minutes: float | None, option: str = "--minutes") -> float | None:
+    """The training time budget [s] of ``--minutes`` (None: none); a value that is not a positive finite number
+    of minutes is a :class:`ConfigError`."""
+    if minutes is None:
+        return None
+    if not (math.isfinite(minutes) and minutes > 0):
+        raise ConfigError(f"{option} must be a positive number of minutes of training (got {minutes:g}).")
+    return 60.0 * minutes
+
+
+def budget_summary(summary: dict[str, float]) -> str | None:
+    """One line on a time-budget training run (None for a run without a budget)."""
+    budget = summary.get("budget_s")
+    if budget is None:
+        return None
+    stopped = "the budget stopped it" if summary.get("stopped_by_budget") else "it stopped before the budget"
+    return (
+        f"trained {summary['steps']:.0f} steps ({summary['passes']:.1f} passes) in {summary['train_time_s']:.1f} s "
+        f"of a {budget / 60:g}-minute budget; {stopped}"
+    )
+
+
 def budget_note(summary: dict[str, float]) -> str | None:
     """A warning when a training run showed the model each training pair fewer than ``FEW_PASSES`` times."""
     passes = summary.get("passes")
     if passes is None or passes >= FEW_PASSES:
         return None
+    more = (
+        "more time (`--minutes`)"
+        if "budget_s" in summary
+        else "more steps (`train.steps` in a YAML config, `--config FILE.yaml`)"
+    )
     return (
         f"[yellow]note:[/yellow] the run showed the model each training pair only {passes:.2g} times on average; "
-        f"expect it to underfit. Give it more steps (`train.steps` in a YAML config, `--config FILE.yaml`) or "
-        f"train `--config full` on a GPU."
+        f"expect it to underfit. Give it {more} or train `--config full` on a GPU."
     )

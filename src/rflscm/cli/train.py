@@ -9,7 +9,16 @@ import typer
 from rich.console import Console
 
 from rflscm.cli import app
-from rflscm.cli.common import DeviceOption, SeedOption, budget_note, output_file, resolve_device, seed_everything
+from rflscm.cli.common import (
+    DeviceOption,
+    SeedOption,
+    budget_note,
+    budget_seconds,
+    budget_summary,
+    output_file,
+    resolve_device,
+    seed_everything,
+)
 from rflscm.errors import ConfigError
 
 
@@ -40,6 +49,12 @@ def train(
     ),
     split_seed: int = typer.Option(0, "--split-seed", help="Seed of the protocol's grid split."),
     resume: bool = typer.Option(False, "--resume", help="Continue exactly from --out (iterative models)."),
+    minutes: float | None = typer.Option(
+        None,
+        "--minutes",
+        help="Train for this many minutes of wall time (iterative models): learning-rate decay, HiTAM warm-up and "
+        "ramp follow the elapsed fraction of the budget, `train.steps` is the nominal schedule's length.",
+    ),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
     device: str = DeviceOption,
     seed: int = SeedOption,
@@ -49,11 +64,13 @@ def train(
     from rflscm.eval.protocols import fit_with_protocol, make_protocol
     from rflscm.geometry import AngleGrid
     from rflscm.models import MODEL_REGISTRY
+    from rflscm.train import Trainable
 
     console = Console(stderr=True)
     if model not in MODEL_REGISTRY:
         valid = ", ".join(sorted(MODEL_REGISTRY))
         raise ConfigError(f"unknown model {model!r}; choose one of: {valid}.")
+    budget_s = budget_seconds(minutes)
     output_file(out, "--out")
     if resume and not out.is_file():
         raise ConfigError(f"--resume needs an existing checkpoint at {out}; train without --resume first.")
@@ -65,11 +82,20 @@ def train(
     fitted.run_info["seed"] = seed
     fitted.run_info["config"] = config
     console.print(f"training [bold]{model}[/bold] ({config}) on {scen.meta.name!r} with protocol {protocol} on {dev}")
+    if budget_s is not None and not isinstance(fitted, Trainable):
+        console.print(f"note: --minutes does not apply to {model} (it is not trained step by step); ignored.")
+        budget_s = None
+    elif budget_s is not None:
+        console.print(f"time budget: {minutes:g} min (data preparation included)")
     t0 = time.perf_counter()
-    summary = fit_with_protocol(fitted, scen, proto, progress=progress, checkpoint_path=out, resume=resume)
+    summary = fit_with_protocol(
+        fitted, scen, proto, progress=progress, checkpoint_path=out, resume=resume, budget_s=budget_s
+    )
     elapsed = time.perf_counter() - t0
     fitted.run_info["fit"] = {**{k: float(v) for k, v in summary.items()}, "train_time_s": elapsed}
     fitted.save(out)
     console.print(f"wrote {out} in {elapsed:.1f} s")
+    if (line := budget_summary(summary)) is not None:
+        console.print(line)
     if (note := budget_note(summary)) is not None:
         console.print(note)

@@ -234,16 +234,20 @@ def protocol_from_dict(data: dict[str, Any]) -> Protocol:
 
 
 def fit_with_protocol(
-    model: LSCMModel, scenario: Scenario, protocol: Protocol | None = None, **fit_kwargs: Any
+    model: LSCMModel,
+    scenario: Scenario,
+    protocol: Protocol | None = None,
+    budget_s: float | None = None,
+    **fit_kwargs: Any,
 ) -> dict[str, float]:
     """Fit ``model`` on ``protocol.training_scenario(scenario)`` and record the split.
 
     Sets ``model.fingerprint`` to the *full* scenario's (so that ``load_model(ckpt, scenario)``
     accepts the scenario the split was drawn from; :func:`rflscm.train.fit` keeps it) and
-    ``model.run_info["protocol"]``, then calls :func:`rflscm.train.fit` with ``fit_kwargs``
-    (``progress``, ``checkpoint_path``, …).
+    ``model.run_info["protocol"]``, then calls :func:`rflscm.train.fit` with ``budget_s`` (a wall-time
+    training budget [s], None: ``train.steps`` steps) and ``fit_kwargs`` (``progress``, ``checkpoint_path``, …).
     """
     protocol = protocol or AdjustProtocol()
     model.fingerprint = scenario.fingerprint()
     model.run_info["protocol"] = protocol_to_dict(protocol)
-    return fit(model, protocol.training_scenario(scenario), **fit_kwargs)
+    return fit(model, protocol.training_scenario(scenario), budget_s=budget_s, **fit_kwargs)

@@ -63,13 +63,14 @@ class HiTAM:
         fine, valid = self.mapping.children(top)  # [B, K_C, β²]
         return fine.flatten(1), valid.flatten(1)
 
-    def alpha(self, step: int) -> float:
-        """α at ``step`` (0-based): 0 during the warm-up, then a linear ramp to 1."""
-        if step < self.warmup_steps:
+    def alpha(self, position: float) -> float:
+        """α at schedule ``position`` (a step, 0-based, or a fractional position of a time-budget run): 0 during
+        the warm-up, then a linear ramp to 1."""
+        if position < self.warmup_steps:
             return 0.0
         if self.ramp_steps == 0:
             return 1.0
-        return min(1.0, (step - self.warmup_steps + 1) / self.ramp_steps)
+        return min(1.0, (position - self.warmup_steps + 1) / self.ramp_steps)
 
 
 def scatter_fine(values: torch.Tensor, fine_bins: torch.Tensor, valid: torch.Tensor, num_bins: int) -> torch.Tensor:

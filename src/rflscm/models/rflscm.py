@@ -98,6 +98,9 @@ class RFLSCM(LSCMModel):
         self.stages = nn.ModuleDict()
         self.step = 0
         """Training steps done."""
+        self.position = -1.0
+        """Schedule position of the latest training step begun (units of ``train.steps``, see the trainer's
+        ``Trainable``; −1 before the first).  In step mode ``step − 1``; HiTAM and upsampling follow it."""
         self.train_state: dict[str, Any] | None = None
         self.renderer: APSRenderer | None = None
         """Built with the stages (fit or checkpoint)."""
@@ -176,7 +179,7 @@ class RFLSCM(LSCMModel):
             self._init_attenuation(*targets)
         a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
         self._train = _TrainContext(data.to(self.device), a_norm, a_coarse)
-        self.step, self.train_state = 0, None
+        self.step, self.position, self.train_state = 0, -1.0, None
         if cfg.decoder.init_level_db is not None:
             self._calibrate_level(cfg.decoder.init_level_db)
 
@@ -221,7 +224,7 @@ class RFLSCM(LSCMModel):
         if state.get("train_state") is None:
             raise CheckpointError(f"{path}: cannot resume: the checkpoint holds no optimizer state.")
         self._load_stage_weights(state["stages"])
-        self.step = int(state["step"])
+        self.step, self.position = _step_and_position(state)
         return state["train_state"]
 
     def _init_attenuation(self, points: torch.Tensor, share: torch.Tensor, steps: int = 100) -> None:
@@ -247,23 +250,28 @@ class RFLSCM(LSCMModel):
         for stage in stages[1:]:
             stage.fields.delta_module().load_state_dict(field.state_dict())
 
-    def on_step_begin(self, step: int) -> bool:
-        """Upsample the tensors at ``upsample_at``; hand the coarse model to the refinement model at the
-        end of the HiTAM warm-up.  True when parameters were replaced."""
-        self.step = step
+    def on_step_begin(self, step: int, position: float) -> bool:
+        """Begin step ``step`` at schedule ``position``: upsample the tensors when the position crosses an
+        ``upsample_at`` step, hand the coarse model to the refinement model when it crosses the end of the
+        HiTAM warm-up (previous step's position < threshold <= ``position``; in step mode: ``step`` equals the
+        threshold).  True when parameters were replaced."""
+        before, self.step, self.position = self.position, step, position
         h = self.config.hitam
-        if self.hitam is not None and h.fine_init == "copy_coarse" and step == h.warmup_steps and step > 0:
+        warmup = float(h.warmup_steps)
+        if self.hitam is not None and h.fine_init == "copy_coarse" and before < warmup <= position and position > 0:
             self.stages["fine"].load_state_dict(self.stages["coarse"].state_dict())
             self._match_fine_to_coarse()
-        if step in self.fields.upsample_at:
-            assert self.scene is not None and self._train is not None
-            self._train.selection = None
-            res = self.fields.resolution(self.scene.frame, list(self.fields.upsample_at).index(step) + 1)
+        levels = [i + 1 for i, at in enumerate(self.fields.upsample_at) if before < at <= position]
+        if not levels:
+            return False
+        assert self.scene is not None and self._train is not None
+        self._train.selection = None
+        for level in levels:  # a budget step may cross several
+            res = self.fields.resolution(self.scene.frame, level)
             for module in self.stages.modules():
                 if isinstance(module, TensorVM) and res is not None:
                     module.upsample(res)
-            return True
-        return False
+        return True
 
     def decoder_evals(self) -> int:
         """Radiance-decoder evaluations so far (all stages)."""
@@ -302,14 +310,14 @@ class RFLSCM(LSCMModel):
         cols = a[cells[:, None, None], beams[None, :, None], bins[:, None, :]]
         return cols if valid is None else cols * valid[:, None, :].to(cols.dtype)
 
-    def training_losses(self, pairs: torch.Tensor, step: int) -> dict[str, Any]:
-        """HiTAM loss (1 − α) L⁽¹⁾ + α L⁽²⁾ of a batch of pair indices ``pairs [B]``."""
+    def training_losses(self, pairs: torch.Tensor, position: float) -> dict[str, Any]:
+        """HiTAM loss (1 − α) L⁽¹⁾ + α L⁽²⁾ of a batch of pair indices ``pairs [B]``, α at schedule ``position``."""
         d = self._training().data
         pairs = pairs.to(self.device)
         cells, xyz = d.cell_index[pairs], d.grid_xyz[pairs]
         if self.hitam is None:
             return self._loss(self._training().a_norm[cells], self._renderer().full_power(cells, xyz), pairs)
-        alpha = self.hitam.alpha(step)
+        alpha = self.hitam.alpha(position)
         out: dict[str, Any] = {"alpha": alpha}
         total: torch.Tensor | float = 0.0
         if alpha < 1.0:
@@ -361,7 +369,7 @@ class RFLSCM(LSCMModel):
         pairs = torch.arange(d.num_pairs, device=self.device)[:: max(1, d.num_pairs // num_pairs)][:num_pairs]
         cells, xyz = d.cell_index[pairs], d.grid_xyz[pairs]
         if self.hitam is None:
-            bins, values = self._renderer().output(cells, xyz, self.step)
+            bins, values = self._renderer().output(cells, xyz, self.position)
         elif stage == "coarse":
             bins, values = self._renderer().coarse_as_fine(self._renderer().coarse_power(cells, xyz))
         else:
@@ -399,7 +407,7 @@ class RFLSCM(LSCMModel):
         for start in range(0, d.val_pairs.numel(), PAIR_CHUNK):
             pairs = d.val_pairs[start : start + PAIR_CHUNK]
             cells = d.cell_index[pairs]
-            bins, values = self._renderer().output(cells, d.grid_xyz[pairs], self.step)
+            bins, values = self._renderer().output(cells, d.grid_xyz[pairs], self.position)
             pred = torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
             mask = d.val_mask[pairs]
             count = int((mask & ~torch.isnan(d.rsrp[pairs])).sum())
@@ -433,7 +441,7 @@ class RFLSCM(LSCMModel):
             rows = todo[start : start + PAIR_CHUNK]
             c = torch.as_tensor(cells[rows], device=self.device)
             g = torch.as_tensor(xyz[rows], dtype=torch.float32, device=self.device)
-            bins, values = R.output(c, g, self.step)
+            bins, values = R.output(c, g, self.position)
             rendered[start : start + len(rows)].scatter_add_(1, bins, values)
         if keys:
             slot = {keys[i]: j for j, i in enumerate(todo)}
@@ -450,6 +458,7 @@ class RFLSCM(LSCMModel):
             "surfaces": surfaces_state(self.surfaces),
             "stages": {k: v.detach().cpu().clone() for k, v in self.stages.state_dict().items()},
             "step": self.step,
+            "position": self.position,
             "train_state": self.train_state,
         }
 
@@ -466,7 +475,7 @@ class RFLSCM(LSCMModel):
         model.surfaces = surfaces.to(model.device) if surfaces is not None else None
         model._build_stages(model.scene.frame)
         model._load_stage_weights(state["stages"])
-        model.step, model.train_state = int(state["step"]), state.get("train_state")
+        (model.step, model.position), model.train_state = _step_and_position(state), state.get("train_state")
         return model
 
     def _load_stage_weights(self, weights: dict[str, torch.Tensor]) -> None:
@@ -524,6 +533,12 @@ def _current_key(key: str) -> str:
         if old in key:
             return key.replace(old, new, 1)
     return key
+
+
+def _step_and_position(state: dict[str, Any]) -> tuple[int, float]:
+    """Steps done and schedule position of a checkpoint's state (before budget mode: ``step − 1``)."""
+    step = int(state["step"])
+    return step, float(state.get("position", step - 1))
 
 
 def _changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:

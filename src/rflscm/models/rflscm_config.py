@@ -229,6 +229,9 @@ class LossConfig:
 @dataclass(frozen=True)
 class TrainConfig:
     steps: int = 3000
+    """Length of the (nominal) schedule: learning-rate decay, and HiTAM's and upsampling's steps, are in its units.
+    A step run does this many steps; a time-budget run (``fit(..., budget_s=)``, ``--minutes``) maps its budget
+    onto it and does as many steps as fit."""
     batch_pairs: int = 256
     """(cell, grid) pairs per step, drawn across all cells and carriers."""
     pairs_per_cell: int = 8

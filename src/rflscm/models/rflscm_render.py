@@ -184,13 +184,14 @@ class APSRenderer:
         bins, valid = self.hitam.expand(torch.where(visible, coarse, torch.full_like(coarse, -1.0)))
         return bins, valid & self.visible("fine")[cells[:, None], bins]
 
-    def output(self, cells: torch.Tensor, grid_xyz: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """The model's APS after ``step`` training steps in sparse form ``(fine bins [B, K], values [B, K])`` (normalised)."""
+    def output(self, cells: torch.Tensor, grid_xyz: torch.Tensor, position: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """The model's APS in sparse form ``(fine bins [B, K], values [B, K])`` (normalised) once its latest training
+        step began at schedule ``position`` (−1: none): the refinement model's from the warm-up's end on."""
         if self.hitam is None:
             x = self.full_power(cells, grid_xyz)
             return torch.arange(x.shape[1], device=self.device).expand_as(x), x
         coarse = self.coarse_power(cells, grid_xyz)
-        if step > self.hitam.warmup_steps:
+        if position >= self.hitam.warmup_steps:
             bins, valid = self.expand(cells, coarse)
             return bins, self.fine_power(cells, grid_xyz, bins, valid)
         return self.coarse_as_fine(coarse)

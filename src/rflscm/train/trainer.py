@@ -7,9 +7,16 @@ knows nothing about fields, rays or HiTAM; it sees the model through :class:`Tra
 
 Batches are random permutations of the training pairs (an epoch at a time) drawn from a
 dedicated generator, optionally in groups of ``pairs_per_cell`` pairs that share a group key
-(e.g. the cell, whose rays the model then computes once for the group); learning rates are a pure
-function of the step; so a checkpoint holding parameters, optimizer state, step and generator state
-resumes *exactly*.
+(e.g. the cell, whose rays the model then computes once for the group).
+
+The schedule (learning-rate decay, and through the model HiTAM's warm-up and ramp and the tensor
+upsampling) follows a *progress* fraction p ∈ [0, 1]: p = step / ``train.steps`` (step mode), or
+p = min(1, elapsed / budget) when :func:`fit` is given a time budget (budget mode).  The learning-rate
+factor is ``lr_decay ** p``; the model sees the *schedule position* p · ``train.steps`` (in units of the
+nominal schedule's steps; exactly the step in step mode), so ``train.steps`` is the length of the
+nominal schedule in both modes.  In step mode everything is a pure function of the step, so a
+checkpoint holding parameters, optimizer state, step and generator state resumes *exactly*; a budget
+run resumes from its saved elapsed time (not bit-identical to an uninterrupted one: timing differs).
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 import torch
 from torch import nn
 
-from rflscm.errors import ConfigError
+from rflscm.errors import CheckpointError, ConfigError
 from rflscm.models.base import LSCMModel, TrainingPlan, discard_partial_save, read_checkpoint
 from rflscm.models.rflscm_config import TrainConfig
 
@@ -37,10 +44,11 @@ class Trainable(Protocol):
 
     * :meth:`prepare` — fresh weights and training data for a scenario; returns the :class:`TrainingPlan`;
     * :meth:`parameter_groups` — ``{name: parameters}``; learning rates are configured by these names;
-    * :meth:`training_losses` — ``{"total": …, …}`` of a batch of pair indices at a step;
+    * :meth:`training_losses` — ``{"total": …, …}`` of a batch of pair indices at a schedule position;
     * :meth:`validation_mae` — MAE [dB] on held-aside round-1 beams (NaN when none);
-    * :meth:`on_step_begin` — per-step hooks (HiTAM hand-over, upsampling); True when the parameter
-      objects changed and the optimizer must be rebuilt;
+    * :meth:`on_step_begin` — per-step hooks (HiTAM hand-over, upsampling) at the step's schedule
+      ``position`` (a float in units of ``train.steps``; in step mode exactly the step); True when the
+      parameter objects changed and the optimizer must be rebuilt;
     * :meth:`resume_from` — load weights and step from a checkpoint payload (refusing a foreign one)
       and return the trainer state saved with it;
     * ``step`` (steps done), ``train_state`` (the trainer state :meth:`save` writes along),
@@ -57,11 +65,11 @@ class Trainable(Protocol):
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]: ...
 
-    def training_losses(self, pairs: torch.Tensor, step: int) -> dict[str, Any]: ...
+    def training_losses(self, pairs: torch.Tensor, position: float) -> dict[str, Any]: ...
 
     def validation_mae(self) -> float: ...
 
-    def on_step_begin(self, step: int) -> bool: ...
+    def on_step_begin(self, step: int, position: float) -> bool: ...
 
     def resume_from(self, payload: dict[str, Any], path: str | Path) -> dict[str, Any]: ...
 
@@ -77,38 +85,73 @@ def fit(
     callback: Callable[[dict[str, float]], None] | None = None,
     checkpoint_path: str | Path | None = None,
     resume: bool = False,
+    budget_s: float | None = None,
+    clock: Callable[[], float] = time.perf_counter,
 ) -> dict[str, float]:
     """Learn ``model`` from the round-1 measurements of ``scenario``; returns a summary.
 
     A :class:`Trainable` model is trained by a :class:`Trainer` (checkpoints written atomically to
-    ``checkpoint_path`` every few steps; with ``resume`` it continues exactly from that file); any
-    other model fits itself (:meth:`~rflscm.models.LSCMModel.fit`).  ``callback`` receives periodic
-    metrics.  The model's fingerprint, when not set already (a protocol sets the full scenario's),
-    becomes ``scenario``'s.
+    ``checkpoint_path`` every few steps; with ``resume`` it continues from that file, exactly in step
+    mode); any other model fits itself (:meth:`~rflscm.models.LSCMModel.fit`; ``budget_s`` does not
+    apply to it).  ``callback`` receives periodic metrics.  The model's fingerprint, when not set
+    already (a protocol sets the full scenario's), becomes ``scenario``'s.
+
+    With ``budget_s`` (seconds of wall time, counted on ``clock`` from the start of this call, data
+    preparation included) the schedule follows the elapsed fraction of the budget instead of the step
+    count, and training stops after the first step that ends at or past the budget (see
+    :class:`Trainer`); ``train.steps`` is then only the length of the nominal schedule.
     """
+    started = clock()
+    checked_budget(budget_s)  # before minutes of data preparation
     if model.fingerprint is None:
         model.fingerprint = scenario.fingerprint()
     if not isinstance(model, Trainable):
         return model.fit(scenario, progress=progress, callback=callback, checkpoint_path=checkpoint_path, resume=resume)
     discard_partial_save(checkpoint_path)  # a save killed half-way (kill -9) leaves its temporary file behind
     plan = model.prepare(scenario)
-    trainer = Trainer(model, model.train_config, plan.pairs, groups=plan.groups)
+    trainer = Trainer(model, model.train_config, plan.pairs, groups=plan.groups, budget_s=budget_s, clock=clock)
     if resume and checkpoint_path is not None and Path(checkpoint_path).is_file():
-        trainer.load_state_dict(model.resume_from(read_checkpoint(checkpoint_path), checkpoint_path))
-    evals0, time0 = model.decoder_evals(), trainer.elapsed_s
-    summary = trainer.run(progress=progress, callback=callback, checkpoint_path=checkpoint_path)
-    summary["decoder_evals_per_s"] = (model.decoder_evals() - evals0) / max(trainer.elapsed_s - time0, 1e-9)
+        state = model.resume_from(read_checkpoint(checkpoint_path), checkpoint_path)
+        trainer.check_budget(state, checkpoint_path)
+        trainer.load_state_dict(state)
+    evals0, time0 = model.decoder_evals(), clock()
+    summary = trainer.run(
+        progress=progress,
+        callback=callback,
+        checkpoint_path=checkpoint_path,
+        started=started if budget_s is not None else None,
+    )
+    summary["decoder_evals_per_s"] = (model.decoder_evals() - evals0) / max(clock() - time0, 1e-9)
     model.run_info["train"] = {k: float(v) for k, v in summary.items()}
     return summary
 
 
+def checked_budget(budget_s: float | None) -> float | None:
+    """``budget_s`` if it is None or a positive finite number of seconds, else a :class:`ConfigError`."""
+    if budget_s is not None and not (math.isfinite(budget_s) and budget_s > 0):
+        raise ConfigError(f"the training time budget must be a positive number of seconds (got {budget_s}).")
+    return budget_s
+
+
 class Trainer:
-    """Adam over named parameter groups, exponential learning-rate decay, periodic validation and checkpoints."""
+    """Adam over named parameter groups, exponential learning-rate decay, periodic validation and checkpoints.
+
+    Step mode (``budget_s`` None) runs ``cfg.steps`` steps.  Budget mode runs until ``budget_s`` seconds
+    of ``clock`` have passed (at least one step); the progress p = min(1, elapsed / budget_s) drives the
+    schedule, reaching its end (p = 1, position ``cfg.steps``) when the budget is spent.
+    """
 
     def __init__(
-        self, model: Trainable, cfg: TrainConfig, train_pairs: torch.Tensor, groups: torch.Tensor | None = None
+        self,
+        model: Trainable,
+        cfg: TrainConfig,
+        train_pairs: torch.Tensor,
+        groups: torch.Tensor | None = None,
+        budget_s: float | None = None,
+        clock: Callable[[], float] = time.perf_counter,
     ) -> None:
         self.model, self.cfg = model, cfg
+        self.budget_s, self.clock = checked_budget(budget_s), clock
         self.train_pairs = train_pairs.cpu()
         self.groups = groups.cpu() if groups is not None else None
         self.step = 0
@@ -132,9 +175,29 @@ class Trainer:
             [{"params": params, "lr": self.cfg.lr[name], "name": name} for name, params in sorted(groups.items())]
         )
 
-    def lr_factor(self, step: int) -> float:
-        """Learning-rate multiplier at ``step``: decays exponentially to ``lr_decay`` at the last step."""
-        return self.cfg.lr_decay ** (step / max(self.cfg.steps, 1))
+    def progress(self) -> float:
+        """Schedule progress p ∈ [0, 1] of the next step: ``step / steps`` (step mode) or the spent fraction of
+        the budget, ``min(1, elapsed_s / budget_s)`` (budget mode)."""
+        if self.budget_s is None:
+            return self.step / max(self.cfg.steps, 1)
+        return min(1.0, self.elapsed_s / self.budget_s)
+
+    def position(self) -> float:
+        """Schedule position of the next step, p · ``cfg.steps`` in units of the nominal schedule's steps
+        (exactly ``float(step)`` in step mode); the model's HiTAM and upsampling follow it."""
+        if self.budget_s is None:
+            return float(self.step)
+        return self.progress() * self.cfg.steps
+
+    def lr_factor(self, progress: float) -> float:
+        """Learning-rate multiplier at schedule ``progress`` p: ``lr_decay ** p``, from 1 down to ``lr_decay``."""
+        return self.cfg.lr_decay**progress
+
+    def finished(self) -> bool:
+        """Step mode: ``cfg.steps`` done; budget mode: the budget spent (and at least one step done)."""
+        if self.budget_s is None:
+            return self.step >= self.cfg.steps
+        return self.step > 0 and self.elapsed_s >= self.budget_s
 
     def passes(self, steps: int) -> float:
         """How many times ``steps`` steps show the model each training pair, on average."""
@@ -180,7 +243,23 @@ class Trainer:
             "pos": self.pos,
             "last_val_mae": self.last_val_mae,
             "elapsed_s": self.elapsed_s,
+            "budget_s": self.budget_s,
         }
+
+    def check_budget(self, state: dict[str, Any], path: str | Path) -> None:
+        """Refuse to resume the trainer ``state`` of ``path`` under another time budget (or mode)."""
+        then = state.get("budget_s")
+        if then == self.budget_s:
+            return
+
+        def mode(budget: float | None) -> str:
+            return "a step schedule (no budget)" if budget is None else f"a {budget:g} s budget"
+
+        hint = "without --minutes" if then is None else f"with --minutes {then / 60:g}"
+        raise CheckpointError(
+            f"{path}: cannot resume: it was trained to {mode(then)}, this run asks for {mode(self.budget_s)}; "
+            f"resume {hint}, or train afresh without --resume."
+        )
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.step = int(state["step"])
@@ -199,12 +278,13 @@ class Trainer:
     # --- the loop -------------------------------------------------------------------------------
     def train_step(self) -> dict[str, float]:
         """One optimisation step; returns the loss terms (before the update)."""
-        if self.model.on_step_begin(self.step):
+        position = self.position()
+        if self.model.on_step_begin(self.step, position):
             self.optimizer = self._build_optimizer()
-        factor = self.lr_factor(self.step)
+        factor = self.lr_factor(self.progress())
         for group in self.optimizer.param_groups:
             group["lr"] = self.cfg.lr[group["name"]] * factor
-        losses = self.model.training_losses(self.next_batch(), self.step)
+        losses = self.model.training_losses(self.next_batch(), position)
         self.optimizer.zero_grad(set_to_none=True)
         losses["total"].backward()
         self.optimizer.step()
@@ -217,35 +297,56 @@ class Trainer:
         progress: bool = True,
         callback: Callable[[dict[str, float]], None] | None = None,
         checkpoint_path: str | Path | None = None,
+        started: float | None = None,
     ) -> dict[str, float]:
-        """Train until ``cfg.steps``; returns a summary."""
-        from tqdm.auto import tqdm
-
-        cfg = self.cfg
-        desc = f"rflscm train ({self.passes(cfg.steps):.1f} passes over {self.train_pairs.numel()} pairs)"
-        bar = tqdm(total=cfg.steps, initial=self.step, disable=not progress, desc=desc, dynamic_ncols=True)
+        """Train until :meth:`finished`; returns a summary.  ``started`` is the ``clock`` reading the elapsed
+        time counts from (default: now; :func:`fit` passes its own start in budget mode)."""
+        cfg, budget = self.cfg, self.budget_s
+        bar = self._progress_bar(progress)
         losses: dict[str, float] = {}
-        start = time.perf_counter() - self.elapsed_s
-        while self.step < cfg.steps:
+        start = (self.clock() if started is None else started) - self.elapsed_s
+        if budget is not None:
+            self.elapsed_s = self.clock() - start
+            bar.update(min(self.elapsed_s, budget) - bar.n)
+        while not self.finished():
             losses = self.train_step()
             if not math.isfinite(losses["total"]):
                 raise FloatingPointError(f"training loss became {losses['total']} at step {self.step}.")
-            if self.step % cfg.val_every == 0 or self.step == cfg.steps:
+            validated = self.step % cfg.val_every == 0 or (budget is None and self.step == cfg.steps)
+            if validated:
                 self.last_val_mae = float(self.model.validation_mae())
-            self.elapsed_s = time.perf_counter() - start
+            self.elapsed_s = self.clock() - start
+            last = self.finished()
+            if last and not validated:  # budget mode: the budget ran out between validations
+                self.last_val_mae = float(self.model.validation_mae())
             metrics = {"step": float(self.step), **losses, "val_mae_db": self.last_val_mae, "time_s": self.elapsed_s}
-            if checkpoint_path is not None and (self.step % cfg.checkpoint_every == 0 or self.step == cfg.steps):
+            if checkpoint_path is not None and (self.step % cfg.checkpoint_every == 0 or last):
                 self.save(checkpoint_path)
             val = f"{self.last_val_mae:.2f} dB" if math.isfinite(self.last_val_mae) else "pending"
             bar.set_postfix(loss=f"{losses['total']:.4g}", val_mae=val, refresh=False)
-            bar.update(1)
+            bar.update(1 if budget is None else min(self.elapsed_s, budget) - bar.n)
             if callback is not None:
                 callback(metrics)
         bar.close()
-        return {
+        summary = {
             "train_time_s": self.elapsed_s,
             "steps": float(self.step),
             "passes": self.passes(self.step),
             "final_loss": losses.get("total", float("nan")),
             "val_mae_db": self.last_val_mae,
         }
+        if budget is not None:
+            summary.update(budget_s=budget, stopped_by_budget=float(self.elapsed_s >= budget))
+        return summary
+
+    def _progress_bar(self, progress: bool) -> Any:
+        """Steps of ``cfg.steps`` (step mode) or seconds of the budget (budget mode)."""
+        from tqdm.auto import tqdm
+
+        n = self.train_pairs.numel()
+        if self.budget_s is None:
+            desc = f"rflscm train ({self.passes(self.cfg.steps):.1f} passes over {n} pairs)"
+            return tqdm(total=self.cfg.steps, initial=self.step, disable=not progress, desc=desc, dynamic_ncols=True)
+        desc = f"rflscm train ({self.budget_s / 60:g} min budget, {n} pairs)"
+        fmt = "{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]"
+        return tqdm(total=self.budget_s, disable=not progress, desc=desc, dynamic_ncols=True, bar_format=fmt)

@@ -113,7 +113,7 @@ def test_gradient_reaches_every_parameter(scenario) -> None:
         model = NeRF2LSCM.build(narrow(hitam=hitam), GRID)
         model._prepare(scenario)
         step = 3 if hitam.get("enabled", True) else 0  # mid-ramp: both the coarse and the refinement model learn
-        model.on_step_begin(step)
+        model.on_step_begin(step, float(step))
         pairs = torch.arange(min(8, model._train.data.num_pairs))
         model.training_losses(pairs, step)["total"].backward()
         names = [n for n, p in model.stages.named_parameters() if p.grad is None or not bool(p.grad.abs().sum() > 0)]

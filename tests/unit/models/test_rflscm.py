@@ -49,7 +49,7 @@ def test_gradients_reach_every_parameter(scenario) -> None:
     model._prepare(scenario)
     groups = model.parameter_groups()
     assert set(groups) == {"tensors", "networks"}
-    losses = model.training_losses(torch.arange(model._train.data.num_pairs), step=4)  # 0 < α < 1: both stages
+    losses = model.training_losses(torch.arange(model._train.data.num_pairs), position=4.0)  # 0 < α < 1: both stages
     assert 0.0 < losses["alpha"] < 1.0
     losses["total"].backward()
     for name, p in model.stages.named_parameters():

@@ -1,0 +1,96 @@
+"""RF-LSCM trained to a time budget (fake clock): HiTAM and the hand-over follow the schedule position."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tiny_rflscm import tiny_config
+
+from rflscm.data import load_scenario
+from rflscm.data.examples import tiny_scenario
+from rflscm.errors import CheckpointError
+from rflscm.geometry import AngleGrid
+from rflscm.models.rflscm import RFLSCM
+from rflscm.train import fit
+
+GRID = AngleGrid.full_sphere(10, 12)
+
+
+@pytest.fixture(scope="module")
+def scenario(tmp_path_factory):
+    return load_scenario(tiny_scenario(tmp_path_factory.mktemp("tiny"), seed=0))
+
+
+class StepClock:
+    """A fake clock that moves ``step_s`` seconds whenever the model begins a training step."""
+
+    def __init__(self, step_s: float) -> None:
+        self.now, self.step_s = 0.0, step_s
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def timed_model(clock: StepClock, seen: list[tuple[int, float, bool]]) -> RFLSCM:
+    """Tiny RF-LSCM (nominal 8 steps, warm-up 4, ramp 2) whose steps take ``clock.step_s``; records for each step
+    (step, position, whether the refinement model was just handed the coarse model's fields)."""
+    model = RFLSCM.build(tiny_config(), GRID)
+    begin = model.on_step_begin
+
+    def same_fields() -> bool:
+        fine, coarse = model.stage("fine").fields.state_dict(), model.stage("coarse").fields.state_dict()
+        return all(torch.equal(fine[k], coarse[k]) for k in fine)
+
+    def on_step_begin(step: int, position: float) -> bool:
+        clock.now += clock.step_s
+        before = same_fields()
+        changed = begin(step, position)
+        seen.append((step, position, same_fields() and not before))
+        return changed
+
+    model.on_step_begin = on_step_begin  # type: ignore[method-assign]
+    return model
+
+
+def test_hand_over_and_alpha_follow_the_position_not_the_step(scenario) -> None:
+    clock, seen, metrics = StepClock(10.0), [], []
+    model = timed_model(clock, seen)
+    summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock, callback=metrics.append)
+    # step k begins at 10 k s of 100: position 0.8 k of the nominal 8 steps; the 10th step ends at the budget
+    assert summary["steps"] == 10.0 and summary["stopped_by_budget"] == 1.0
+    assert [p for _, p, _ in seen] == [k * 10.0 / 100.0 * 8 for k in range(10)]
+    handed = [step for step, _, now in seen if now]
+    assert handed == [5]  # position 4.0 crosses warm-up 4 at step 5 (step mode: step 4)
+    hitam = model.hitam
+    assert hitam is not None
+    assert [m["alpha"] for m in metrics] == [hitam.alpha(p) for _, p, _ in seen]
+    assert [m["alpha"] for m in metrics][4:7] == pytest.approx([0.0, 0.5, 0.9])  # positions 3.2, 4.0, 4.8
+    assert model.step == 10 and model.position == pytest.approx(7.2)
+
+
+def test_budget_resume_continues_from_the_saved_time_and_refuses_another_budget(scenario, tmp_path) -> None:
+    clock, seen, reference = StepClock(10.0), [], []
+    fit(timed_model(clock, seen), scenario, progress=False, budget_s=100.0, clock=clock,
+        callback=lambda m: reference.append(m["total"]))  # fmt: skip
+
+    class Interrupt(Exception):
+        pass
+
+    def stop_at_four(metrics: dict) -> None:
+        if metrics["step"] == 4:
+            raise Interrupt
+
+    ckpt = tmp_path / "run.ckpt"
+    clock, seen = StepClock(10.0), []
+    with pytest.raises(Interrupt):
+        fit(timed_model(clock, seen), scenario, progress=False, budget_s=100.0, clock=clock, callback=stop_at_four,
+            checkpoint_path=ckpt)  # fmt: skip
+    clock, seen, resumed = StepClock(10.0), [], []
+    fit(timed_model(clock, seen), scenario, progress=False, budget_s=100.0, clock=clock, checkpoint_path=ckpt,
+        resume=True, callback=lambda m: resumed.append(m["total"]))  # fmt: skip
+    # the fake clock makes the resumed run's times those of the uninterrupted one (a real clock would not)
+    assert seen[0][:2] == (4, 3.2) and resumed == reference[4:]
+    for budget, text in ((120.0, "a 120 s budget"), (None, "a step schedule")):
+        with pytest.raises(CheckpointError, match=f"trained to a 100 s budget, this run asks for {text}"):
+            fit(RFLSCM.build(tiny_config(), GRID), scenario, progress=False, budget_s=budget, checkpoint_path=ckpt,
+                resume=True)  # fmt: skip
