@@ -189,3 +189,63 @@ def test_b6_unseen(tmp_path: Path, scenario_dir: Path) -> None:
     for name in ("rflscm", "nerf2"):
         assert models[name]["unseen_mae_db"]["ssb"] is not None
         assert models[name]["aps_unseen"]["angle_error_deg"] is not None
+
+
+def test_b9_time_to_target_on_a_hand_made_curve() -> None:
+    from rflscm.bench.b09_time_to_target import best, compare, time_to
+
+    def rows(*points: tuple[float, float | None]) -> list[dict]:
+        return [{"train_s": t, "mae_db": {"ssb": {"all": 1.0, "changed": m}, "csi": None}} for t, m in points]
+
+    old = rows((5, 9.0), (10, 7.0), (20, 6.0), (40, 6.5), (80, 6.0))
+    new = rows((5, 8.0), (10, None), (20, 5.5), (40, 4.0))
+    assert time_to(old, "ssb", 7.0) == 10 and time_to(old, "ssb", 5.0) is None and time_to(old, "ssb", None) is None
+    assert time_to(new, "ssb", 6.0) == 20  # a missing value is skipped, never taken as reached
+    assert time_to(old, "ssb", 1.0, cells="all") == 5 and time_to(old, "csi", 99.0) is None
+    assert best(old, "ssb") == (6.0, 20) and best(new, "csi") == (None, None)
+    reached = compare(old, new, "ssb", 7.0)
+    assert reached["old_time_to_wnomp_s"] == 10 and reached["new_time_to_wnomp_s"] == 20
+    assert reached["ratio_old_new"] == 0.5 and reached["basis"] == "wnomp"
+    missed = compare(old, new, "ssb", 5.0)  # the old model never reaches WNOMP: compare at its best
+    assert missed["old_time_to_wnomp_s"] is None and missed["ratio_old_new"] is None and missed["basis"] == "old_best"
+    assert missed["new_time_to_wnomp_s"] == 40
+    assert missed["old_best_mae_db"] == 6.0 and missed["old_time_to_best_s"] == 20
+    assert missed["new_time_to_old_best_s"] == 20 and missed["ratio_to_old_best"] == 1.0
+    assert missed["new_best_mae_db"] == 4.0
+
+
+def test_b9_time_to_target_tiny(tmp_path: Path, scenario_dir: Path) -> None:
+    """Old (HEAD's code, exported with git archive) and new model in their own processes, WNOMP's level."""
+    from rflscm.bench.b09_time_to_target import BEAM_TYPES, export_src, repository_root, run_b9
+    from rflscm.errors import ConfigError
+
+    try:  # a checkout without git (an unpacked sdist) cannot export a commit's code
+        export_src(repository_root(), "HEAD", tmp_path / "_probe")
+    except ConfigError as exc:
+        pytest.skip(f"b9 needs a git checkout: {exc}")
+    ctx = BenchContext(size="tiny", seeds=1, out_dir=tmp_path, device="cpu", scenario=str(scenario_dir))
+    res = run_b9(ctx, "tiny")
+    json.dumps(res)
+    assert res["settings"]["threads"] == 1 and len(res["settings"]["baseline_commit"]) == 40
+    assert list(res["regimes"]) == ["given"] and res["plots"] == ["b9_given.png"]
+    assert (tmp_path / "b9_given.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    entry = res["regimes"]["given"]
+    for who in ("old", "new"):
+        run = entry[who]
+        assert run["threads"] == 1 and run["steps_done"] == 30 and run["stopped_by"] == "schedule"
+        assert len(run["rows"]) >= 2 and run["rows"][-1]["step"] == 30
+        times = [r["train_s"] for r in run["rows"]]
+        assert all(np.isfinite(times)) and times == sorted(times) and times[0] > 0
+        for row in run["rows"]:
+            assert np.isfinite(row["cpu_s"]) and row["eval_s"] > 0
+            for bt in BEAM_TYPES:
+                assert all(np.isfinite(row["mae_db"][bt][k]) for k in ("all", "changed"))
+    old_src = Path(entry["old"]["rflscm_file"]).parents[1]
+    assert old_src.parent.name.startswith("_baseline_") and old_src.parent.parent == tmp_path
+    assert Path(entry["new"]["rflscm_file"]).parents[1] != old_src
+    for bt in BEAM_TYPES:
+        level = entry["wnomp"]["mae_db"][bt]["changed"]
+        assert level is not None and np.isfinite(level)
+        cmp = entry["comparison"][bt]
+        assert cmp["wnomp_mae_db"] == level and cmp["basis"] in ("wnomp", "old_best")
+        assert cmp["old_best_mae_db"] is not None and cmp["old_time_to_best_s"] > 0
