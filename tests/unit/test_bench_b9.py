@@ -24,3 +24,15 @@ def test_b9_time_to_target_on_a_hand_made_curve() -> None:
     assert missed["old_best_mae_db"] == 6.0 and missed["old_time_to_best_s"] == 20
     assert missed["new_time_to_old_best_s"] == 20 and missed["ratio_to_old_best"] == 1.0
     assert missed["new_best_mae_db"] == 4.0
+
+
+def test_b9_baseline_may_be_a_folder_holding_src(tmp_path) -> None:
+    # where no git checkout is at hand (a bare copy of the working tree), the baseline's code comes as a folder
+    from rflscm.bench.b09_time_to_target import baseline_src
+
+    pkg = tmp_path / "old" / "src" / "rflscm"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    assert baseline_src(str(tmp_path / "old"), tmp_path / "out") == ((tmp_path / "old" / "src").resolve(), None)
+    assert baseline_src(str(tmp_path / "old" / "src"), tmp_path / "out")[0] == (tmp_path / "old" / "src").resolve()
+    assert not (tmp_path / "out").exists()  # nothing exported

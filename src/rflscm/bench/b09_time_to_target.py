@@ -5,7 +5,7 @@ current code's preset, or ``--config``), side by side in one run, on the same ma
 Each model trains in its own subprocess (``python b09_worker.py …``, :mod:`rflscm.bench.b09_worker`),
 one after the other, never at once: the baseline with ``PYTHONPATH`` at the commit's ``src`` (exported
 with ``git archive REF src`` into ``<out>/_baseline_<sha>/``; the repository is the one holding the
-running package, so outside a git checkout B9 stops), the new one at the running package's ``src``;
+running package, so outside a git checkout B9 stops unless ``--baseline`` names a folder), the new one at the running package's ``src``;
 both with the parent's torch thread count (``rflscm --threads N``) and seed.  Training time counts
 from the start of the fit (data preparation included); at geometric marks of training time the
 worker evaluates the round-2 MAE (adjust protocol) on every cell and on the changed cells, and the
@@ -13,8 +13,8 @@ evaluation's wall and CPU time are taken off the clocks (``train_s``, ``cpu_s`` 
 ``time.process_time``).  WNOMP's level is WNOMP fitted in the current code with the settings chosen
 on held-aside round-1 beams (as ``rflscm demo`` does): its ``mae_db.{ssb,csi}.changed``.
 
-Reported per regime and beam type: ``time_to_wnomp_s`` (the first mark at which a model's changed-cell
-MAE is at or below WNOMP's; a mark, so resolved to the marks' spacing) of both models and
+Reported per regime and beam type: ``old_time_to_wnomp_s`` and ``new_time_to_wnomp_s`` (the first mark
+at which the model's changed-cell MAE is at or below WNOMP's; a mark, so resolved to the marks' spacing),
 ``ratio_old_new`` = old / new; and always ``old_best_mae_db``, ``old_time_to_best_s`` (first mark at
 the old model's lowest changed-cell MAE), ``new_time_to_old_best_s`` and ``ratio_to_old_best``, the
 comparison the issue asks for where the old model never reaches WNOMP (``basis`` says which one
@@ -27,7 +27,9 @@ re-measure (``ideal``: ``rflscm simulate --from-trace … --measurements ideal``
 baseline code refuses the field regime's ``reporting:`` key, so the baseline reads a copy of the
 scenario whose ``scenario.yaml`` lacks it (the other files linked): that is exactly today's model,
 whose missing-beam penalty assumes the threshold rule.  ``rflscm bench b9 --baseline REF`` picks
-another baseline commit.
+another baseline commit, or a folder holding its exported ``src`` (``git archive REF src | tar -x -C
+DIR``), which needs no git where B9 runs.  The trainers' own periodic validation (the presets'
+``val_every``) is part of each model's training and counts.
 
 Sizes: ``quick`` = the whole scenario, both models at their ``quick`` preset (``AngleGrid()``),
 marks 5, 10, 20, … s, each model capped at 1800 s of training, 2 CPU cores (the baseline's
@@ -102,9 +104,7 @@ def run_b9(ctx: BenchContext, size: str) -> dict[str, Any]:
     new_config = ctx.config or settings["new_config"]
     if Path(new_config).suffix in (".yaml", ".yml"):
         new_config = str(Path(new_config).resolve())
-    root = repository_root()
-    sha = _git(root, "rev-parse", "--verify", f"{ref}^{{commit}}").strip()
-    old_src = export_src(root, sha, out_dir / f"_baseline_{sha[:12]}")
+    old_src, sha = baseline_src(ref, out_dir)
     new_src = Path(__file__).resolve().parents[2]
     threads = torch.get_num_threads()
     seed = seeds_of(ctx)[0]
@@ -127,7 +127,8 @@ def run_b9(ctx: BenchContext, size: str) -> dict[str, Any]:
                  "comparison": {bt: compare(old["rows"], new["rows"], bt, wnomp["mae_db"][bt]["changed"])
                                 for bt in BEAM_TYPES}}  # fmt: skip
         result["regimes"][regime] = entry
-        result["plots"].append(plot(ctx, regime, entry, {"old": f"old {sha[:7]}", "new": f"new {new_config}"}))
+        old_label = f"old {sha[:7]}" if sha else f"old {old_src.parent.name}"
+        result["plots"].append(plot(ctx, regime, entry, {"old": old_label, "new": f"new {new_config}"}))
     return result
 
 
@@ -226,6 +227,19 @@ def without_reporting(source: Path, out: Path) -> Path:
     return out.resolve()
 
 
+def baseline_src(ref: str, out_dir: Path) -> tuple[Path, str | None]:
+    """``(src folder, commit)`` of the baseline: a folder holding ``rflscm/`` or ``src/rflscm/`` as it is
+    (commit ``None``; no git needed, e.g. on a machine with a bare copy of the working tree), else the
+    commit ``ref`` of the running package's repository exported into ``<out>/_baseline_<sha>/src``."""
+    folder = Path(ref).expanduser()
+    for src in (folder, folder / "src"):
+        if (src / "rflscm" / "__init__.py").is_file():
+            return src.resolve(), None
+    root = repository_root()
+    sha = _git(root, "rev-parse", "--verify", f"{ref}^{{commit}}").strip()
+    return export_src(root, sha, out_dir / f"_baseline_{sha[:12]}"), sha
+
+
 def repository_root() -> Path:
     """The git checkout holding the running package; a :class:`ConfigError` outside one."""
     here = Path(__file__).resolve().parent
@@ -233,7 +247,8 @@ def repository_root() -> Path:
         return Path(_git(here, "rev-parse", "--show-toplevel").strip())
     except ConfigError:
         raise ConfigError(
-            f"b9 runs a baseline commit's code from git, but {here} is not inside a git checkout."
+            f"b9 exports a baseline commit's code with git, but {here} is not inside a git checkout "
+            "(give --baseline a folder holding that commit's src instead)."
         ) from None
 
 

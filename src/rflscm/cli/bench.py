@@ -63,7 +63,10 @@ def bench(
         None, "--config", help="b9: the new RF-LSCM's preset or YAML file (default: the size's preset)."
     ),
     baseline: str | None = typer.Option(
-        None, "--baseline", metavar="REF", help="b9: git commit whose code is the old model (default: c7460d6)."
+        None,
+        "--baseline",
+        metavar="REF",
+        help="b9: git commit whose code is the old model, or a folder holding its src (default: c7460d6).",
     ),
     device: str = DeviceOption,
     seed: int = SeedOption,
