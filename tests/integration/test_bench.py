@@ -189,3 +189,40 @@ def test_b6_unseen(tmp_path: Path, scenario_dir: Path) -> None:
     for name in ("rflscm", "nerf2"):
         assert models[name]["unseen_mae_db"]["ssb"] is not None
         assert models[name]["aps_unseen"]["angle_error_deg"] is not None
+
+
+def test_b9_time_to_target_tiny(tmp_path: Path, scenario_dir: Path) -> None:
+    """Old (HEAD's code, exported with git archive) and new model in their own processes, WNOMP's level."""
+    from rflscm.bench.b09_time_to_target import BEAM_TYPES, export_src, repository_root, run_b9
+    from rflscm.errors import ConfigError
+
+    try:  # a checkout without git (an unpacked sdist) cannot export a commit's code
+        export_src(repository_root(), "HEAD", tmp_path / "_probe")
+    except ConfigError as exc:
+        pytest.skip(f"b9 needs a git checkout: {exc}")
+    ctx = BenchContext(size="tiny", seeds=1, out_dir=tmp_path, device="cpu", scenario=str(scenario_dir))
+    res = run_b9(ctx, "tiny")
+    json.dumps(res)
+    assert res["settings"]["threads"] == 1 and len(res["settings"]["baseline_commit"]) == 40
+    assert list(res["regimes"]) == ["given"] and res["plots"] == ["b9_given.png"]
+    assert (tmp_path / "b9_given.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    entry = res["regimes"]["given"]
+    for who in ("old", "new"):
+        run = entry[who]
+        assert run["threads"] == 1 and run["steps_done"] == 30 and run["stopped_by"] == "schedule"
+        assert len(run["rows"]) >= 2 and run["rows"][-1]["step"] == 30
+        times = [r["train_s"] for r in run["rows"]]
+        assert all(np.isfinite(times)) and times == sorted(times) and times[0] > 0
+        for row in run["rows"]:
+            assert np.isfinite(row["cpu_s"]) and row["eval_s"] > 0
+            for bt in BEAM_TYPES:
+                assert all(np.isfinite(row["mae_db"][bt][k]) for k in ("all", "changed"))
+    old_src = Path(entry["old"]["rflscm_file"]).parents[1]
+    assert old_src.parent.name.startswith("_baseline_") and old_src.parent.parent == tmp_path
+    assert Path(entry["new"]["rflscm_file"]).parents[1] != old_src
+    for bt in BEAM_TYPES:
+        level = entry["wnomp"]["mae_db"][bt]["changed"]
+        assert level is not None and np.isfinite(level)
+        cmp = entry["comparison"][bt]
+        assert cmp["wnomp_mae_db"] == level and cmp["basis"] in ("wnomp", "old_best")
+        assert cmp["old_best_mae_db"] is not None and cmp["old_time_to_best_s"] > 0

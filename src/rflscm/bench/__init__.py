@@ -20,6 +20,8 @@ class BenchContext:
     out_dir: Path
     device: str
     scenario: str | None  # scenario directory; None = the shipped default
+    config: str | None = None  # model preset or YAML for benchmarks that take one (b9: the new model's)
+    baseline: str | None = None  # git commit of the baseline code for benchmarks that compare with one (b9)
 
 
 BenchFn = Callable[[BenchContext], dict[str, Any]]
@@ -46,6 +48,7 @@ def load_all() -> None:
         b05_alpha_p,
         b06_unseen,
         b07_optimize,
+        b09_time_to_target,
         opt_speed,
         sensing,
         wnomp_speed,

@@ -59,6 +59,15 @@ def bench(
     seeds: int = typer.Option(1, "--seeds", min=1, help="Number of seeds where the benchmark repeats runs."),
     out: Path = typer.Option(Path("bench-out"), "--out", help="Output folder for JSON and plots."),
     scenario: Path | None = typer.Option(None, "--scenario", help="Scenario folder (default: the shipped one)."),
+    config: str | None = typer.Option(
+        None, "--config", help="b9: the new RF-LSCM's preset or YAML file (default: the size's preset)."
+    ),
+    baseline: str | None = typer.Option(
+        None,
+        "--baseline",
+        metavar="REF",
+        help="b9: git commit whose code is the old model, or a folder holding its src (default: c7460d6).",
+    ),
     device: str = DeviceOption,
     seed: int = SeedOption,
 ) -> None:
@@ -71,13 +80,21 @@ def bench(
         return
     if name not in BENCHMARKS:
         raise ConfigError(f"unknown benchmark {name!r}; choose one of: {', '.join(BENCHMARKS)} (or `list`).")
+    if (config is not None or baseline is not None) and name != "b9":
+        raise ConfigError("--config and --baseline apply to b9 only.")
     if size not in ("quick", "full"):
         raise ConfigError(f"--size must be quick or full (got {size!r}).")
     seed_everything(seed)
     dev = resolve_device(device)
     out.mkdir(parents=True, exist_ok=True)
     ctx = BenchContext(
-        size=size, seeds=seeds, out_dir=out, device=str(dev), scenario=str(scenario) if scenario else None
+        size=size,
+        seeds=seeds,
+        out_dir=out,
+        device=str(dev),
+        scenario=str(scenario) if scenario else None,
+        config=config,
+        baseline=baseline,
     )
     summary, fn = BENCHMARKS[name]
     result = {

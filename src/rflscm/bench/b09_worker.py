@@ -1,0 +1,193 @@
+"""B9's worker: train one RF-LSCM and record its round-2 MAE at marks of training time (a standalone script).
+
+B9 (:mod:`rflscm.bench.b09_time_to_target`) runs this file *by path* in a subprocess, once with
+``PYTHONPATH`` at an exported older commit's ``src`` and once at the current package's ``src``, so
+it uses only what both have: ``rflscm.data.load_scenario``, ``rflscm.geometry.AngleGrid``,
+``rflscm.models.MODEL_REGISTRY["rflscm"].build``, ``rflscm.models.rflscm_config.preset_path``,
+``rflscm.eval.protocols.AdjustProtocol`` / ``fit_with_protocol`` (whose callback gets the metrics
+of every step) and ``rflscm.eval.run_evaluation``.  It is never imported as part of ``rflscm``.
+
+Training time counts from the call of ``fit_with_protocol`` (data preparation included); every
+evaluation's wall time (and CPU time) is taken off, so ``train_s`` is training alone.  When
+``train_s`` passes a mark the model is evaluated (adjust protocol, no oracle) and one row is
+written; once more at the end of the schedule or when ``--max-seconds`` stops the run.
+
+Usage: ``python b09_worker.py --scenario DIR --config quick --out rows.json [--overrides JSON]
+[--angle-grid 91,72,-90,2] [--marks 5,10,20] [--max-seconds S] [--threads N] [--seed N] [--device cpu]``.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+# run by path, Python puts this folder first on sys.path; drop it so that its modules cannot shadow others
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if (Path(p).resolve() if p else Path.cwd().resolve()) != _HERE]
+
+import argparse  # noqa: E402
+import copy  # noqa: E402
+import dataclasses  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import random  # noqa: E402
+import time  # noqa: E402
+from typing import Any  # noqa: E402
+
+BEAM_TYPES = ("ssb", "csi")
+
+
+class _Stop(Exception):
+    """Raised from the training callback when ``--max-seconds`` of training time are spent."""
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict) and key != "lr":
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _config(spec: str, overrides: dict[str, Any]) -> Any:
+    """The preset name or YAML path as given, or (with overrides) its mapping with the overrides laid over."""
+    if not overrides:
+        return spec
+    import yaml
+
+    from rflscm.models.rflscm_config import preset_path
+
+    path = Path(spec) if Path(spec).is_file() else preset_path(spec, "rflscm")
+    return _merge(yaml.safe_load(path.read_text()) or {}, overrides)
+
+
+def _number(value: Any) -> float | None:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def _block(metrics: dict[str, Any], key: str) -> dict[str, dict[str, float | None]] | None:
+    block = metrics.get(key)
+    if not isinstance(block, dict):
+        return None
+    return {bt: {k: _number((block.get(bt) or {}).get(k)) for k in ("all", "changed")} for bt in BEAM_TYPES}
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenario", required=True)
+    p.add_argument("--config", default="quick", help="preset name or YAML path")
+    p.add_argument("--overrides", default="{}", help="JSON mapping laid over the config")
+    p.add_argument("--angle-grid", default="", help="num_el,num_az,el_min_deg,el_step_deg (default: AngleGrid())")
+    p.add_argument("--marks", default="", help="training seconds at which to evaluate, comma-separated")
+    p.add_argument("--max-seconds", type=float, default=None)
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--out", required=True)
+    args = p.parse_args(argv)
+
+    import numpy as np
+    import torch
+
+    import rflscm
+    from rflscm.data import load_scenario
+    from rflscm.eval import run_evaluation
+    from rflscm.eval.protocols import AdjustProtocol, fit_with_protocol
+    from rflscm.geometry import AngleGrid
+    from rflscm.models import MODEL_REGISTRY
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    random.seed(args.seed)
+    np.random.seed(args.seed % 2**32)
+    torch.manual_seed(args.seed)
+    cuda = args.device.startswith("cuda")
+    marks = sorted(float(m) for m in args.marks.split(",") if m.strip())
+    grid = AngleGrid()
+    if args.angle_grid:
+        el, az, lo, step = args.angle_grid.split(",")
+        grid = AngleGrid(int(el), int(az), float(lo), float(step))
+
+    scenario = load_scenario(args.scenario)
+    config = _config(args.config, json.loads(args.overrides))
+    model = MODEL_REGISTRY["rflscm"].build(config, grid, args.device)
+    rows: list[dict[str, Any]] = []
+    excluded = {"wall": 0.0, "cpu": 0.0}
+    state = {"next": 0, "step": 0}
+    start = {"wall": 0.0, "cpu": 0.0}
+
+    def clocks() -> tuple[float, float]:
+        if cuda:
+            torch.cuda.synchronize()
+        return time.perf_counter(), time.process_time()
+
+    def evaluate(step: int) -> None:
+        wall, cpu = clocks()
+        row: dict[str, Any] = {
+            "step": step,
+            "train_s": wall - start["wall"] - excluded["wall"],
+            "cpu_s": cpu - start["cpu"] - excluded["cpu"],
+        }
+        metrics = run_evaluation(model, scenario, AdjustProtocol(), oracle=None, max_aps_pairs=0).metrics
+        row["mae_db"] = _block(metrics, "mae_db")
+        row["bias_db"] = _block(metrics, "bias_db")
+        wall2, cpu2 = clocks()
+        row["eval_s"] = wall2 - wall
+        excluded["wall"] += wall2 - wall
+        excluded["cpu"] += cpu2 - cpu
+        rows.append(row)
+        print(f"b9 worker: step {step}, {row['train_s']:.1f} s training, mae {row['mae_db']}", flush=True)
+
+    def callback(metrics: dict[str, float]) -> None:
+        step = int(metrics["step"])
+        state["step"] = step
+        wall, _ = clocks()
+        train_s = wall - start["wall"] - excluded["wall"]
+        due = False
+        while state["next"] < len(marks) and train_s >= marks[state["next"]]:
+            state["next"] += 1
+            due = True
+        over = args.max_seconds is not None and train_s >= args.max_seconds
+        if due or over:
+            evaluate(step)
+        if over:
+            raise _Stop
+
+    stopped = "schedule"
+    start["wall"], start["cpu"] = clocks()
+    try:
+        fit_with_protocol(model, scenario, AdjustProtocol(), progress=False, callback=callback)
+    except _Stop:
+        stopped = "max_seconds"
+    if not rows or rows[-1]["step"] != state["step"]:
+        evaluate(state["step"])
+    cfg: Any = getattr(model, "config", None)
+    result = {
+        "rflscm_file": str(Path(rflscm.__file__).resolve()),
+        "rflscm_version": getattr(rflscm, "__version__", None),
+        "config": args.config,
+        "overrides": json.loads(args.overrides),
+        "model_config": dataclasses.asdict(cfg)
+        if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type)
+        else None,
+        "steps_planned": getattr(getattr(cfg, "train", None), "steps", None),
+        "steps_done": state["step"],
+        "stopped_by": stopped,
+        "threads": torch.get_num_threads(),
+        "device": args.device,
+        "seed": args.seed,
+        "marks_s": marks,
+        "max_seconds": args.max_seconds,
+        "rows": rows,
+    }
+    Path(args.out).write_text(json.dumps(result, indent=2, default=str))
+
+
+if __name__ == "__main__":
+    main()
