@@ -86,6 +86,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--angle-grid", default="", help="num_el,num_az,el_min_deg,el_step_deg (default: AngleGrid())")
     p.add_argument("--marks", default="", help="training seconds at which to evaluate, comma-separated")
     p.add_argument("--max-seconds", type=float, default=None)
+    p.add_argument("--minutes", type=float, default=None, help="train to this budget (new code only: `budget_s`)")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu")
@@ -162,7 +163,11 @@ def main(argv: list[str] | None = None) -> None:
     stopped = "schedule"
     start["wall"], start["cpu"] = clocks()
     try:
-        fit_with_protocol(model, scenario, AdjustProtocol(), progress=False, callback=callback)
+        if args.minutes is None:
+            fit_with_protocol(model, scenario, AdjustProtocol(), progress=False, callback=callback)
+        else:  # the budget's clock leaves the evaluations out, as train_s does
+            fit_with_protocol(model, scenario, AdjustProtocol(), progress=False, callback=callback,
+                              budget_s=60.0 * args.minutes, clock=lambda: clocks()[0] - excluded["wall"])  # fmt: skip
     except _Stop:
         stopped = "max_seconds"
     if not rows or rows[-1]["step"] != state["step"]:
@@ -177,6 +182,7 @@ def main(argv: list[str] | None = None) -> None:
         if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type)
         else None,
         "steps_planned": getattr(getattr(cfg, "train", None), "steps", None),
+        "budget_minutes": args.minutes,
         "steps_done": state["step"],
         "stopped_by": stopped,
         "threads": torch.get_num_threads(),
