@@ -313,7 +313,7 @@ class RadianceStage(nn.Module):
         live = (packed.phi > 0).nonzero().squeeze(1)  # the rest is inert (δ̃ = 1, R̃ = 0)
         phi, ray_live = packed.phi[live], ray[live]
         _, log_delta_tilde = modulate(phi, phi, log_delta[live])  # log δ̃ = Φ log δ
-        weight = transmittance(log_delta_tilde, ray_live, True, MAX_LOG_GAIN) * phi  # (Π_{q̃≤q} δ̃)·Φ
+        weight = transmittance(log_delta_tilde, ray_live, MAX_LOG_GAIN) * phi  # (Π_{q̃≤q} δ̃)·Φ
         if self.min_weight > 0:  # early ray termination: samples deep behind walls are not decoded
             keep = (weight.detach().abs() > self.min_weight).nonzero().squeeze(1)
             live, weight, ray_live = live[keep], weight[keep], ray_live[keep]
