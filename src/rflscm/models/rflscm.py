@@ -214,7 +214,11 @@ class RFLSCM(LSCMModel):
             )
         if payload["fingerprint"] != self.fingerprint:
             raise CheckpointError(f"{path}: cannot resume: it was trained on another scenario (or other data).")
-        ours, theirs = to_dict(self.config), _without_removed_options(state["config"], self.config_class)
+        try:
+            theirs = _without_removed_options(state["config"], self.config_class)
+        except CheckpointError as exc:
+            raise CheckpointError(f"{path}: cannot resume: {exc}") from None
+        ours = to_dict(self.config)
         steps_now, steps_then = ours["train"]["steps"], dict(theirs.get("train") or {}).get("steps")
         if steps_now != steps_then:
             raise CheckpointError(

@@ -201,7 +201,7 @@ def test_an_old_nerf2_checkpoint_config_loads_and_keeps_its_own_field_options() 
         _without_removed_options(old, NeRF2Config)
 
 
-def test_a_checkpoint_with_removed_options_at_their_defaults_loads_and_resumes(scenario, reference, tmp_path) -> None:
+def test_a_checkpoint_with_removed_options_at_their_defaults_loads_and_resumes(scenario, tmp_path) -> None:
     torch.manual_seed(0)
     model = RFLSCM.build({**BASE, "train": {**BASE["train"], "steps": 4}}, GRID)
     fit(model, scenario, progress=False)
@@ -212,6 +212,11 @@ def test_a_checkpoint_with_removed_options_at_their_defaults_loads_and_resumes(s
     assert loaded.config == model.config
     ids, grids = np.array([11, 12]), np.array([100, 101])
     assert torch.equal(loaded.aps(ids, grids), model.aps(ids, grids))
+    state["train_state"] = {"as": "saved"}  # resuming compares the configs without the removed options
+    payload = {"model": "rflscm", "fingerprint": model.fingerprint, "state": state}
+    assert model.resume_from(payload, tmp_path / "old.ckpt") == {"as": "saved"}
     state["config"]["decoder"]["output"] = "cartesian"
     with pytest.raises(CheckpointError, match=r"`decoder.output: cartesian`"):
         RFLSCM.from_checkpoint(state)
+    with pytest.raises(CheckpointError, match=r"cannot resume: .*`decoder.output: cartesian`"):
+        model.resume_from({"model": "rflscm", "fingerprint": model.fingerprint, "state": state}, tmp_path / "old.ckpt")
