@@ -86,7 +86,8 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
 
 
 def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
-    """Build dataclass ``cls`` from ``data``; unknown keys are a :class:`ConfigError`."""
+    """Build dataclass ``cls`` from ``data``; unknown keys are a :class:`ConfigError` (one that names a key in
+    ``cls.REMOVED``, a mapping key → (value, note) of removed options, says it was removed)."""
     if data is None:
         data = {}
     if not isinstance(data, dict):
@@ -94,6 +95,10 @@ def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]  # cls is a dataclass
     unknown = sorted(set(data) - set(fields))
+    removed: dict[str, tuple[Any, str]] = getattr(cls, "REMOVED", {})
+    for key in unknown:
+        if key in removed:
+            raise ConfigError(f"`{f'{prefix}.{key}' if prefix else key}` was removed ({removed[key][1]}); drop it.")
     if unknown:
         where = f"`{prefix}`" if prefix else cls.__name__
         raise ConfigError(

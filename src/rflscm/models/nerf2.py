@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import torch
 from torch import nn
@@ -37,12 +37,27 @@ from rflscm.geometry import AngleGrid
 from rflscm.models.base import register_model
 from rflscm.models.radiance import SceneFields, SceneFrame
 from rflscm.models.rflscm import RFLSCM
-from rflscm.models.rflscm_config import DecoderConfig, HiTAMConfig, LossConfig, PriorConfig, RenderConfig, TrainConfig
+from rflscm.models.rflscm_config import (
+    INIT_LOSS_DB,
+    LEARN_MU,
+    DecoderConfig,
+    HiTAMConfig,
+    LossConfig,
+    PriorConfig,
+    RenderConfig,
+    TrainConfig,
+)
 
 
 @dataclass(frozen=True)
 class NeRF2FieldConfig:
-    """NeRF²'s attenuation network (replaces RF-LSCM's VM tensors 𝒢_δ and 𝒢_R)."""
+    """NeRF²'s attenuation network (replaces RF-LSCM's VM tensors 𝒢_δ and 𝒢_R); the medium is RF-LSCM's."""
+
+    REMOVED: ClassVar[dict[str, tuple[Any, str]]] = {
+        "learn_mu": (LEARN_MU, "issue 11: μ is always learned"),
+        "init_loss_db": (INIT_LOSS_DB, "issue 11: fixed at 0.01 dB"),
+    }
+    """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
 
     hidden: int = 256
     """Width of the attenuation trunk (NeRF²: 256)."""
@@ -56,10 +71,6 @@ class NeRF2FieldConfig:
     """Width of the feature layer feeding the radiance head (NeRF²: 256)."""
     delta_init_scale: float = 0.1
     """Scale of the δ head's initial weights: raw δ ≈ 0 (free space, as RF-LSCM's tensors start)."""
-    learn_mu: bool = True
-    """Learn Re μ ≥ 1; false fixes μ = 1 (as RF-LSCM's ``field.learn_mu``)."""
-    init_loss_db: float = 0.01
-    """Per-voxel loss at the reference carrier at raw δ = 0 [dB] (as RF-LSCM's ``field.init_loss_db``)."""
     building_loss_db: float | None = 10.0
     """Initial per-voxel loss [dB] where the scan's building points are dense, fitted before training
     exactly as RF-LSCM does (its ``field.building_loss_db``); null starts from free space."""
@@ -73,8 +84,8 @@ class NeRF2FieldConfig:
             raise ConfigError(f"`model.field.skip_at` must lie in 1…{self.layers - 1} or be null (got {self.skip_at}).")
         if self.pos_freqs < 0:
             raise ConfigError(f"`model.field.pos_freqs` must be >= 0 (got {self.pos_freqs}).")
-        if self.delta_init_scale < 0 or self.init_loss_db <= 0:
-            raise ConfigError("`model.field.delta_init_scale` must be >= 0 and `init_loss_db` > 0.")
+        if self.delta_init_scale < 0:
+            raise ConfigError(f"`model.field.delta_init_scale` must be >= 0 (got {self.delta_init_scale}).")
         if self.building_loss_db is not None and self.building_loss_db <= 0:
             raise ConfigError(f"`model.field.building_loss_db` must be > 0 or null (got {self.building_loss_db}).")
 

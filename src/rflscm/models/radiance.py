@@ -31,7 +31,25 @@ from rflscm.fields import (
     resolution_for,
 )
 from rflscm.fields.surfaces import specularity
-from rflscm.models.rflscm_config import DecoderConfig, FieldConfig, RenderConfig
+from rflscm.models.rflscm_config import (
+    DELTA_BASIS,
+    DELTA_INIT_SCALE,
+    DIR_FREQS,
+    FEATURE_BASIS,
+    FEATURE_INIT_SCALE,
+    GRID_FREQS,
+    INIT_RADIANCE_DB,
+    MAX_LOG_GAIN,
+    MAX_RESOLUTION,
+    MIN_WEIGHT,
+    POS_FREQS,
+    SOURCE_DECAY,
+    SPECULAR_POWERS,
+    WAVELENGTH_FREQS,
+    DecoderConfig,
+    FieldConfig,
+    RenderConfig,
+)
 from rflscm.render import PackedSamples, accumulate_power, join_queries, transmittance
 
 
@@ -131,14 +149,14 @@ class VMFieldFactory:
 
     def resolution(self, frame: SceneFrame, level: int) -> tuple[int, int, int]:
         lo, hi = torch.tensor(frame.box_lo), torch.tensor(frame.box_hi)
-        return resolution_for(lo, hi, self.voxel_m(level), self.cfg.max_resolution)
+        return resolution_for(lo, hi, self.voxel_m(level), MAX_RESOLUTION)
 
     def __call__(self, frame: SceneFrame, delta_channels: int) -> VMFields:
         f = self.cfg
         lo, hi = torch.tensor(frame.box_lo), torch.tensor(frame.box_hi)
         res = self.resolution(frame, 0)
-        delta = TensorVM(lo, hi, res, f.delta_rank, delta_channels, f.delta_basis, f.delta_init_scale)
-        features = TensorVM(lo, hi, res, f.feature_rank, f.feature_dim, f.feature_basis, f.init_scale)
+        delta = TensorVM(lo, hi, res, f.delta_rank, delta_channels, DELTA_BASIS, DELTA_INIT_SCALE)
+        features = TensorVM(lo, hi, res, f.feature_rank, f.feature_dim, FEATURE_BASIS, FEATURE_INIT_SCALE)
         return VMFields(delta, features)
 
 
@@ -164,12 +182,12 @@ class RadianceDecoder(nn.Module):
     """𝒬: [𝓜(p), PE(ω), conditioning on the grid and λ] → complex R (2 outputs).
 
     The first layer is split by what its inputs depend on: the sample (𝓜(p)), the query
-    (PE(ω), PE(log λ/λ_ref), PE(p_l) for ``paper``/``offset+grid``, 𝓜(p_l) with ``grid_features``)
-    and, for ``offset``/``offset+grid``, the (query, sample) pair: PE of the direction to the grid,
-    of the half-vector between it and −ω, and of three log-distances (to the grid, along the ray,
-    and to the grid relative to the ray's cone radius).  The sum equals one linear layer over the
-    concatenation, but each part is computed once.  Output: (log |R|, arg R) (``polar``) or
-    (Re R, Im R), times the spreading factors of :class:`~rflscm.models.rflscm_config.DecoderConfig`.
+    (PE(ω), PE(log λ/λ_ref), PE(p_l) for ``paper``/``offset+grid``, 𝓜(p_l)) and, for
+    ``offset``/``offset+grid``, the (query, sample) pair: PE of the direction to the grid, of the
+    half-vector between it and −ω, of three log-distances (to the grid, along the ray, and to the grid
+    relative to the ray's cone radius) and the specular cue.  The sum equals one linear layer over the
+    concatenation, but each part is computed once.  Output: (log |R|, arg R), times the spreading factors
+    of :class:`~rflscm.models.rflscm_config.DecoderConfig`.
     """
 
     box_lo: torch.Tensor
@@ -181,67 +199,60 @@ class RadianceDecoder(nn.Module):
         head narrows to 128)."""
         super().__init__()
         self.cfg, self.frame, self.step_m = cfg, frame, step_m
-        query_width = encoded_dim(3, cfg.dir_freqs) + encoded_dim(1, cfg.wavelength_freqs)
+        query_width = encoded_dim(3, DIR_FREQS) + encoded_dim(1, WAVELENGTH_FREQS) + feature_dim  # + 𝓜(p_l)
         if cfg.inputs in ("paper", "offset+grid"):
-            query_width += encoded_dim(3, cfg.grid_freqs)
-        if cfg.grid_features:
-            query_width += feature_dim
+            query_width += encoded_dim(3, GRID_FREQS)
         self.sample_in = nn.Linear(feature_dim, cfg.hidden)
         self.query_in = nn.Linear(query_width, cfg.hidden, bias=False)
         self.pair_in = None
         if cfg.inputs in ("offset", "offset+grid"):
-            width = 2 * encoded_dim(3, cfg.dir_freqs) + encoded_dim(3, cfg.pos_freqs) + len(cfg.specular_powers)
+            width = 2 * encoded_dim(3, DIR_FREQS) + encoded_dim(3, POS_FREQS) + len(SPECULAR_POWERS)
             self.pair_in = nn.Linear(width, cfg.hidden, bias=False)
         self.mlp = MLP(cfg.hidden, 2, hidden=head_hidden or cfg.hidden, num_layers=cfg.layers - 1, out_scale=0.1)
-        self.source_decay = nn.Parameter(torch.tensor(float(cfg.source_decay))) if cfg.source_decay else None
+        self.source_decay = nn.Parameter(torch.tensor(float(SOURCE_DECAY)))
         self.register_buffer("box_lo", torch.tensor(frame.box_lo, dtype=torch.float32))
         self.register_buffer("box_hi", torch.tensor(frame.box_hi, dtype=torch.float32))
-        self.log_amp0 = cfg.init_radiance_db / 20.0 * math.log(10.0)
+        self.log_amp0 = INIT_RADIANCE_DB / 20.0 * math.log(10.0)
 
-    def _query_inputs(self, rays: RayBatch, queries: Queries, grid_features: torch.Tensor | None) -> torch.Tensor:
-        cfg = self.cfg
+    def _query_inputs(self, rays: RayBatch, queries: Queries, grid_features: torch.Tensor) -> torch.Tensor:
         log_wl = torch.log(rays.wavelength_m / self.frame.reference_wavelength_m)[queries.ray, None]
         parts = [
-            positional_encoding(rays.direction[queries.ray], cfg.dir_freqs),
-            positional_encoding(log_wl, cfg.wavelength_freqs),
+            positional_encoding(rays.direction[queries.ray], DIR_FREQS),
+            positional_encoding(log_wl, WAVELENGTH_FREQS),
         ]
-        if cfg.inputs in ("paper", "offset+grid"):
+        if self.cfg.inputs in ("paper", "offset+grid"):
             unit = 2.0 * (queries.grid_xyz - self.box_lo) / (self.box_hi - self.box_lo) - 1.0
-            parts.append(positional_encoding(unit, cfg.grid_freqs))
-        if grid_features is not None:
-            parts.append(grid_features)
+            parts.append(positional_encoding(unit, GRID_FREQS))
+        parts.append(grid_features)
         return torch.cat(parts, dim=-1)
 
     def _pair_inputs(self, to_grid: torch.Tensor, dist: torch.Tensor, along: torch.Tensor, miss: torch.Tensor,
                      direction: torch.Tensor, surface: torch.Tensor | None) -> torch.Tensor:  # fmt: skip
         """Per (query, sample) inputs ``[J, ·]``: PE of the unit vector to the grid, of the half-vector
-        (∥ the surface normal of a specular reflection), of the scaled log-distances and, with
-        ``specular_powers``, sⁿ of the specularity s = hᵀ T h given the structure tensors ``surface [J, 6]``
-        (0 without them)."""
-        cfg = self.cfg
+        (∥ the surface normal of a specular reflection), of the scaled log-distances and sⁿ of the
+        specularity s = hᵀ T h given the structure tensors ``surface [J, 6]`` (0 without them)."""
         scale = math.log1p(self.frame.reference_distance_m / self.step_m)
         logs = torch.stack((torch.log1p(dist / self.step_m), torch.log1p(along / self.step_m), miss), -1) / scale
         half = to_grid - direction
         half = half / half.norm(dim=-1, keepdim=True).clamp_min(1e-6)
         parts = [
-            positional_encoding(to_grid, cfg.dir_freqs),
-            positional_encoding(half, cfg.dir_freqs),
-            positional_encoding(logs, cfg.pos_freqs),
+            positional_encoding(to_grid, DIR_FREQS),
+            positional_encoding(half, DIR_FREQS),
+            positional_encoding(logs, POS_FREQS),
         ]
-        if cfg.specular_powers:
-            spec = specularity(surface, half).clamp(0.0, 1.0) if surface is not None else torch.zeros_like(dist)
-            parts.append(torch.stack([spec**p for p in cfg.specular_powers], -1))
+        spec = specularity(surface, half).clamp(0.0, 1.0) if surface is not None else torch.zeros_like(dist)
+        parts.append(torch.stack([spec**p for p in SPECULAR_POWERS], -1))
         return torch.cat(parts, -1)
 
     def forward(
         self, features: torch.Tensor, points: torch.Tensor, along_m: torch.Tensor,
         rays: RayBatch, queries: Queries, join_query: torch.Tensor, join_sample: torch.Tensor,
-        grid_features: torch.Tensor | None = None, surface: torch.Tensor | None = None,
+        grid_features: torch.Tensor, surface: torch.Tensor | None = None,
     ) -> torch.Tensor:  # fmt: skip
         """Complex R ``[J]`` for (query, sample) pairs ``join_query, join_sample [J]``, from per-sample features
-        ``[L, D]``, positions ``[L, 3]`` [m], along-ray distances ``[L]`` [m], with ``grid_features``
-        𝓜(p_l) per query ``[Qn, D]`` and with ``surface`` the structure tensors per sample ``[L, 6]``."""
-        cfg, frame = self.cfg, self.frame
+        ``[L, D]``, positions ``[L, 3]`` [m], along-ray distances ``[L]`` [m], ``grid_features`` 𝓜(p_l)
+        per query ``[Qn, D]`` and with ``surface`` the structure tensors per sample ``[L, 6]``."""
+        frame = self.frame
         along = along_m[join_sample]
         offset = queries.grid_xyz[join_query] - points[join_sample]
         dist = offset.norm(dim=-1).clamp_min(1e-3)
@@ -256,27 +267,16 @@ class RadianceDecoder(nn.Module):
             )
             hidden = hidden + self.pair_in(pair)
         out = self.mlp(torch.relu(hidden))  # [J, 2]
-        log_spread = torch.zeros_like(dist)
-        if cfg.spreading_prior:  # free-space amplitude ∝ λ / d
-            log_wl = torch.log(rays.wavelength_m / frame.reference_wavelength_m)[queries.ray][join_query]
-            log_spread = log_wl + torch.log(frame.reference_distance_m / (along + dist).clamp_min(self.step_m))
-        if self.source_decay is not None:  # the grid is the source: (1 + d₂/w)^−γ, w the ray cone's radius
-            log_spread = log_spread - self.source_decay * miss
-        if cfg.output == "polar":
-            return torch.exp(torch.complex(out[:, 0] + self.log_amp0 + log_spread, out[:, 1]))
-        amp0 = math.exp(self.log_amp0)
-        return torch.complex(out[:, 0] + amp0, out[:, 1]) * torch.exp(log_spread)
+        # free-space amplitude ∝ λ / d
+        log_wl = torch.log(rays.wavelength_m / frame.reference_wavelength_m)[queries.ray][join_query]
+        log_spread = log_wl + torch.log(frame.reference_distance_m / (along + dist).clamp_min(self.step_m))
+        log_spread = log_spread - self.source_decay * miss  # the grid is the source: (1 + d₂/w)^−γ, w the cone radius
+        return torch.exp(torch.complex(out[:, 0] + self.log_amp0 + log_spread, out[:, 1]))
 
     @torch.no_grad()
     def scale_power(self, factor: float) -> None:
         """Multiply the rendered power of a lone scatterer by ``factor`` (amplitude by √factor)."""
-        if self.cfg.output == "polar":
-            self.mlp.out.bias[0] += 0.5 * math.log(factor)
-        else:
-            amp0 = math.exp(self.log_amp0)
-            self.mlp.out.weight.mul_(math.sqrt(factor))
-            self.mlp.out.bias.mul_(math.sqrt(factor))
-            self.mlp.out.bias[0] += amp0 * (math.sqrt(factor) - 1.0)
+        self.mlp.out.bias[0] += 0.5 * math.log(factor)
 
 
 class RadianceStage(nn.Module):
@@ -293,6 +293,8 @@ class RadianceStage(nn.Module):
         self.surfaces_fn = surfaces.forward if surfaces is not None else None
         self.decoder_evals = 0
         """Decoder evaluations so far (throughput measurements)."""
+        self.min_weight = MIN_WEIGHT
+        """Early ray termination threshold on |Π δ̃|·Φ (0 decodes every live sample: exact, for tests)."""
 
     def forward(self, rays: RayBatch, packed: PackedSamples, queries: Queries) -> torch.Tensor:
         """x̃ ``[num_queries]`` (normalised): rays ``rays`` (stored samples ``packed``) seen from ``queries``.
@@ -311,19 +313,15 @@ class RadianceStage(nn.Module):
         live = (packed.phi > 0).nonzero().squeeze(1)  # the rest is inert (δ̃ = 1, R̃ = 0)
         phi, ray_live = packed.phi[live], ray[live]
         _, log_delta_tilde = modulate(phi, phi, log_delta[live])  # log δ̃ = Φ log δ
-        weight = transmittance(log_delta_tilde, ray_live, cfg.inclusive, cfg.max_log_gain) * phi  # (Π δ̃)·Φ
-        if cfg.min_weight > 0:  # early ray termination: samples deep behind walls are not decoded
-            keep = (weight.detach().abs() > cfg.min_weight).nonzero().squeeze(1)
+        weight = transmittance(log_delta_tilde, ray_live, MAX_LOG_GAIN) * phi  # (Π_{q̃≤q} δ̃)·Φ
+        if self.min_weight > 0:  # early ray termination: samples deep behind walls are not decoded
+            keep = (weight.detach().abs() > self.min_weight).nonzero().squeeze(1)
             live, weight, ray_live = live[keep], weight[keep], ray_live[keep]
         join_query, join_sample = join_queries(queries.ray, ray_live, packed.num_rays)
         self.decoder_evals += int(join_query.numel())
         features = self.fields.features(code[live])
-        grid_features = (
-            self.fields.features(self.fields.encode(queries.grid_xyz)) if self.decoder.cfg.grid_features else None
-        )
-        wants_surface = (
-            self.surfaces_fn is not None and self.decoder.pair_in is not None and self.decoder.cfg.specular_powers
-        )
+        grid_features = self.fields.features(self.fields.encode(queries.grid_xyz))
+        wants_surface = self.surfaces_fn is not None and self.decoder.pair_in is not None
         surface = self.surfaces_fn(points[live]) if wants_surface and self.surfaces_fn is not None else None
         radiance = self.decoder(
             features, points[live], along[live], rays, queries, join_query, join_sample, grid_features, surface

@@ -11,7 +11,7 @@ Units: the stages render the APS in the normalised unit x_ref = r_ref / a_ref (s
 :mod:`rflscm.models.pairs`); :meth:`aps` returns linear path gain.  Training is driven from above by
 the trainer's ``fit`` (package ``train``) through the the trainer's ``Trainable`` protocol methods (``prepare``, ``training_losses``, …).
 
-Decisions where the paper is silent (each switchable in :mod:`~rflscm.models.rflscm_config`):
+Decisions where the paper is silent (the constants and options of :mod:`~rflscm.models.rflscm_config`):
 
 * media: 3 passive degrees of freedom (loss on a log scale at a reference carrier, excess real
   index, real μ ≥ 1), each on its own VM factors; FDAM itself is exact, δ^Φ uses the continuous
@@ -31,7 +31,9 @@ Decisions where the paper is silent (each switchable in :mod:`~rflscm.models.rfl
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import typing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, cast
@@ -52,7 +54,17 @@ from rflscm.models.hitam import HiTAM
 from rflscm.models.losses import lscm_loss, mae_db
 from rflscm.models.pairs import PairData, build_pair_data, reference_power, stacked_sensing
 from rflscm.models.radiance import FieldFactory, RadianceDecoder, RadianceStage, SceneFrame, VMFieldFactory
-from rflscm.models.rflscm_config import RFLSCMConfig, TrainConfig, load_rflscm_config
+from rflscm.models.rflscm_config import (
+    ANY,
+    FLOOR_DB,
+    INIT_LEVEL_DB,
+    INIT_LOSS_DB,
+    LEARN_MU,
+    VAL_BEAM_FRACTION,
+    RFLSCMConfig,
+    TrainConfig,
+    load_rflscm_config,
+)
 from rflscm.models.rflscm_render import APSRenderer
 from rflscm.models.rflscm_scene import (
     SceneInfo,
@@ -114,8 +126,7 @@ class RFLSCM(LSCMModel):
 
     # --- construction ---------------------------------------------------------------------------
     def medium(self, frame: SceneFrame) -> PassiveMedium:
-        f = self.config.field
-        return PassiveMedium(frame.reference_wavelength_m, self.config.render.step_m, f.learn_mu, f.init_loss_db)
+        return PassiveMedium(frame.reference_wavelength_m, self.config.render.step_m, LEARN_MU, INIT_LOSS_DB)
 
     def _build_stages(self, frame: SceneFrame) -> None:
         """Fresh stages (``coarse`` and ``fine`` with HiTAM, else ``fine``) and the renderer over them."""
@@ -157,7 +168,7 @@ class RFLSCM(LSCMModel):
         r_ref = reference_power(np.concatenate([scenario.rsrp_table(1, t)[1].ravel() for t in BEAM_TYPES]))
         a_norm = a_mw / a_ref
         data = build_pair_data(
-            scenario, cell_ids, a_norm, num_ssb, r_ref, cfg.train.val_pairs, cfg.train.val_beam_fraction, cfg.train.seed
+            scenario, cell_ids, a_norm, num_ssb, r_ref, cfg.train.val_pairs, VAL_BEAM_FRACTION, cfg.train.seed
         )
         cell_xyz = np.stack([scenario.cell_position(int(c)) for c in cell_ids])
         wavelengths = np.array([scenario.wavelength_m(int(c)) for c in cell_ids])
@@ -180,8 +191,7 @@ class RFLSCM(LSCMModel):
         a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
         self._train = _TrainContext(data.to(self.device), a_norm, a_coarse)
         self.step, self.position, self.train_state = 0, -1.0, None
-        if cfg.decoder.init_level_db is not None:
-            self._calibrate_level(cfg.decoder.init_level_db)
+        self._calibrate_level(INIT_LEVEL_DB)
 
     @property
     def train_config(self) -> TrainConfig:
@@ -207,7 +217,11 @@ class RFLSCM(LSCMModel):
             )
         if payload["fingerprint"] != self.fingerprint:
             raise CheckpointError(f"{path}: cannot resume: it was trained on another scenario (or other data).")
-        ours, theirs = to_dict(self.config), dict(state["config"])
+        try:
+            theirs = _without_removed_options(state["config"], self.config_class)
+        except CheckpointError as exc:
+            raise CheckpointError(f"{path}: cannot resume: {exc}") from None
+        ours = to_dict(self.config)
         steps_now, steps_then = ours["train"]["steps"], dict(theirs.get("train") or {}).get("steps")
         if steps_now != steps_then:
             raise CheckpointError(
@@ -229,12 +243,12 @@ class RFLSCM(LSCMModel):
 
     def _init_attenuation(self, points: torch.Tensor, share: torch.Tensor, steps: int = 100) -> None:
         """Fit the δ field so that its per-voxel loss is ``building_loss_db`` to the power ``share`` times
-        ``init_loss_db`` to the power 1 − ``share`` (log-linear: free space where ``share`` = 0), other
+        ``INIT_LOSS_DB`` to the power 1 − ``share`` (log-linear: free space where ``share`` = 0), other
         channels unchanged; every stage starts from the same fit."""
         f = self.config.field
         points, share = points.to(self.device), share.to(self.device)
         assert f.building_loss_db is not None
-        target = share * math.log(f.building_loss_db / f.init_loss_db)  # raw loss channel
+        target = share * math.log(f.building_loss_db / INIT_LOSS_DB)  # raw loss channel
         stages = self.all_stages()
         fields = stages[0].fields
         field = fields.delta_module()
@@ -257,8 +271,7 @@ class RFLSCM(LSCMModel):
         threshold).  True when parameters were replaced."""
         before, self.step, self.position = self.position, step, position
         h = self.config.hitam
-        warmup = float(h.warmup_steps)
-        if self.hitam is not None and h.fine_init == "copy_coarse" and before < warmup <= position and position > 0:
+        if self.hitam is not None and before < float(h.warmup_steps) <= position and position > 0:
             self.stages["fine"].load_state_dict(self.stages["coarse"].state_dict())
             self._match_fine_to_coarse()
         levels = [i + 1 for i, at in enumerate(self.fields.upsample_at) if before < at <= position]
@@ -300,7 +313,7 @@ class RFLSCM(LSCMModel):
         pred = torch.einsum("bmk,bk->bm", a_sel, x)
         return lscm_loss(
             pred, d.rsrp[pairs], d.beam_mask[pairs], x, d.x_scale[pairs], d.bound[pairs],
-            c.fidelity, c.sparsity, c.missing_penalty, floor=10.0 ** (c.floor_db / 10.0),
+            c.fidelity, c.sparsity, c.missing_penalty, floor=10.0 ** (FLOOR_DB / 10.0),
         )  # fmt: skip
 
     def _columns(self, cells: torch.Tensor, bins: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
@@ -464,7 +477,7 @@ class RFLSCM(LSCMModel):
 
     @classmethod
     def from_checkpoint(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> RFLSCM:
-        config: Any = from_dict(cls.config_class, _without_removed_options(state["config"]))
+        config: Any = from_dict(cls.config_class, _without_removed_options(state["config"], cls.config_class))
         model = cls(config, AngleGrid.from_dict(state["angle_grid"]), device)
         if state["scene"] is None:
             raise CheckpointError("this checkpoint holds an unfitted model.")
@@ -498,26 +511,32 @@ class RFLSCM(LSCMModel):
             self._train.selection = None
 
 
-_REMOVED_OPTIONS = {
-    ("decoder", "grid_code_dim"): 0,
-    ("decoder", "grid_code_neighbours"): None,
-    ("render", "coherent"): True,
-    ("hitam", "coarse_bins"): "block",
-}
-"""Options removed in issue 11 → the one value this version implements (None: any)."""
-
-
-def _without_removed_options(config: dict[str, Any]) -> dict[str, Any]:
-    """A checkpoint's config without the removed options, if they hold the value still implemented."""
+def _without_removed_options(config: dict[str, Any], config_class: type = RFLSCMConfig) -> dict[str, Any]:
+    """A checkpoint's config without the options removed from ``config_class``'s sections (their ``REMOVED``
+    tables), if each holds the value now hard-wired; any other value is a one-line :class:`CheckpointError`."""
     config = {k: dict(v) if isinstance(v, dict) else v for k, v in config.items()}
-    for (section, key), kept in _REMOVED_OPTIONS.items():
-        if isinstance(config.get(section), dict) and key in config[section]:
-            value = config[section].pop(key)
-            if kept is not None and value != kept:
+    sections = typing.get_type_hints(config_class)
+    for section in dataclasses.fields(config_class):
+        removed: dict[str, tuple[Any, str]] = getattr(sections[section.name], "REMOVED", {})
+        values = config.get(section.name)
+        if not isinstance(values, dict):
+            continue
+        for key in [k for k in values if k in removed]:
+            value = values.pop(key)
+            kept, note = removed[key]
+            if kept is not ANY and not _same(value, kept):
                 raise CheckpointError(
-                    f"the checkpoint uses `{section}.{key}: {value}`, an option this version no longer has."
+                    f"the checkpoint uses `{section.name}.{key}: {value}`, an option this version no longer has "
+                    f"({note}); retrain it with this version."
                 )
     return config
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Config values equal, lists and tuples alike."""
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return list(a) == list(b)
+    return bool(a == b)
 
 
 _OLD_KEYS = (
@@ -548,8 +567,7 @@ def _changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
         for key in sorted(set(a) | set(b), key=str):
             out += _changed_keys(a.get(key), b.get(key), f"{prefix}.{key}" if prefix else str(key))
         return out
-    same = a == b or (isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)) and list(a) == list(b))
-    return [] if same else [prefix]
+    return [] if _same(a, b) else [prefix]
 
 
 @dataclass

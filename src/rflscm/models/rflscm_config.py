@@ -3,6 +3,12 @@
 ``RFLSCMConfig(field, decoder, prior, render, hitam, loss, train)``; every default is visible
 here.  Presets ``quick`` and ``full`` live in ``rflscm/configs/rflscm_{quick,full}.yaml`` and list
 only what they change.
+
+Settings that used to be options and are fixed since issue 11 are the module constants below (why each is
+fixed: docs/DECISIONS.md, "Knobs removed (issue 11)").  Each section's ``REMOVED`` maps a removed key to the
+value now hard-wired and a note: a YAML config that sets it is refused naming the note
+(:func:`rflscm.config.from_dict`), a checkpoint that holds it loads when it holds that value
+(``rflscm.models.rflscm._without_removed_options``).
 """
 
 from __future__ import annotations
@@ -11,12 +17,71 @@ import dataclasses
 import importlib.resources
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from rflscm.config import from_dict, load_yaml
 from rflscm.errors import ConfigError
 
 PRESETS = ("quick", "full")
+
+# --- fixed settings (options until issue 11) ------------------------------------------------------------------
+MAX_RESOLUTION = 256
+"""Most grid points per axis of a VM tensor (caps ``field.voxel_m`` on very large scenes)."""
+DELTA_BASIS: Literal["per_channel"] = "per_channel"
+"""Basis of 𝒢_δ: the loss and index channels on separate factors (see :class:`~rflscm.fields.TensorVM`)."""
+FEATURE_BASIS: Literal["per_component"] = "per_component"
+"""Basis of 𝒢_R (see :class:`~rflscm.fields.TensorVM`)."""
+FEATURE_INIT_SCALE = 0.1
+"""Standard deviation of the initial vector/matrix entries of 𝒢_R."""
+DELTA_INIT_SCALE = 0.2
+"""Standard deviation of the initial vector/matrix entries of 𝒢_δ."""
+LEARN_MU = True
+"""Re μ ≥ 1 is learned (not fixed at 1)."""
+INIT_LOSS_DB = 0.01
+"""Per-voxel loss at the reference carrier at raw δ = 0 [dB] (≈ free space)."""
+DIR_FREQS = 6
+"""Frequencies of PE(ω) and of the (query, sample) pair directions."""
+POS_FREQS = 4
+"""Frequencies of the PE of the decoder's log-distances."""
+GRID_FREQS = 6
+"""Frequencies of PE(p_l) (p_l scaled to [−1, 1] over the scene box)."""
+WAVELENGTH_FREQS = 1
+"""Frequencies of PE(log λ/λ_ref)."""
+SPECULAR_POWERS = (1, 4, 16, 64)
+"""Powers sⁿ of the specularity s = hᵀ T h fed to the decoder (``offset`` inputs), h the half-vector and T the
+point cloud's surface orientation at the sample (:mod:`rflscm.fields.surfaces`): s → 1 where the sample's
+surface would mirror the ray onto the grid; high powers give narrow lobes."""
+SPECULAR_VOXEL_M = 4.0
+"""Spacing of the surface-orientation grid [m]."""
+SOURCE_DECAY = 2.0
+"""Initial γ of the learnable factor (1 + d₂/w)^−γ on |R|, d₂ the sample-to-grid distance and w the radius of
+the ray's cone at the sample (along-ray distance × the bin's angular radius, at least Δr): the grid is the
+source (reciprocity), so a voxel's radiance towards the cell falls as the grid leaves the voxel's angular
+cell.  It makes an untrained APS point towards the grid."""
+INIT_RADIANCE_DB = -30.0
+"""|R|² at construction relative to the normalised unit x_ref [dB] (near-zero R), before the level
+calibration (:data:`INIT_LEVEL_DB`)."""
+INIT_LEVEL_DB = -6.0
+"""The untrained model's radiance is rescaled so that its median predicted RSRP sits this far from the median
+measured one [dB] (small, but not decades off: the log-amplitude would otherwise need thousands of Adam steps
+to climb)."""
+MAX_LOG_GAIN = 0.0
+"""Passivity guard on the cumulative log |Π δ̃|: capped at 0 (|Π δ̃| ≤ 1; single FDAM factors can exceed 1)."""
+MIN_WEIGHT = 1e-5
+"""Samples whose |Π δ̃|·Φ is below this are not decoded (NeRF's early ray termination; −100 dB of power)."""
+FLOOR_DB = -80.0
+"""Predictions are floored at this level relative to the median measured RSRP before logs [dB]."""
+VAL_BEAM_FRACTION = 0.25
+"""Fraction of a validation pair's reported beams held aside (never trained on)."""
+
+
+class _AnyValue:
+    def __repr__(self) -> str:
+        return "any value"
+
+
+ANY = _AnyValue()
+"""In a ``REMOVED`` table: every value of the removed option loads (it no longer changes anything)."""
 
 
 def _positive(where: str, value: float, allow_zero: bool = False) -> None:
@@ -28,26 +93,25 @@ def _positive(where: str, value: float, allow_zero: bool = False) -> None:
 class FieldConfig:
     """The VM tensors 𝒢_δ (μ, ε) and 𝒢_R (latent features 𝓜) and the medium parameterisation."""
 
+    REMOVED: ClassVar[dict[str, tuple[Any, str]]] = {
+        "max_resolution": (MAX_RESOLUTION, "issue 11: fixed at 256"),
+        "delta_basis": (DELTA_BASIS, "issue 11: always per_channel"),
+        "feature_basis": (FEATURE_BASIS, "issue 11: always per_component"),
+        "init_scale": (FEATURE_INIT_SCALE, "issue 11: fixed at 0.1"),
+        "delta_init_scale": (DELTA_INIT_SCALE, "issue 11: fixed at 0.2"),
+        "learn_mu": (LEARN_MU, "issue 11: μ is always learned"),
+        "init_loss_db": (INIT_LOSS_DB, "issue 11: fixed at 0.01 dB"),
+    }
+    """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
+
     voxel_m: float = 8.0
-    """Spacing of the tensors' grid points [m] (final resolution, capped by ``max_resolution``)."""
-    max_resolution: int = 256
+    """Spacing of the tensors' grid points [m] (final resolution; at most 256 points per axis)."""
     delta_rank: int = 8
     """R₁, rank-1 components per mode of 𝒢_δ."""
     feature_rank: int = 16
     """R₂, rank-1 components per mode of 𝒢_R."""
     feature_dim: int = 16
     """D_R, latent feature channels."""
-    delta_basis: Literal["per_mode", "per_component", "per_channel"] = "per_channel"
-    """``per_channel`` keeps the loss and index channels on separate factors (see TensorVM)."""
-    feature_basis: Literal["per_mode", "per_component", "per_channel"] = "per_component"
-    init_scale: float = 0.1
-    """Standard deviation of the initial vector/matrix entries of 𝒢_R."""
-    delta_init_scale: float = 0.2
-    """Standard deviation of the initial vector/matrix entries of 𝒢_δ."""
-    learn_mu: bool = True
-    """Learn Re μ ≥ 1; false fixes μ = 1."""
-    init_loss_db: float = 0.01
-    """Per-voxel loss at the reference carrier at initialisation [dB] (≈ free space)."""
     building_loss_db: float | None = 10.0
     """Initial per-voxel loss [dB] at the reference carrier where the scan's *building* points (ASPRS
     class 6) are dense: the δ field is fitted to this map before training, so walls start opaque and
@@ -59,13 +123,10 @@ class FieldConfig:
     """Starting spacing when ``upsample_at`` is set (geometric steps down to ``voxel_m``)."""
 
     def __post_init__(self) -> None:
-        for name in ("voxel_m", "init_scale", "delta_init_scale", "init_loss_db"):
-            _positive(f"model.field.{name}", getattr(self, name))
+        _positive("model.field.voxel_m", self.voxel_m)
         for name in ("delta_rank", "feature_rank", "feature_dim"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"`model.field.{name}` must be >= 1 (got {getattr(self, name)}).")
-        if self.max_resolution < 2:
-            raise ConfigError(f"`model.field.max_resolution` must be >= 2 (got {self.max_resolution}).")
         if list(self.upsample_at) != sorted(set(self.upsample_at)):
             raise ConfigError(f"`model.field.upsample_at` must be increasing steps (got {list(self.upsample_at)}).")
         if self.upsample_at and (self.init_voxel_m is None or self.init_voxel_m <= self.voxel_m):
@@ -74,119 +135,105 @@ class FieldConfig:
 
 @dataclass(frozen=True)
 class DecoderConfig:
-    """The radiance decoder 𝒬(𝓜(p), ω, p_l, λ) → complex R."""
+    """The radiance decoder 𝒬(𝓜(p), ω, p_l, λ) → complex R = exp(log |R| + j arg R), times the free-space
+    spreading (λ/λ_ref)·(d_ref/d), d = along-ray distance + sample-to-grid distance, and the source factor
+    of :data:`SOURCE_DECAY`."""
+
+    REMOVED: ClassVar[dict[str, tuple[Any, str]]] = {
+        "dir_freqs": (DIR_FREQS, "issue 11: fixed at 6"),
+        "pos_freqs": (POS_FREQS, "issue 11: fixed at 4"),
+        "grid_freqs": (GRID_FREQS, "issue 11: fixed at 6"),
+        "grid_features": (True, "issue 11: 𝓜(p_l) is always fed"),
+        "specular_powers": (SPECULAR_POWERS, "issue 11: always [1, 4, 16, 64]; `inputs: paper` has no cue"),
+        "specular_voxel_m": (SPECULAR_VOXEL_M, "issue 11: fixed at 4 m"),
+        "wavelength_freqs": (WAVELENGTH_FREQS, "issue 11: fixed at 1"),
+        "output": ("polar", "issue 11: always polar"),
+        "spreading_prior": (True, "issue 11: always on"),
+        "source_decay": (SOURCE_DECAY, "issue 11: fixed at 2"),
+        "init_radiance_db": (INIT_RADIANCE_DB, "issue 11: fixed at -30 dB"),
+        "init_level_db": (INIT_LEVEL_DB, "issue 11: fixed at -6 dB"),
+        "grid_code_dim": (0, "issue 11: per-grid codes are gone"),
+        "grid_code_neighbours": (ANY, "issue 11: per-grid codes are gone"),
+    }
+    """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
 
     hidden: int = 64
     layers: int = 2
     inputs: Literal["paper", "offset", "offset+grid"] = "offset+grid"
-    """``paper``: [𝓜(p), PE(ω), PE(p_l), PE(λ)]; ``offset`` replaces PE(p_l) by the direction from the
-    sample to the grid, the half-vector between it and −ω (the surface normal of a specular
-    reflection), the log-distances from the sample to the grid (also relative to the ray's cone)
-    and along the ray; ``offset+grid`` feeds both."""
-    dir_freqs: int = 6
-    """Frequencies of PE(ω) and of the pair directions (B1 quick subset, 1500 steps: 6 gave SSB MAE 2.98 dB,
-    2 gave 3.16, 8 gave 3.20; the refinement stage must tell a block's 3 × 3 bins apart)."""
-    pos_freqs: int = 4
-    grid_freqs: int = 6
-    """Frequencies of PE(p_l) (p_l scaled to [−1, 1] over the scene box)."""
-    grid_features: bool = True
-    """Also feed 𝓜(p_l), the feature field at the grid: a learned code of the grid's surroundings."""
-    specular_powers: tuple[int, ...] = (1, 4, 16, 64)
-    """Powers sⁿ of the specularity s = hᵀ T h fed to the decoder (offset inputs only), h the half-vector
-    and T the point cloud's surface orientation at the sample (:mod:`rflscm.fields.surfaces`): s → 1
-    where the sample's surface would mirror the ray onto the grid; high powers give narrow lobes.
-    Empty: no specular cue (the paper's decoder has none; on the B1 quick subset, two seeds, SSB MAE 0.2–0.3 dB
-    and CSI-RS 0.2–0.5 dB worse than with it)."""
-    specular_voxel_m: float = 4.0
-    """Spacing of the surface-orientation grid [m]."""
-    wavelength_freqs: int = 1
-    output: Literal["polar", "cartesian"] = "polar"
-    """``polar``: (log |R|, arg R), suited to the decades of path gain; ``cartesian``: (Re R, Im R)."""
-    spreading_prior: bool = True
-    """Multiply R by (λ/λ_ref)·(d_ref/d), d = along-ray distance + sample-to-grid distance."""
-    source_decay: float = 2.0
-    """Initial γ of a learnable factor (1 + d₂/w)^−γ on |R|, d₂ the sample-to-grid distance and w the radius
-    of the ray's cone at the sample (along-ray distance × the bin's angular radius, at least Δr): the
-    grid is the source (reciprocity), so a voxel's radiance towards the cell falls as the grid leaves
-    the voxel's angular cell.  It makes an untrained APS point towards the grid; 0 disables it."""
-    init_radiance_db: float = -30.0
-    """|R|² at initialisation relative to the normalised unit x_ref [dB] (near-zero R)."""
-    init_level_db: float | None = -6.0
-    """If set, the untrained model's radiance is rescaled so that its median predicted RSRP sits this
-    far from the median measured one [dB] (small, but not decades off: the log-amplitude would
-    otherwise need thousands of Adam steps to climb); null keeps ``init_radiance_db``."""
+    """``paper``: [𝓜(p), PE(ω), PE(p_l), PE(λ)] (plus 𝓜(p_l), a learned code of the grid's surroundings);
+    ``offset`` replaces PE(p_l) by the direction from the sample to the grid, the half-vector between it and
+    −ω (the surface normal of a specular reflection), the log-distances from the sample to the grid (also
+    relative to the ray's cone) and along the ray, and the specular cue of :data:`SPECULAR_POWERS`;
+    ``offset+grid`` feeds both."""
 
     def __post_init__(self) -> None:
         if self.hidden < 1 or self.layers < 1:
             raise ConfigError(f"`model.decoder` needs hidden >= 1 and layers >= 1 (got {self.hidden}, {self.layers}).")
-        for name in ("dir_freqs", "pos_freqs", "grid_freqs", "wavelength_freqs"):
-            _positive(f"model.decoder.{name}", getattr(self, name), allow_zero=True)
-        _positive("model.decoder.specular_voxel_m", self.specular_voxel_m)
-        if any(p < 1 for p in self.specular_powers):
-            raise ConfigError(
-                f"`model.decoder.specular_powers` must be positive integers (got {list(self.specular_powers)})."
-            )
 
 
 @dataclass(frozen=True)
 class PriorConfig:
-    """The point-cloud prior Φ (paper §III-D)."""
+    """The point-cloud prior Φ (paper §III-D): point counts D(p) within Δr of each grid point; Φ = 1 above
+    the threshold D_th (half the median count of the grid points that have any: it adapts to the scan's
+    point density, which differs by orders of magnitude between scanners), Φ = β·D below it with
+    β = 0.1 / D_th.  Samples with Φ = 0 are skipped (exact: they are inert)."""
+
+    REMOVED: ClassVar[dict[str, tuple[Any, str]]] = {
+        "radius_m": (None, "issue 11: always the ray step Δr"),
+        "density_threshold": (None, "issue 11: always half the median occupied count"),
+        "beta": (None, "issue 11: always 0.1 / D_th"),
+        "skip_below": (0.0, "issue 11: only Φ = 0 samples are skipped"),
+    }
+    """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
 
     enabled: bool = True
     voxel_m: float = 2.0
     """Spacing of the density grid D(p) [m]."""
-    radius_m: float | None = None
-    """Counting radius [m]; default the ray step Δr (paper)."""
-    density_threshold: float | None = None
-    """D_th [points]; null: half the median count of the grid points that have any (adapts to the scan's
-    point density, which differs by orders of magnitude between scanners)."""
-    beta: float | None = None
-    """β: Φ = β·D below the threshold; null: 0.1 / D_th (Φ jumps from 0.1 to 1 at the threshold)."""
-    skip_below: float = 0.0
-    """Samples with Φ ≤ this are skipped (0: only exactly inert samples, an exact shortcut)."""
 
     def __post_init__(self) -> None:
         _positive("model.prior.voxel_m", self.voxel_m)
-        if self.beta is not None:
-            _positive("model.prior.beta", self.beta)
-        if self.density_threshold is not None:
-            _positive("model.prior.density_threshold", self.density_threshold, allow_zero=True)
-        _positive("model.prior.skip_below", self.skip_below, allow_zero=True)
 
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """Ray sampling and the APS integral."""
+    """Ray sampling and the APS integral (paper: Π_{q̃≤q} δ̃, the cumulative gain capped at 1; Q samples, enough
+    to reach the farthest corner of the scene box from every cell; early ray termination below
+    :data:`MIN_WEIGHT`)."""
+
+    REMOVED: ClassVar[dict[str, tuple[Any, str]]] = {
+        "num_samples": (None, "issue 11: always enough to cross the scene box"),
+        "inclusive": (True, "issue 11: always the paper's Π_{q̃≤q}"),
+        "max_log_gain": (MAX_LOG_GAIN, "issue 11: |Π δ̃| is always capped at 1"),
+        "min_weight": (MIN_WEIGHT, "issue 11: fixed at 1e-5"),
+        "coherent": (True, "issue 11: the sum along a ray is always coherent"),
+    }
+    """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
 
     step_m: float = 4.0
     """Δr, the sample spacing and FDAM voxel thickness d [m]."""
-    num_samples: int | None = None
-    """Q; default: enough to reach the farthest corner of the scene box from every cell."""
-    inclusive: bool = True
-    """Π_{q̃≤q} (paper) or Π_{q̃<q}."""
-    max_log_gain: float | None = 0.0
-    """Passivity guard on |Π δ̃| (log): 0 caps it at 1; null disables."""
     min_gain_db: float | None = -30.0
     """Directions where every round-1 beam of a cell is this far below the cell's peak gain are not
-    rendered for that cell (they cannot affect its RSRP; ~40 % of the sphere behind a sector
-    antenna at −30 dB); null renders the whole sphere."""
-    min_weight: float = 1e-5
-    """Samples whose |Π δ̃|·Φ is below this are not decoded (NeRF's early ray termination; 1e-5 is
-    −100 dB of power: in a one-off profile on the default scenario, ~45 % of the samples a trained model would
-    decode lie below it); 0 decodes every live sample."""
+    rendered for that cell (they cannot affect its RSRP); null renders the whole sphere."""
     chunk_samples: int = 262_144
-    """Decoder evaluations per chunk at inference (memory bound)."""
+    """Decoder evaluations per chunk at inference (bounds memory; results do not depend on it)."""
 
     def __post_init__(self) -> None:
         _positive("model.render.step_m", self.step_m)
-        _positive("model.render.min_weight", self.min_weight, allow_zero=True)
-        if self.num_samples is not None and self.num_samples < 1:
-            raise ConfigError(f"`model.render.num_samples` must be >= 1 (got {self.num_samples}).")
+        if self.chunk_samples < 1:
+            raise ConfigError(f"`model.render.chunk_samples` must be >= 1 (got {self.chunk_samples}).")
 
 
 @dataclass(frozen=True)
 class HiTAMConfig:
-    """Hierarchical tensor angular modelling (paper §IV-B)."""
+    """Hierarchical tensor angular modelling (paper §IV-B).  At the end of the warm-up the refinement model
+    starts as a copy of the coarse one, rescaled so that its median error on a few training pairs matches
+    the coarse model's."""
+
+    REMOVED: ClassVar[dict[str, tuple[Any, str]]] = {
+        "fine_init": ("copy_coarse", "issue 11: the refinement model always starts from the coarse one"),
+        "coarse_bins": ("block", "issue 11: always block sums"),
+    }
+    """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
 
     enabled: bool = True
     beta: int = 3
@@ -197,9 +244,6 @@ class HiTAMConfig:
     """Coarse-only steps before α starts rising."""
     ramp_steps: int = 500
     """Steps over which α rises linearly from 0 to 1."""
-    fine_init: Literal["copy_coarse", "fresh"] = "copy_coarse"
-    """At the end of the warm-up, start the refinement model from the coarse one (rescaled so that its
-    median error on a few training pairs matches the coarse model's) or from scratch."""
 
     def __post_init__(self) -> None:
         if self.beta < 2:
@@ -212,14 +256,19 @@ class HiTAMConfig:
 
 @dataclass(frozen=True)
 class LossConfig:
+    """The training loss; predictions are floored at :data:`FLOOR_DB` below the median measured RSRP."""
+
+    REMOVED: ClassVar[dict[str, tuple[Any, str]]] = {
+        "floor_db": (FLOOR_DB, "issue 11: fixed at -80 dB"),
+    }
+    """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
+
     fidelity: Literal["linear", "log"] = "log"
     """‖r − A x̃‖² in normalised linear power (paper) or in bels (dB/10)."""
     sparsity: float = 1e-3
     """β_pen (L1 on x̃)."""
     missing_penalty: float = 0.5
     """α_P (one-sided penalty on missing beams predicted above r_th)."""
-    floor_db: float = -80.0
-    """Predictions are floored at this level relative to the median measured RSRP before logs [dB]."""
 
     def __post_init__(self) -> None:
         _positive("model.loss.sparsity", self.sparsity, allow_zero=True)
@@ -228,6 +277,11 @@ class LossConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
+    REMOVED: ClassVar[dict[str, tuple[Any, str]]] = {
+        "val_beam_fraction": (VAL_BEAM_FRACTION, "issue 11: fixed at 0.25"),
+    }
+    """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
+
     steps: int = 3000
     """Length of the (nominal) schedule: learning-rate decay, and HiTAM's and upsampling's steps, are in its units.
     A step run does this many steps; a time-budget run (``fit(..., budget_s=)``, ``--minutes``) maps its budget
@@ -242,9 +296,8 @@ class TrainConfig:
     lr_decay: float = 0.1
     """Learning rates decay exponentially to this fraction at the last step (1: constant)."""
     val_pairs: int = 128
-    """Pairs with held-aside round-1 beams for the running validation MAE (0: none)."""
-    val_beam_fraction: float = 0.25
-    """Fraction of a validation pair's reported beams held aside (never trained on)."""
+    """Pairs with held-aside round-1 beams (a quarter of each pair's reported beams, never trained on) for the
+    running validation MAE (0: none)."""
     val_every: int = 100
     checkpoint_every: int = 500
     seed: int = 0
@@ -255,8 +308,6 @@ class TrainConfig:
                 raise ConfigError(f"`train.{name}` must be >= 1 (got {getattr(self, name)}).")
         if not 0 < self.lr_decay <= 1:
             raise ConfigError(f"`train.lr_decay` must be in (0, 1] (got {self.lr_decay}).")
-        if not 0 <= self.val_beam_fraction < 1:
-            raise ConfigError(f"`train.val_beam_fraction` must be in [0, 1) (got {self.val_beam_fraction}).")
         for name, value in self.lr.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ConfigError(

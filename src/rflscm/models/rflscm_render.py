@@ -103,9 +103,7 @@ class APSRenderer:
             xyz, _ = self.cells()
             frame, cfg = self.scene.frame, self.config
             parts = [
-                build_ray_samples(
-                    xyz[c], rays.directions, frame.num_samples, cfg.render.step_m, self.prior, cfg.prior.skip_below
-                )
+                build_ray_samples(xyz[c], rays.directions, frame.num_samples, cfg.render.step_m, self.prior, 0.0)
                 for c in range(xyz.shape[0])
             ]
             rays.samples = RaySamples.concat(parts).to(self.device)

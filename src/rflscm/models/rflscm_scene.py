@@ -17,7 +17,7 @@ from rflscm.fields import PointPrior, density_grid
 from rflscm.fields.point_prior import grid_span
 from rflscm.fields.surfaces import SurfaceOrientation, structure_grid
 from rflscm.models.radiance import SceneFrame
-from rflscm.models.rflscm_config import RFLSCMConfig
+from rflscm.models.rflscm_config import SPECULAR_VOXEL_M, RFLSCMConfig
 from rflscm.render import num_samples_for
 
 if TYPE_CHECKING:
@@ -119,25 +119,23 @@ def check_scene_box(cfg: Any, lo: np.ndarray, hi: np.ndarray) -> None:
     size = " × ".join(f"{e:.4g}" for e in extent) + " m"
     if not np.isfinite(extent).all():
         raise DataError(f"the scene box (cells, grids and point cloud) is not finite ({size}); run `rflscm check`.")
-    hint = (
-        "are the cells, grids and point cloud in the same coordinate frame and unit (run `rflscm check`)? "
-        "Otherwise raise"
-    )
-    grids = []
+    question = "are the cells, grids and point cloud in the same coordinate frame and unit (run `rflscm check`)?"
+    hint = f"{question} Otherwise raise"
+    grids: list[tuple[str | None, float]] = []
     if getattr(cfg, "prior", None) is not None and cfg.prior.enabled:
         grids.append(("model.prior.voxel_m", cfg.prior.voxel_m))
-    decoder = getattr(cfg, "decoder", None)
-    if decoder is not None and getattr(decoder, "specular_powers", None):
-        grids.append(("model.decoder.specular_voxel_m", decoder.specular_voxel_m))
+    grids.append((None, SPECULAR_VOXEL_M))  # the surface-orientation grid of the specular cue
     for key, voxel_m in grids:
         count = float(np.prod(np.maximum(np.ceil(extent / voxel_m) + 1, 2)))
         if count > MAX_VOXELS:
+            what = f"`{key}` = {voxel_m:g} m" if key else f"the surface grid's {voxel_m:g} m"
+            advice = f"{hint} `{key}`." if key else question
             raise DataError(
-                f"the scene box is {size}: at `{key}` = {voxel_m:g} m that is {count:.3g} voxels, more than the "
-                f"{MAX_VOXELS:.0e} a model can hold; {hint} `{key}`."
+                f"the scene box is {size}: at {what} that is {count:.3g} voxels, more than the "
+                f"{MAX_VOXELS:.0e} a model can hold; {advice}"
             )
     samples = float(np.linalg.norm(extent)) / cfg.render.step_m
-    if cfg.render.num_samples is None and samples > MAX_SAMPLES_PER_RAY:
+    if samples > MAX_SAMPLES_PER_RAY:
         raise DataError(
             f"the scene box is {size}: at `model.render.step_m` = {cfg.render.step_m:g} m a ray needs "
             f"{samples:.3g} samples, more than {MAX_SAMPLES_PER_RAY}; {hint} `model.render.step_m`."
@@ -146,10 +144,8 @@ def check_scene_box(cfg: Any, lo: np.ndarray, hi: np.ndarray) -> None:
 
 def make_frame(cfg: RFLSCMConfig, lo: np.ndarray, hi: np.ndarray, cell_xyz: np.ndarray, wavelengths: np.ndarray,
                pair_distances: np.ndarray) -> SceneFrame:  # fmt: skip
-    """Q, reference wavelength and distance for a scene."""
-    q = cfg.render.num_samples or num_samples_for(
-        torch.as_tensor(lo), torch.as_tensor(hi), torch.as_tensor(cell_xyz), cfg.render.step_m
-    )
+    """Q (enough to reach the farthest corner of the box from every cell), reference wavelength and distance."""
+    q = num_samples_for(torch.as_tensor(lo), torch.as_tensor(hi), torch.as_tensor(cell_xyz), cfg.render.step_m)
     return SceneFrame(
         box_lo=(float(lo[0]), float(lo[1]), float(lo[2])),
         box_hi=(float(hi[0]), float(hi[1]), float(hi[2])),
@@ -169,25 +165,22 @@ def make_prior(cfg: RFLSCMConfig, scenario: Scenario, lo: np.ndarray, hi: np.nda
             f"scenario {scenario.meta.name!r} has no point cloud but `model.prior.enabled` is true; "
             "add a point cloud or set `model.prior.enabled: false`."
         )
-    radius = cfg.prior.radius_m or cfg.render.step_m
-    density, grid_lo, grid_hi = density_grid(cloud.xyz, lo, hi, cfg.prior.voxel_m, radius)
-    threshold = cfg.prior.density_threshold
-    if threshold is None:
-        occupied = density[density > 0]
-        threshold = 0.5 * float(np.median(occupied)) if occupied.size else 1.0
-    beta = cfg.prior.beta if cfg.prior.beta is not None else 0.1 / max(threshold, 1e-9)
+    density, grid_lo, grid_hi = density_grid(cloud.xyz, lo, hi, cfg.prior.voxel_m, cfg.render.step_m)
+    occupied = density[density > 0]
+    threshold = 0.5 * float(np.median(occupied)) if occupied.size else 1.0  # D_th
+    beta = 0.1 / max(threshold, 1e-9)  # Φ jumps from 0.1 to 1 at D_th
     return PointPrior(torch.from_numpy(density), torch.from_numpy(grid_lo), torch.from_numpy(grid_hi), threshold, beta)
 
 
 def make_surfaces(
     cfg: Any, scenario: Scenario, lo: np.ndarray, hi: np.ndarray, seed: int = 0
 ) -> SurfaceOrientation | None:
-    """The scan's surface orientation for the decoder's specular cue; ``None`` when the decoder takes none
-    (``decoder.specular_powers`` empty) or the scenario has no point cloud (the cue is then 0)."""
+    """The scan's surface orientation for the decoder's specular cue; ``None`` when the scenario has no point
+    cloud (the cue is then 0)."""
     cloud = scenario.point_cloud
-    if not cfg.decoder.specular_powers or cloud is None or len(cloud.xyz) < 3:
+    if cloud is None or len(cloud.xyz) < 3:
         return None
-    lo, grid_hi, shape = grid_span(lo, hi, cfg.decoder.specular_voxel_m)
+    lo, grid_hi, shape = grid_span(lo, hi, SPECULAR_VOXEL_M)
     grid = structure_grid(cloud.xyz, lo, grid_hi, shape, seed=seed)
     return SurfaceOrientation(torch.from_numpy(grid), torch.from_numpy(lo), torch.from_numpy(grid_hi))
 
@@ -219,7 +212,7 @@ def building_targets(cfg: RFLSCMConfig, scenario: Scenario, prior: PointPrior, m
     if len(building) == 0:
         return None
     lo, hi = prior.box_lo.cpu().numpy(), prior.box_hi.cpu().numpy()
-    density, _, _ = density_grid(building, lo, hi, cfg.prior.voxel_m, cfg.prior.radius_m or cfg.render.step_m)
+    density, _, _ = density_grid(building, lo, hi, cfg.prior.voxel_m, cfg.render.step_m)
     total = prior.density_grid[0, 0].permute(2, 1, 0).cpu().numpy()
     cells = np.argwhere(total > 0)
     rng = np.random.default_rng(seed)

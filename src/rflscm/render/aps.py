@@ -23,30 +23,25 @@ def segment_starts(ray: torch.Tensor) -> torch.Tensor:
     return torch.cummax(torch.where(first, pos, torch.zeros_like(pos)), 0).values
 
 
-def segment_cumsum(values: torch.Tensor, ray: torch.Tensor, inclusive: bool = True) -> torch.Tensor:
-    """Cumulative sum of complex ``values [S]`` within each ray, in float64, cast back."""
+def segment_cumsum(values: torch.Tensor, ray: torch.Tensor) -> torch.Tensor:
+    """Cumulative sum (inclusive) of complex ``values [S]`` within each ray, in float64, cast back."""
     v = torch.view_as_real(values.to(torch.complex128))  # [S, 2]
     total = torch.cumsum(v, 0)
     start = segment_starts(ray)
     out = total - total[start] + v[start]
-    if not inclusive:
-        out = out - v
     return torch.view_as_complex(out.contiguous()).to(values.dtype)
 
 
-def transmittance(
-    log_delta: torch.Tensor, ray: torch.Tensor, inclusive: bool = True, max_log_gain: float | None = 0.0
-) -> torch.Tensor:
-    """Cumulative transmittance ``[S]`` (complex) from log δ̃ ``[S]`` of samples of rays ``ray [S]``.
+def transmittance(log_delta: torch.Tensor, ray: torch.Tensor, max_log_gain: float | None = 0.0) -> torch.Tensor:
+    """Cumulative transmittance Π_{q̃≤q} δ̃ ``[S]`` (complex; as in the paper, a voxel's own attenuation applies
+    to its radiance) from log δ̃ ``[S]`` of samples of rays ``ray [S]``.
 
     Args:
-        inclusive: Π_{q̃≤q} as in the paper (a voxel's own attenuation applies to its radiance);
-            ``False`` gives Π_{q̃<q}.
         max_log_gain: passivity guard: the cumulative log-magnitude is capped at this value
             (0 → |Π δ̃| ≤ 1), since single FDAM factors can exceed 1 (see :mod:`rflscm.fields.fdam`)
             and the Φ-weighting breaks the entry/exit compensation; ``None`` disables it.
     """
-    cum = segment_cumsum(log_delta, ray, inclusive)
+    cum = segment_cumsum(log_delta, ray)
     if max_log_gain is None:
         return torch.exp(cum)
     return torch.exp(torch.complex(cum.real.clamp(max=max_log_gain), cum.imag))
@@ -67,10 +62,10 @@ def accumulate_power(
 
 def render_power(
     log_delta: torch.Tensor, radiance: torch.Tensor, ray: torch.Tensor, num_rays: int,
-    inclusive: bool = True, max_log_gain: float | None = 0.0,
+    max_log_gain: float | None = 0.0,
 ) -> torch.Tensor:  # fmt: skip
     """x̃ = |Σ_q (Π δ̃) R̃_q|² ``[num_rays]`` from log δ̃ and R̃ (complex ``[S]``) of samples of rays ``ray [S]``."""
-    contrib = transmittance(log_delta, ray, inclusive, max_log_gain) * radiance
+    contrib = transmittance(log_delta, ray, max_log_gain) * radiance
     return accumulate_power(contrib, ray, num_rays)
 
 

@@ -6,7 +6,7 @@ import torch
 
 from rflscm.fields import PassiveMedium, TensorVM
 from rflscm.models.radiance import Queries, RadianceDecoder, RadianceStage, RayBatch, SceneFrame, VMFields
-from rflscm.models.rflscm_config import DecoderConfig, RenderConfig
+from rflscm.models.rflscm_config import MIN_WEIGHT, DecoderConfig, RenderConfig
 from rflscm.render import RaySamples, gather_samples, select_samples
 
 LO, HI = (-50.0, -50.0, 0.0), (50.0, 50.0, 30.0)
@@ -60,9 +60,7 @@ def test_inert_samples_change_nothing() -> None:
 
 
 def test_early_termination_drops_only_negligible_samples() -> None:
-    """Samples below ``min_weight`` are skipped: the APS changes by less than their possible share."""
-    import dataclasses
-
+    """Samples below ``MIN_WEIGHT`` are skipped: the APS changes by less than their possible share."""
     stage = make_stage()
     with torch.no_grad():  # an opaque scene: most samples lie deep behind the first walls
         for p in stage.fields.delta_module().parameters():
@@ -73,12 +71,11 @@ def test_early_termination_drops_only_negligible_samples() -> None:
         rays_for(3),
         Queries(torch.tensor([0, 1, 2]), torch.tensor([[10.0, 5.0, 1.5], [-20.0, 7.0, 1.5], [3.0, -30.0, 1.5]])),
     )
-    full_cfg = dataclasses.replace(stage.render_cfg, min_weight=0.0)
-    stage.render_cfg = full_cfg
+    stage.min_weight = 0.0
     evals0 = stage.decoder_evals
     full = stage(rays, gather_samples(samples, torch.arange(3)), queries)
     all_evals = stage.decoder_evals - evals0
-    stage.render_cfg = dataclasses.replace(full_cfg, min_weight=1e-5)
+    stage.min_weight = MIN_WEIGHT
     evals0 = stage.decoder_evals
     pruned = stage(rays, gather_samples(samples, torch.arange(3)), queries)
     assert stage.decoder_evals - evals0 < all_evals

@@ -1,6 +1,7 @@
 """Every option of the RF-LSCM config does something: setting it away from its default changes a tiny
 training run (its loss history, validation MAE or rendered APS), or, for the options that only bound
-memory or I/O, leaves the results exactly as they were (issue 11: no dead knobs)."""
+memory or I/O, leaves the results exactly as they were (issue 11: no dead knobs).  The options removed in
+issue 11 are refused by name in a config, and load from a checkpoint only at the value now hard-wired."""
 
 from __future__ import annotations
 
@@ -11,11 +12,14 @@ import numpy as np
 import pytest
 import torch
 
+from rflscm.config import from_dict, to_dict
 from rflscm.data import load_scenario
 from rflscm.data.examples import tiny_scenario
+from rflscm.errors import CheckpointError, ConfigError
 from rflscm.geometry import AngleGrid
-from rflscm.models.rflscm import RFLSCM
-from rflscm.models.rflscm_config import RFLSCMConfig
+from rflscm.models.nerf2 import NeRF2Config
+from rflscm.models.rflscm import RFLSCM, _without_removed_options
+from rflscm.models.rflscm_config import RFLSCMConfig, load_rflscm_config
 from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)
@@ -30,62 +34,32 @@ BASE = {
 # a value away from the tiny run's for every option (section, key, value)
 CHANGES = [
     ("field", "voxel_m", 12.0),
-    ("field", "max_resolution", 3),
     ("field", "delta_rank", 3),
     ("field", "feature_rank", 3),
     ("field", "feature_dim", 5),
-    ("field", "delta_basis", "per_mode"),
-    ("field", "feature_basis", "per_channel"),
-    ("field", "init_scale", 0.3),
-    ("field", "delta_init_scale", 0.5),
-    ("field", "learn_mu", False),
-    ("field", "init_loss_db", 0.1),
     ("field", "building_loss_db", None),
     ("field", "upsample_at", (3,)),  # with init_voxel_m below
     ("decoder", "hidden", 12),
     ("decoder", "layers", 3),
     ("decoder", "inputs", "paper"),
-    ("decoder", "dir_freqs", 2),
-    ("decoder", "pos_freqs", 2),
-    ("decoder", "grid_freqs", 2),
-    ("decoder", "grid_features", False),
-    ("decoder", "specular_powers", (1,)),
-    ("decoder", "specular_voxel_m", 8.0),
-    ("decoder", "wavelength_freqs", 2),
-    ("decoder", "output", "cartesian"),
-    ("decoder", "spreading_prior", False),
-    ("decoder", "source_decay", 0.0),
-    ("decoder", "init_radiance_db", -10.0),
-    ("decoder", "init_level_db", None),
     ("prior", "enabled", False),
     ("prior", "voxel_m", 4.0),
-    ("prior", "radius_m", 2.0),
-    ("prior", "density_threshold", 1.0),
-    ("prior", "beta", 0.5),
-    ("prior", "skip_below", 0.05),
     ("render", "step_m", 6.0),
-    ("render", "num_samples", 2),
-    ("render", "inclusive", False),
-    ("render", "max_log_gain", -1.0),
     ("render", "min_gain_db", None),
-    ("render", "min_weight", 0.05),
     ("hitam", "enabled", False),
     ("hitam", "beta", 3),
     ("hitam", "top_k", 1),
     ("hitam", "warmup_steps", 2),
     ("hitam", "ramp_steps", 4),
-    ("hitam", "fine_init", "fresh"),
     ("loss", "fidelity", "linear"),
     ("loss", "sparsity", 0.5),
     ("loss", "missing_penalty", 5.0),
-    ("loss", "floor_db", -10.0),
     ("train", "steps", 6),
     ("train", "batch_pairs", 3),
     ("train", "pairs_per_cell", 1),
     ("train", "lr", {"tensors": 0.05, "networks": 0.001}),
     ("train", "lr_decay", 1.0),
     ("train", "val_pairs", 1),
-    ("train", "val_beam_fraction", 0.6),
     ("train", "val_every", 3),
     ("train", "seed", 1),
 ]
@@ -120,7 +94,7 @@ def reference(scenario) -> str:
 
 
 def test_every_option_is_listed_once() -> None:
-    assert len(CHANGES) + len(NEUTRAL) + 1 == 62
+    assert len(CHANGES) + len(NEUTRAL) + 1 == 32  # issue 11: at most 40 (with loss.cell_gain elsewhere)
     listed = [(s, k) for s, k, _ in CHANGES + NEUTRAL] + [("field", "init_voxel_m")]  # tested with upsample_at
     sections = typing.get_type_hints(RFLSCMConfig)
     options = [(f.name, g.name) for f in dataclasses.fields(RFLSCMConfig) for g in dataclasses.fields(sections[f.name])]
@@ -144,3 +118,105 @@ def test_init_voxel_m_sets_the_starting_resolution_of_an_upsampling_schedule(sce
         assert run(scenario, "field", "upsample_at", (3,)) != coarse
     finally:
         EXTRA[("field", "upsample_at")] = {"init_voxel_m": 30.0}
+
+
+# --- options removed in issue 11 ------------------------------------------------------------------------------
+OLD_DEFAULTS = {  # the 30 removed options at their defaults before issue 11 (written out, not read from the tables)
+    "field": {"max_resolution": 256, "delta_basis": "per_channel", "feature_basis": "per_component", "init_scale": 0.1,
+              "delta_init_scale": 0.2, "learn_mu": True, "init_loss_db": 0.01},
+    "decoder": {"dir_freqs": 6, "pos_freqs": 4, "grid_freqs": 6, "grid_features": True, "specular_powers": [1, 4, 16, 64],
+                "specular_voxel_m": 4.0, "wavelength_freqs": 1, "output": "polar", "spreading_prior": True,
+                "source_decay": 2.0, "init_radiance_db": -30.0, "init_level_db": -6.0},
+    "prior": {"radius_m": None, "density_threshold": None, "beta": None, "skip_below": 0.0},
+    "render": {"num_samples": None, "inclusive": True, "max_log_gain": 0.0, "min_weight": 1e-5},
+    "hitam": {"fine_init": "copy_coarse"},
+    "loss": {"floor_db": -80.0},
+    "train": {"val_beam_fraction": 0.25},
+}  # fmt: skip
+OTHER_VALUES = {  # a value each removed option could hold before issue 11 and that is no longer implemented
+    "field": {"max_resolution": 128, "delta_basis": "per_mode", "feature_basis": "per_channel", "init_scale": 0.3,
+              "delta_init_scale": 0.5, "learn_mu": False, "init_loss_db": 0.1},
+    "decoder": {"dir_freqs": 2, "pos_freqs": 2, "grid_freqs": 2, "grid_features": False, "specular_powers": [],
+                "specular_voxel_m": 8.0, "wavelength_freqs": 2, "output": "cartesian", "spreading_prior": False,
+                "source_decay": 0.0, "init_radiance_db": -10.0, "init_level_db": None},
+    "prior": {"radius_m": 2.0, "density_threshold": 1.0, "beta": 0.5, "skip_below": 0.05},
+    "render": {"num_samples": 2, "inclusive": False, "max_log_gain": None, "min_weight": 0.0},
+    "hitam": {"fine_init": "fresh"},
+    "loss": {"floor_db": -10.0},
+    "train": {"val_beam_fraction": 0.6},
+}  # fmt: skip
+REMOVED = [(s, k) for s, keys in OLD_DEFAULTS.items() for k in keys]
+
+
+def test_sixty_two_options_less_thirty_removed() -> None:
+    assert len(REMOVED) == 30 and len(REMOVED) + 32 == 62
+    sections = typing.get_type_hints(RFLSCMConfig)
+    for section, key in REMOVED:
+        assert key in sections[section].REMOVED and key not in {f.name for f in dataclasses.fields(sections[section])}
+
+
+@pytest.mark.parametrize(("section", "key"), REMOVED, ids=[f"{s}.{k}" for s, k in REMOVED])
+def test_a_removed_option_in_a_config_is_refused_as_removed(section: str, key: str) -> None:
+    with pytest.raises(ConfigError, match=rf"^`{section}\.{key}` was removed \(issue 11: [^\n]*\); drop it\.$"):
+        RFLSCM.build({section: {key: OLD_DEFAULTS[section][key]}}, GRID)
+
+
+def test_a_removed_option_in_a_yaml_file_is_refused_in_one_line(tmp_path) -> None:
+    path = tmp_path / "old.yaml"
+    path.write_text("decoder:\n  hidden: 16\n  output: polar\n")
+    with pytest.raises(ConfigError) as info:
+        load_rflscm_config(path)
+    assert str(info.value) == f"{path}: `decoder.output` was removed (issue 11: always polar); drop it."
+
+
+def test_an_old_checkpoint_config_with_the_removed_options_at_their_old_defaults_loads() -> None:
+    old = to_dict(RFLSCMConfig())
+    for section, values in OLD_DEFAULTS.items():
+        old[section].update(values)
+    old["decoder"].update(grid_code_dim=0, grid_code_neighbours=4)  # removed earlier in issue 11
+    old["render"]["coherent"] = True
+    old["hitam"]["coarse_bins"] = "block"
+    assert from_dict(RFLSCMConfig, _without_removed_options(old)) == RFLSCMConfig()
+
+
+@pytest.mark.parametrize(("section", "key"), REMOVED, ids=[f"{s}.{k}" for s, k in REMOVED])
+def test_an_old_checkpoint_config_with_a_removed_option_away_from_its_default_is_refused(
+    section: str, key: str
+) -> None:
+    old = to_dict(RFLSCMConfig())
+    old[section][key] = OTHER_VALUES[section][key]
+    with pytest.raises(CheckpointError, match=rf"`{section}\.{key}: .*no longer has \(issue 11: ") as info:
+        _without_removed_options(old)
+    assert "\n" not in str(info.value)
+
+
+def test_an_old_nerf2_checkpoint_config_loads_and_keeps_its_own_field_options() -> None:
+    old = to_dict(NeRF2Config())
+    old["field"].update(learn_mu=True, init_loss_db=0.01)  # NeRF²'s field had RF-LSCM's medium options
+    for section in ("decoder", "prior", "render", "hitam", "loss", "train"):
+        old[section].update(OLD_DEFAULTS[section])
+    assert from_dict(NeRF2Config, _without_removed_options(old, NeRF2Config)) == NeRF2Config()
+    old["field"]["learn_mu"] = False
+    with pytest.raises(CheckpointError, match=r"field\.learn_mu"):
+        _without_removed_options(old, NeRF2Config)
+
+
+def test_a_checkpoint_with_removed_options_at_their_defaults_loads_and_resumes(scenario, tmp_path) -> None:
+    torch.manual_seed(0)
+    model = RFLSCM.build({**BASE, "train": {**BASE["train"], "steps": 4}}, GRID)
+    fit(model, scenario, progress=False)
+    state = model.state_dict_for_checkpoint()
+    for section, values in OLD_DEFAULTS.items():
+        state["config"][section].update(values)
+    loaded = RFLSCM.from_checkpoint(state)
+    assert loaded.config == model.config
+    ids, grids = np.array([11, 12]), np.array([100, 101])
+    assert torch.equal(loaded.aps(ids, grids), model.aps(ids, grids))
+    state["train_state"] = {"as": "saved"}  # resuming compares the configs without the removed options
+    payload = {"model": "rflscm", "fingerprint": model.fingerprint, "state": state}
+    assert model.resume_from(payload, tmp_path / "old.ckpt") == {"as": "saved"}
+    state["config"]["decoder"]["output"] = "cartesian"
+    with pytest.raises(CheckpointError, match=r"`decoder.output: cartesian`"):
+        RFLSCM.from_checkpoint(state)
+    with pytest.raises(CheckpointError, match=r"cannot resume: .*`decoder.output: cartesian`"):
+        model.resume_from({"model": "rflscm", "fingerprint": model.fingerprint, "state": state}, tmp_path / "old.ckpt")

@@ -31,13 +31,10 @@ def random_log_delta(n: int, seed: int = 0) -> torch.Tensor:
 def test_transmittance_is_the_cumulative_product_per_ray() -> None:
     log_delta = random_log_delta(9)
     ray = torch.tensor([0, 0, 0, 0, 2, 2, 3, 3, 3])
-    t_in = transmittance(log_delta, ray, inclusive=True, max_log_gain=None)
-    t_ex = transmittance(log_delta, ray, inclusive=False, max_log_gain=None)
+    t = transmittance(log_delta, ray, max_log_gain=None)  # Π_{q̃≤q}: a voxel's own δ̃ applies to it (paper)
     delta = torch.exp(log_delta)
     for seg in ([0, 1, 2, 3], [4, 5], [6, 7, 8]):
-        prod = torch.cumprod(delta[seg], 0)
-        assert torch.allclose(t_in[seg], prod, atol=1e-12)
-        assert torch.allclose(t_ex[seg], torch.cat((torch.ones(1, dtype=prod.dtype), prod[:-1])), atol=1e-12)
+        assert torch.allclose(t[seg], torch.cumprod(delta[seg], 0), atol=1e-12)
 
 
 def test_passivity_guard_caps_the_magnitude() -> None:
