@@ -1,7 +1,7 @@
 """Point-cloud prior Φ (paper §III-D, eqs. (14)–(17)).
 
-D(p) = #{a ∈ cloud : ‖a − p‖ ≤ Δr} is counted once on a voxel grid with a KD-tree and looked
-up by trilinear interpolation; Φ = 1 where D > D_th, else β·D; then R̃ = R·Φ and
+D(p) = #{a ∈ cloud : ‖a − p‖ ≤ Δr} is counted once on a voxel grid (each point adds to the grid
+points within reach) and looked up by trilinear interpolation; Φ = 1 where D > D_th, else β·D; then R̃ = R·Φ and
 δ̃ = δ^Φ = exp(Φ log δ).  Φ = 0 (no point within reach) makes a sample inert, which the
 model uses to skip it entirely (empty-space skipping).
 """
@@ -13,8 +13,6 @@ import math
 import numpy as np
 import torch
 import torch.nn.functional as F
-from scipy import ndimage
-from scipy.spatial import cKDTree
 from torch import nn
 
 
@@ -35,24 +33,36 @@ def density_grid(
     """Point counts within ``radius_m`` of every voxel-grid point of the box.
 
     Returns ``(density [nx, ny, nz] float32, lo [3], hi [3])``; grid point (i, j, k) sits at
-    ``lo + (i, j, k)·voxel_m`` and ``hi = lo + (shape − 1)·voxel_m`` covers the box.  Only grid points
-    near an occupied voxel are queried (the rest are 0 by construction).
+    ``lo + (i, j, k)·voxel_m`` and ``hi = lo + (shape − 1)·voxel_m`` covers the box.  Each point adds
+    one to the grid points of a small stencil around it that lie within ``radius_m`` (distances
+    in float64), one stencil offset at a time: the same counts as a KD-tree ball query per grid point,
+    at a fraction of the cost.
     """
     lo, hi, shape = grid_span(box_lo, box_hi, voxel_m)
-    density = np.zeros(shape, np.float32)
     pts = np.asarray(points, np.float64)
-    if len(pts) == 0:
-        return density, lo, hi
-    idx = np.rint((pts - lo) / voxel_m).astype(np.int64)
-    inside = np.all((idx >= 0) & (idx < shape), axis=1)
-    occupied = np.zeros(tuple(shape), bool)
-    occupied[tuple(idx[inside].T)] = True
-    reach = int(math.ceil(radius_m / voxel_m)) + 1
-    near = ndimage.binary_dilation(occupied, structure=np.ones((2 * reach + 1,) * 3, bool))
-    cells = np.argwhere(near)
-    counts = cKDTree(pts).query_ball_point(lo + cells * voxel_m, r=radius_m, return_length=True, workers=-1)
-    density[tuple(cells.T)] = counts
-    return density, lo, hi
+    total = np.zeros(int(np.prod(shape)), np.float64)
+    if len(pts):
+        rel = (pts - lo) / voxel_m
+        base = np.floor(rel).astype(np.int64)
+        r2 = (radius_m / voxel_m) ** 2
+        reach = int(math.ceil(radius_m / voxel_m))
+        span = np.arange(-reach, reach + 2)
+        offsets = np.stack(np.meshgrid(span, span, span, indexing="ij"), -1).reshape(-1, 3)
+        nearest = np.where(offsets < 0, -offsets, np.maximum(offsets - 1, 0))  # least |rel − idx| per axis
+        flats: list[np.ndarray] = []
+        held = 0
+        for offset in offsets[np.square(nearest).sum(1) <= r2]:
+            idx = base + offset
+            keep = np.all((idx >= 0) & (idx < shape), axis=1) & (np.square(rel - idx).sum(1) <= r2)
+            flats.append(np.ravel_multi_index(tuple(idx[keep].T), shape))
+            held += int(keep.sum())
+            if held > 8_000_000:  # bounded memory: fold what is held into the grid
+                total += np.bincount(np.concatenate(flats), minlength=total.size)
+                flats: list[np.ndarray] = []
+        held = 0
+        if flats:
+            total += np.bincount(np.concatenate(flats), minlength=total.size)
+    return total.reshape(shape).astype(np.float32), lo, hi
 
 
 class PointPrior(nn.Module):

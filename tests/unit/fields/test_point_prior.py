@@ -20,6 +20,21 @@ def test_density_counts_points_within_radius() -> None:
         assert density[idx] == brute
 
 
+def test_density_equals_a_kd_tree_ball_count_everywhere() -> None:
+    """The stencil count is the exact ball count at every grid point (also for points outside the box and radii
+    that are not a multiple of the voxel), checked against scipy's KD-tree."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(1)
+    pts = rng.uniform([-3, -3, -1], [23, 17, 7], (800, 3))
+    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([20.0, 15.0, 6.0])
+    for voxel, radius in ((2.0, 3.0), (1.5, 4.2), (3.0, 2.0)):
+        density, glo, _ = density_grid(pts, lo, hi, voxel_m=voxel, radius_m=radius)
+        centres = glo + np.argwhere(np.ones(density.shape, bool)) * voxel
+        balls = cKDTree(pts).query_ball_point(centres, r=radius)
+        assert np.array_equal(density.ravel(), np.array([len(b) for b in balls], np.float32))
+
+
 def test_density_is_zero_far_from_points() -> None:
     pts = np.array([[1.0, 1.0, 1.0]])
     density, _, _ = density_grid(pts, np.zeros(3), np.array([40.0, 40.0, 10.0]), voxel_m=2.0, radius_m=2.5)
