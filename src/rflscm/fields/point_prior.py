@@ -58,8 +58,7 @@ def density_grid(
             held += int(keep.sum())
             if held > 8_000_000:  # bounded memory: fold what is held into the grid
                 total += np.bincount(np.concatenate(flats), minlength=total.size)
-                flats: list[np.ndarray] = []
-        held = 0
+                flats, held = [], 0
         if flats:
             total += np.bincount(np.concatenate(flats), minlength=total.size)
     return total.reshape(shape).astype(np.float32), lo, hi
