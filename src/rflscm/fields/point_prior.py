@@ -16,6 +16,10 @@ import torch.nn.functional as F
 from torch import nn
 
 
+FOLD_AT = 8_000_000
+"""Stencil hits :func:`density_grid` holds before adding them to the grid (bounds its memory)."""
+
+
 def grid_span(
     box_lo: np.ndarray, box_hi: np.ndarray, voxel_m: float
 ) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
@@ -56,7 +60,7 @@ def density_grid(
             keep = np.all((idx >= 0) & (idx < shape), axis=1) & (np.square(rel - idx).sum(1) <= r2)
             flats.append(np.ravel_multi_index(tuple(idx[keep].T), shape))
             held += int(keep.sum())
-            if held > 8_000_000:  # bounded memory: fold what is held into the grid
+            if held > FOLD_AT:  # bounded memory: fold what is held into the grid
                 total += np.bincount(np.concatenate(flats), minlength=total.size)
                 flats, held = [], 0
         if flats:

@@ -35,6 +35,16 @@ def test_density_equals_a_kd_tree_ball_count_everywhere() -> None:
         assert np.array_equal(density.ravel(), np.array([len(b) for b in balls], np.float32))
 
 
+def test_density_folds_held_hits_without_changing_counts(monkeypatch) -> None:
+    import rflscm.fields.point_prior as pp
+
+    pts = np.random.default_rng(2).uniform(0, 12, (300, 3))
+    whole, _, _ = density_grid(pts, np.zeros(3), np.full(3, 12.0), voxel_m=1.0, radius_m=2.0)
+    monkeypatch.setattr(pp, "FOLD_AT", 50)
+    folded, _, _ = density_grid(pts, np.zeros(3), np.full(3, 12.0), voxel_m=1.0, radius_m=2.0)
+    assert whole.sum() > 50 * 10 and np.array_equal(whole, folded)
+
+
 def test_density_is_zero_far_from_points() -> None:
     pts = np.array([[1.0, 1.0, 1.0]])
     density, _, _ = density_grid(pts, np.zeros(3), np.array([40.0, 40.0, 10.0]), voxel_m=2.0, radius_m=2.5)
