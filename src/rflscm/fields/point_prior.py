@@ -15,7 +15,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-
 FOLD_AT = 8_000_000
 """Stencil hits :func:`density_grid` holds before adding them to the grid (bounds its memory)."""
 
