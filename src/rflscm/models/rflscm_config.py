@@ -301,6 +301,9 @@ class TrainConfig:
     val_every: int = 100
     checkpoint_every: int = 500
     seed: int = 0
+    calibrate_levels: bool = True
+    """Correct each cell's SSB and CSI-RS predictions by the median error on its reported round-1 beams, measured
+    after training (:meth:`~rflscm.models.rflscm.RFLSCM.current_levels`); the training itself is unchanged."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_pairs", "pairs_per_cell", "val_every", "checkpoint_every"):

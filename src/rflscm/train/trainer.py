@@ -51,6 +51,8 @@ class Trainable(Protocol):
       parameter objects changed and the optimizer must be rebuilt;
     * :meth:`resume_from` — load weights and step from a checkpoint payload (refusing a foreign one)
       and return the trainer state saved with it;
+    * :meth:`finish_training` — once after the last step (before the final checkpoint): work that only the
+      trained weights need (RF-LSCM's level correction);
     * ``step`` (steps done), ``train_state`` (the trainer state :meth:`save` writes along),
       ``train_config`` and :meth:`decoder_evals` (a work counter for throughput).
     """
@@ -76,6 +78,8 @@ class Trainable(Protocol):
     def decoder_evals(self) -> int: ...
 
     def save(self, path: str | Path) -> Path: ...
+
+    def finish_training(self) -> None: ...
 
 
 def fit(
@@ -122,6 +126,9 @@ def fit(
         started=started if budget_s is not None else None,
     )
     summary["decoder_evals_per_s"] = (model.decoder_evals() - evals0) / max(clock() - time0, 1e-9)
+    model.finish_training()
+    if checkpoint_path is not None:
+        trainer.save(checkpoint_path)
     model.run_info["train"] = {k: float(v) for k, v in summary.items()}
     return summary
 
