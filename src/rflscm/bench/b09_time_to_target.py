@@ -332,7 +332,8 @@ def run_worker(src: Path, scenario: Path, config: str, out: Path, *, marks: list
         cmd += ["--max-seconds", f"{max_s:g}"]
     if minutes is not None:
         cmd += ["--minutes", f"{minutes:g}"]
-    env = {**os.environ, "PYTHONPATH": str(src), "OMP_NUM_THREADS": str(threads), "RFLSCM_THREADS": str(threads)}
+    path = os.pathsep.join([str(src), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))])
+    env = {**os.environ, "PYTHONPATH": path, "OMP_NUM_THREADS": str(threads), "RFLSCM_THREADS": str(threads)}
     log = out.with_suffix(".log")
     with log.open("w") as fh:
         done = subprocess.run(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT, cwd=out.parent)
