@@ -62,6 +62,9 @@ class APSCache(LSCMModel):
             out[j, bins.to(self.device)] = values.to(self.device)
         return out
 
+    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
+        return self.inner.level_offset_db(cell_ids, beam_type)
+
     # the contract's learning and persistence belong to the wrapped model
     @classmethod
     def build(

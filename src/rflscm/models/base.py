@@ -162,7 +162,13 @@ class LSCMModel(abc.ABC):
                     x = self.checked_aps(cell_ids[sel], grid_ids[sel], grid_xyz[sel])  # [pairs, bins]
                     power_mw = (x.to(a.dtype) @ a.T).clamp_min(MIN_POWER_MW)
                 out[sel, : a.shape[0]] = 10.0 * np.log10(power_mw.cpu().double().numpy())
-        return out
+        offset = self.level_offset_db(cell_ids, beam_type)
+        return out if offset is None else out + offset[:, None]
+
+    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
+        """dB added to every ``beam_type`` prediction of each pair's cell ``cell_ids [P]`` on top of A x (a level
+        the APS cannot carry because it differs between beam types), or None (the default: nothing)."""
+        return None
 
     # --- persistence --------------------------------------------------------------------------
     @abc.abstractmethod

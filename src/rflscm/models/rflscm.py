@@ -82,8 +82,6 @@ from rflscm.models.rflscm_scene import (
 )
 
 if TYPE_CHECKING:
-    import pandas as pd
-
     from rflscm.data.scenario import Scenario
 
 PAIR_CHUNK = 64  # pairs per inference chunk (A columns and APS rows stay small)
@@ -475,17 +473,14 @@ class RFLSCM(LSCMModel):
             out = out * torch.pow(10.0, levels[torch.as_tensor(cells, device=self.device), 0] / 10.0)[:, None]
         return out * self.scene.x_ref
 
-    def predict_rsrp(
-        self, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, chunk: int = 4096
-    ) -> np.ndarray:
-        """As :meth:`LSCMModel.predict_rsrp`; CSI-RS predictions also carry each cell's CSI-RS level correction
-        relative to its SSB one (the APS carries the SSB correction)."""
-        out = super().predict_rsrp(scenario, round, beam_type, pairs, chunk)
+    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
+        """CSI-RS predictions carry each cell's CSI-RS level correction relative to its SSB one (the APS carries
+        the SSB correction); see :meth:`current_levels`."""
         levels = self.current_levels()
-        if levels is not None and beam_type == "csi" and self.scene is not None and len(pairs):
-            relative = (levels[:, 1] - levels[:, 0]).cpu().double().numpy()
-            out = out + relative[self.scene.cell_index(pairs["cell_id"].to_numpy())][:, None]
-        return out
+        if levels is None or beam_type != "csi" or self.scene is None:
+            return None
+        relative = (levels[:, 1] - levels[:, 0]).cpu().double().numpy()
+        return relative[self.scene.cell_index(np.asarray(cell_ids))]
 
     # --- level correction -------------------------------------------------------------------------
     def current_levels(self) -> torch.Tensor | None:

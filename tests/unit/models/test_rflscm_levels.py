@@ -85,3 +85,21 @@ def test_the_correction_follows_the_weights_and_can_be_switched_off(scenario) ->
     off = RFLSCM.build(tiny_config(train={"val_pairs": 0, "steps": 4, "calibrate_levels": False}), GRID)
     fit(off, scenario, progress=False)
     assert off.current_levels() is None and off.levels is None
+
+
+def test_evaluation_through_the_aps_cache_sees_the_csi_rs_correction(scenario) -> None:
+    """Evaluation and `predict` wrap the model in an APS cache: its RSRP must carry the same per-beam-type levels."""
+    from rflscm.eval.cache import APSCache
+
+    torch.manual_seed(0)
+    model = RFLSCM.build(tiny_config(train={"val_pairs": 0, "steps": 4}), GRID)
+    fit(model, scenario, progress=False)
+    levels = model.current_levels()
+    assert levels is not None and bool(((levels[:, 1] - levels[:, 0]).abs() > 0.1).any())
+    for beam_type in ("ssb", "csi"):
+        pairs = scenario.rsrp_table(1, beam_type)[0].reset_index(drop=True)
+        np.testing.assert_allclose(
+            APSCache(model).predict_rsrp(scenario, 1, beam_type, pairs),
+            model.predict_rsrp(scenario, 1, beam_type, pairs),
+            atol=1e-4,
+        )
