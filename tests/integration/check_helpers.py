@@ -15,7 +15,14 @@ from rflscm.data import read_table, write_table
 
 def run_check(path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
     """Run ``rflscm check PATH`` through the console-script entry point; returns (exit code, stdout, stderr)."""
-    monkeypatch.setattr(sys, "argv", ["rflscm", "check", str(path)])
+    return run_cli(["check", str(path)], monkeypatch, capsys)
+
+
+def run_cli(
+    argv: list[str], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> tuple[int, str, str]:
+    """Run ``rflscm ARGV…`` through the console-script entry point; returns (exit code, stdout, stderr)."""
+    monkeypatch.setattr(sys, "argv", ["rflscm", *argv])
     code: int | str | None = 0
     try:
         main()

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
-from check_helpers import assert_one_line_error
+from check_helpers import assert_one_line_error, run_cli
 
-from rflscm.cli import main
 from rflscm.models import load_model
 
 TINY = (
@@ -18,27 +16,16 @@ TINY = (
 )
 
 
-def run(argv: list[str], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    monkeypatch.setattr(sys, "argv", ["rflscm", *argv])
-    code: int | str | None = 0
-    try:
-        main()
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return (0 if code is None else int(code)), out, err
-
-
 @pytest.mark.parametrize("minutes", ["0", "-1", "nan"])
 def test_a_budget_that_is_not_positive_is_one_line_and_exit_2(scenario_dir: Path, tmp_path: Path, minutes: str,
                                                               monkeypatch, capsys) -> None:  # fmt: skip
     out_ckpt = tmp_path / "m.ckpt"
-    code, out, err = run(
+    code, out, err = run_cli(
         ["train", str(scenario_dir), "--minutes", minutes, "--out", str(out_ckpt)], monkeypatch, capsys
     )
     assert_one_line_error(code, out, err, ["--minutes must be a positive number of minutes", f"(got {minutes}"])
     assert not out_ckpt.exists()
-    code, out, err = run(["demo", "--minutes", minutes, "--out", str(tmp_path / "demo")], monkeypatch, capsys)
+    code, out, err = run_cli(["demo", "--minutes", minutes, "--out", str(tmp_path / "demo")], monkeypatch, capsys)
     assert_one_line_error(code, out, err, ["--minutes must be a positive number of minutes"])
 
 
@@ -47,14 +34,14 @@ def test_train_to_a_budget_records_it_and_resume_must_keep_it(scenario_dir: Path
     config, ckpt = tmp_path / "tiny.yaml", tmp_path / "m.ckpt"
     config.write_text(TINY)
     base = ["train", str(scenario_dir), "--config", str(config), "--out", str(ckpt), "--no-progress", "--device", "cpu"]
-    code, _, err = run([*base, "--minutes", "0.01"], monkeypatch, capsys)
+    code, _, err = run_cli([*base, "--minutes", "0.01"], monkeypatch, capsys)
     assert code == 0, err
     text = " ".join(err.split())
     assert "time budget: 0.01 min" in text and "of a 0.01-minute budget; the budget stopped it" in text
     train = load_model(ckpt).run_info["train"]
     assert train["budget_s"] == pytest.approx(0.6) and train["stopped_by_budget"] == 1.0 and train["steps"] >= 1
     assert train["train_time_s"] >= 0.6  # it ran to the budget (from the start of fit), whatever the step count
-    code, _, err = run([*base, "--minutes", "0.02", "--resume"], monkeypatch, capsys)
+    code, _, err = run_cli([*base, "--minutes", "0.02", "--resume"], monkeypatch, capsys)
     last = err.strip().splitlines()[-1]  # after the "training …" lines
     assert code == 2 and "Traceback" not in err and last.startswith("CheckpointError: "), err
     assert "a 0.6 s budget, this run asks for a 1.2 s budget; resume with --minutes 0.01" in last
@@ -63,7 +50,7 @@ def test_train_to_a_budget_records_it_and_resume_must_keep_it(scenario_dir: Path
 def test_minutes_does_not_apply_to_wnomp(scenario_dir: Path, tmp_path: Path, monkeypatch, capsys) -> None:
     ckpt = tmp_path / "w.ckpt"
     argv = ["train", str(scenario_dir), "--model", "wnomp", "--minutes", "1", "--out", str(ckpt), "--no-progress"]
-    code, _, err = run(argv, monkeypatch, capsys)
+    code, _, err = run_cli(argv, monkeypatch, capsys)
     assert code == 0, err
     assert "note: --minutes does not apply to wnomp" in " ".join(err.split()) and ckpt.is_file()
     assert "budget_s" not in (load_model(ckpt).run_info.get("fit") or {})

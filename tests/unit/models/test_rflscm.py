@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from tiny_rflscm import tiny_config
+from tiny_rflscm import Interrupt, stop_at, tiny_config
 
 from rflscm.data import load_scenario
 from rflscm.data.examples import tiny_scenario
@@ -84,16 +84,9 @@ def test_resume_continues_exactly(scenario, tmp_path) -> None:
     reference = []
     fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=lambda m: reference.append(m["total"]))
 
-    class Interrupt(Exception):
-        pass
-
-    def stop_at_four(metrics: dict) -> None:
-        if metrics["step"] == 4:
-            raise Interrupt
-
     ckpt = tmp_path / "run.ckpt"
     with pytest.raises(Interrupt):
-        fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=stop_at_four, checkpoint_path=ckpt)
+        fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=stop_at(4), checkpoint_path=ckpt)
     resumed = []
     fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=lambda m: resumed.append(m["total"]),
                                 checkpoint_path=ckpt, resume=True)  # fmt: skip

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from tiny_rflscm import tiny_config
+from tiny_rflscm import Interrupt, stop_at, tiny_config
 
 from rflscm.data import load_scenario
 from rflscm.data.examples import tiny_scenario
@@ -73,17 +73,10 @@ def test_budget_resume_continues_from_the_saved_time_and_refuses_another_budget(
     fit(timed_model(clock, seen), scenario, progress=False, budget_s=100.0, clock=clock,
         callback=lambda m: reference.append(m["total"]))  # fmt: skip
 
-    class Interrupt(Exception):
-        pass
-
-    def stop_at_four(metrics: dict) -> None:
-        if metrics["step"] == 4:
-            raise Interrupt
-
     ckpt = tmp_path / "run.ckpt"
     clock, seen = StepClock(10.0), []
     with pytest.raises(Interrupt):
-        fit(timed_model(clock, seen), scenario, progress=False, budget_s=100.0, clock=clock, callback=stop_at_four,
+        fit(timed_model(clock, seen), scenario, progress=False, budget_s=100.0, clock=clock, callback=stop_at(4),
             checkpoint_path=ckpt)  # fmt: skip
     clock, seen, resumed = StepClock(10.0), [], []
     fit(timed_model(clock, seen), scenario, progress=False, budget_s=100.0, clock=clock, checkpoint_path=ckpt,

@@ -2,6 +2,22 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
+
+class Interrupt(Exception):
+    """Raised by :func:`stop_at`'s callback: a training run killed part-way."""
+
+
+def stop_at(step: int) -> Callable[[dict], None]:
+    """A training callback that raises :class:`Interrupt` once ``step`` steps are done."""
+
+    def callback(metrics: dict) -> None:
+        if metrics["step"] == step:
+            raise Interrupt
+
+    return callback
+
 
 def tiny_config(**sections: dict) -> dict:
     """The tiny config with each ``section`` (``train={"steps": 4}``, …) merged over its defaults."""
