@@ -516,7 +516,7 @@ class RFLSCM(LSCMModel):
                  for p in pairs_of_cell if p.numel()]  # fmt: skip
         levels = torch.zeros(num_cells, 2)
         if not picks:
-            return levels
+            return levels.to(self.device)
         pairs = torch.cat(picks)
         resid, cell_of, type_of = [], [], []
         for start in range(0, pairs.numel(), PAIR_CHUNK):
