@@ -4,6 +4,7 @@ B9 (:mod:`rflscm.bench.b09_time_to_target`) runs this file *by path* in a subpro
 ``PYTHONPATH`` at an exported older commit's ``src`` and once at the current package's ``src``, so
 it uses only what both have: ``rflscm.data.load_scenario``, ``rflscm.geometry.AngleGrid``,
 ``rflscm.models.MODEL_REGISTRY["rflscm"].build``, ``rflscm.models.rflscm_config.preset_path``,
+``rflscm.bench.harness.merge``,
 ``rflscm.eval.protocols.AdjustProtocol`` / ``fit_with_protocol`` (whose callback gets the metrics
 of every step) and ``rflscm.eval.run_evaluation``.  It is never imported as part of ``rflscm``.
 
@@ -26,7 +27,6 @@ _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if (Path(p).resolve() if p else Path.cwd().resolve()) != _HERE]
 
 import argparse  # noqa: E402
-import copy  # noqa: E402
 import dataclasses  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
@@ -41,26 +41,17 @@ class _Stop(Exception):
     """Raised from the training callback when ``--max-seconds`` of training time are spent."""
 
 
-def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    out = copy.deepcopy(base)
-    for key, value in over.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict) and key != "lr":
-            out[key] = _merge(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out
-
-
 def _config(spec: str, overrides: dict[str, Any]) -> Any:
     """The preset name or YAML path as given, or (with overrides) its mapping with the overrides laid over."""
     if not overrides:
         return spec
     import yaml
 
+    from rflscm.bench.harness import merge
     from rflscm.models.rflscm_config import preset_path
 
     path = Path(spec) if Path(spec).is_file() else preset_path(spec, "rflscm")
-    return _merge(yaml.safe_load(path.read_text()) or {}, overrides)
+    return merge(yaml.safe_load(path.read_text()) or {}, overrides)
 
 
 def _number(value: Any) -> float | None:
