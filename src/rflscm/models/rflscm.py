@@ -530,16 +530,16 @@ class RFLSCM(LSCMModel):
             resid.append(10.0 * torch.log10(ratio))
             cell_of.append(cells[rows])
             type_of.append((beams >= train.num_ssb).long())
-        r, c, t = torch.cat(resid).cpu(), torch.cat(cell_of).cpu(), torch.cat(type_of).cpu()
+        r, c, t = (torch.cat(x).cpu().double().numpy() for x in (resid, cell_of, type_of))
         for beam_type in (0, 1):
             of_type = t == beam_type
             if not bool(of_type.any()):
                 continue
-            levels[:, beam_type] = float(r[of_type].quantile(0.5))
+            levels[:, beam_type] = float(np.median(r[of_type]))  # numpy: no size limit, mean of the middle pair
             for cell in range(num_cells):
                 mine = of_type & (c == cell)
                 if int(mine.sum()) >= LEVEL_MIN_BEAMS:
-                    levels[cell, beam_type] = float(r[mine].quantile(0.5))
+                    levels[cell, beam_type] = float(np.median(r[mine]))
         return levels.to(self.device)
 
     # --- persistence --------------------------------------------------------------------------
