@@ -104,6 +104,32 @@ def test_b1_adjust(tmp_path: Path, scenario_dir: Path) -> None:
         tp = res["models"][name]["throughput"]
         assert tp["ray_samples_per_s"] > 0 and res["models"][name]["parameters"] > 0
     assert res["oracle"]["mae_db"]["csi"]["all"] is not None and res["changed_cells"]
+    settings = res["models"]["wnomp"]["settings"]  # chosen on held-aside beams, as the demo chooses them
+    assert settings["k_max"] in (2, 4, 8) and settings["weighting"] in ("inverse_rsrp", "none")
+
+
+def test_bench_wnomp_settings_never_see_round2_or_held_out_grids(tmp_path: Path, scenario_dir: Path) -> None:
+    from rflscm.bench.harness import selected_wnomp
+    from rflscm.eval import UnseenProtocol
+    from rflscm.models.wnomp import WNOMPConfig, WNOMPModel
+
+    data = load_bench_data(ctx_for(tmp_path, scenario_dir), tiny_size())
+    protocol = UnseenProtocol(fraction=0.25, seed=0)
+    base = WNOMPModel(WNOMPConfig(k_max=4), tiny_size().grid())
+    m = data.scenario.measurements
+    scrambled = m.copy()  # round 2 and the held-out grids replaced by garbage
+    hidden = (m["round"] == 2).to_numpy() | m["grid_id"].isin(protocol.held_out(data.scenario)).to_numpy()
+    scrambled.loc[hidden & m["rsrp_dbm"].notna().to_numpy(), "rsrp_dbm"] = -60.0
+    choices = []
+    for table in (m, scrambled):
+        scenario = data.scenario.with_measurements(table, validate=False)
+        model = selected_wnomp(base, protocol.training_scenario(scenario), seed=0, device="cpu")
+        choices.append(model.run_info["wnomp_selection"])
+    assert choices[0]["chosen"] == choices[1]["chosen"] and choices[0]["candidates"] == choices[1]["candidates"]
+    assert len(choices[0]["candidates"]) == 12 and choices[0]["candidates"][0]["beams"] > 0
+    chosen = choices[0]["chosen"]
+    best = min(choices[0]["candidates"], key=lambda row: row["mae_db"])
+    assert (chosen["k_max"], chosen["weighting"]) == (best["k_max"], best["weighting"])
 
 
 def test_b2_convergence_two_seeds(tmp_path: Path, scenario_dir: Path) -> None:
@@ -226,3 +252,26 @@ def test_b9_time_to_target_tiny(tmp_path: Path, scenario_dir: Path) -> None:
         cmp = entry["comparison"][bt]
         assert cmp["wnomp_mae_db"] == level and cmp["basis"] in ("wnomp", "old_best")
         assert cmp["old_best_mae_db"] is not None and cmp["old_time_to_best_s"] > 0
+
+
+def test_b8_realism_tiny(tmp_path: Path, scenario_dir: Path) -> None:
+    """Two steps of the sweep: every model and floor scored per step, the re-measured folders reused."""
+    from rflscm.bench.b08_realism import run_b8
+    from rflscm.data import load_scenario
+
+    ctx = ctx_for(tmp_path, scenario_dir)
+    res = run_b8(ctx, tiny_size(), steps=("ideal", "reporting"))
+    json.dumps(res)
+    assert list(res["steps"]) == ["ideal", "reporting"] and res["plots"] == ["b8_realism.png"]
+    assert (tmp_path / "b8_realism.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for step, entry in res["steps"].items():
+        for label in ("wnomp", "rflscm", "nerf2", "model_floor", "noise_floor", "trivial"):
+            assert entry[label]["mae_db"]["ssb"]["all"] is not None, (step, label)
+        assert entry["rflscm"]["steps"] == tiny_size().overrides["rflscm"]["train"]["steps"]
+        assert entry["wnomp_settings"]["k_max"] in (2, 4, 8) and len(entry["wnomp_selection"]) == 12
+    ideal, field = (load_scenario(tmp_path / "b8" / s) for s in ("ideal", "reporting"))
+    assert ideal.meta.reporting != field.meta.reporting  # each step re-measured in its own regime
+    reported = {s: e["reported_beams_round1"]["csi"] for s, e in res["steps"].items()}
+    assert reported["reporting"] < reported["ideal"]  # serving-cell top-4 CSI-RS reports fewer beams
+    table = (tmp_path / "b8.md").read_text().splitlines()
+    assert len(table) == 4 and table[2].startswith("| ideal |")

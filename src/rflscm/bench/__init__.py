@@ -48,6 +48,7 @@ def load_all() -> None:
         b05_alpha_p,
         b06_unseen,
         b07_optimize,
+        b08_realism,
         b09_time_to_target,
         opt_speed,
         sensing,

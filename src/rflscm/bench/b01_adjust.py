@@ -11,7 +11,8 @@ decoder evaluations per second.
 Sizes (:mod:`rflscm.bench.harness`): ``quick`` = one site (6 cells, 2 carriers), 150 grids, the
 paper's 91 × 72 angle grid, 1500 steps of 32 pairs per field model (NeRF² at its quick preset's
 shrunk widths), on 2 CPU cores; ``full`` = the whole scenario and the models' ``full`` presets, for
-a GPU.  Seeds: each field model is trained once per seed; MAEs are averaged (WNOMP: first seed).
+a GPU.  Seeds: each field model is trained once per seed; MAEs are averaged (WNOMP: first seed).  WNOMP's
+settings are chosen on held-aside round-1 beams, as ``rflscm demo`` chooses them (``settings`` in its entry).
 """
 
 from __future__ import annotations
@@ -77,6 +78,8 @@ def _model_entry(data: BenchData, runs: list[Any]) -> dict[str, Any]:
         "fit_pairs_per_s": first.fit.get("pairs_per_s"),
         "runs": len(runs),
     }
+    if "wnomp_selection" in first.model.run_info:
+        entry["settings"] = first.model.run_info["wnomp_selection"]["chosen"]
     return entry
 
 

@@ -1,7 +1,8 @@
 """B6 — unseen grids and APS recovery against the ray-traced truth (SPEC §5, paper §V-B, unseen grids).
 
 Under :class:`~rflscm.eval.UnseenProtocol` (a seeded 20 % of the measured grids held out entirely)
-RF-LSCM, NeRF²-LSCM and WNOMP train on the rest.  Reported per model:
+RF-LSCM, NeRF²-LSCM and WNOMP train on the rest (WNOMP's settings chosen on held-aside round-1 beams of
+the training grids).  Reported per model:
 
 * ``unseen_mae_db.{ssb,csi}``: MAE [dB] of the round-1 RSRP at the held-out grids (``null`` for
   WNOMP, which has no notion of a grid it never measured), next to the oracle and trivial MAE;
@@ -65,6 +66,8 @@ def run_b6(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
             })  # fmt: skip
             reference = reference or m
         models[name] = {**aggregate(entries)["mean"], "runs": len(entries)}
+        if "wnomp_selection" in r.model.run_info:
+            models[name]["settings"] = r.model.run_info["wnomp_selection"]["chosen"]
     out["models"] = models
     out["oracle"] = {"unseen_mae_db": dict(reference["unseen"]["oracle_mae_db"])}
     out["trivial"] = {"unseen_mae_db": dict(reference["unseen"]["trivial_mae_db"])}

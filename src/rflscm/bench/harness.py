@@ -295,7 +295,7 @@ def build_model(
 def train_and_evaluate(
     data: BenchData, name: str, protocol: Any = None, extra: dict[str, Any] | None = None, seed: int = 0,
     device: str = "cpu", on_step: Callable[[Any, dict[str, float]], None] | None = None, evaluate_model: bool = True,
-    time_budget_s: float | None = None,
+    time_budget_s: float | None = None, select_wnomp: bool = True,
 ) -> RunResult:  # fmt: skip
     """Train model ``name`` (size overrides ← ``extra``, ``train.seed`` = ``seed``) on ``protocol``'s training
     data of the benchmark scenario and evaluate it (oracle next to it).
@@ -304,6 +304,8 @@ def train_and_evaluate(
     time is *not* counted in ``time_s``.  ``time_budget_s`` stops training after the first step past
     that much training time (the trainer has no such option, so the callback raises
     :class:`_StopTraining`; the model keeps the weights of the last completed step).
+    ``select_wnomp`` (WNOMP only): choose its settings on held-aside beams of the protocol's training data
+    (:func:`selected_wnomp`), as ``rflscm demo`` does; False keeps the size's (default) settings.
     """
     from rflscm.eval import AdjustProtocol, fit_with_protocol, run_evaluation
     from rflscm.eval.cache import APSCache
@@ -311,6 +313,8 @@ def train_and_evaluate(
     protocol = protocol or AdjustProtocol()
     torch.manual_seed(seed)
     model = build_model(data, name, extra, seed, device)
+    if name == "wnomp" and select_wnomp:
+        model = selected_wnomp(model, protocol.training_scenario(data.scenario), seed, device)
     history: list[dict[str, float]] = []
     excluded = [0.0]
 
@@ -342,6 +346,23 @@ def train_and_evaluate(
         metrics = run_evaluation(judged, data.scenario, protocol, oracle=data.oracle).metrics
     return RunResult(model, metrics, {k: float(v) for k, v in summary.items()}, wall, mem.result(),
                      history, model.run_info["bench_config"], judged)  # fmt: skip
+
+
+def selected_wnomp(model: Any, training: Scenario, seed: int, device: str) -> Any:
+    """A WNOMP model whose settings were chosen on held-aside round-1 beams of ``training`` (the protocol's
+    training data: never round 2, never the held-out grids), starting from ``model``'s configuration; the
+    choice, every candidate's held-aside MAE and the time taken go to ``run_info["wnomp_selection"]``."""
+    from rflscm.models.wnomp import WNOMPModel
+    from rflscm.models.wnomp_select import select_wnomp
+
+    t0 = time.perf_counter()
+    chosen, table = select_wnomp(training, model.angle_grid, seed=seed, device=device, base=model.config)
+    out = WNOMPModel(chosen, model.angle_grid, device)
+    out.run_info = dict(model.run_info)
+    out.run_info["bench_config"] = dataclasses.asdict(chosen)
+    out.run_info["wnomp_selection"] = {"chosen": dataclasses.asdict(chosen), "time_s": time.perf_counter() - t0,
+                                       "candidates": table.to_dict(orient="records")}  # fmt: skip
+    return out
 
 
 class _StopTraining(Exception):
