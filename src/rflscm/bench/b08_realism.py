@@ -97,6 +97,7 @@ def run_step(ctx: BenchContext, size: BenchSize, trace: Path, step: str) -> dict
     models: list[tuple[str, Any]] = [("wnomp", WNOMPModel(chosen, grid, ctx.device))]
     models += [(m, MODEL_REGISTRY[m].build(neural_config(m, size), grid, ctx.device)) for m in NEURAL]
     for label, model in models:
+        print(f"b8 {step}: {label} …", flush=True)  # a long benchmark (about an hour at quick size) shows where it is
         t0 = time.perf_counter()
         budget = BUDGET_S[size.name] if label in NEURAL else None
         fit = fit_with_protocol(model, scenario, AdjustProtocol(), budget_s=budget, progress=False)

@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, cast
 
 import numpy as np
+import pandas as pd
 import torch
 from torch import nn
 
@@ -124,6 +125,10 @@ class RFLSCM(LSCMModel):
         """``[C, 2]`` level correction [dB] of each cell's SSB (column 0) and CSI-RS (1) predictions
         (``train.calibrate_levels``; see :meth:`_fit_levels`), or None."""
         self._levels_step: int | None = None
+        self.anchors: pd.Series | None = None
+        """Per-pair level anchor [dB] indexed by (cell_id, grid_id) (``train.pair_anchors``; see
+        :meth:`_fit_anchors`), or None."""
+        self._anchors_step: int | None = None
         self._train: _TrainContext | None = None
 
     @classmethod
@@ -199,6 +204,7 @@ class RFLSCM(LSCMModel):
         a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
         self._train = _TrainContext(data.to(self.device), a_norm, a_coarse, num_ssb)
         self.levels, self._levels_step = None, None
+        self.anchors, self._anchors_step = None, None
         self.step, self.position, self.train_state = 0, -1.0, None
         self._calibrate_level(INIT_LEVEL_DB)
 
@@ -471,6 +477,15 @@ class RFLSCM(LSCMModel):
         levels = self.current_levels()
         if levels is not None:
             out = out * torch.pow(10.0, levels[torch.as_tensor(cells, device=self.device), 0] / 10.0)[:, None]
+        anchors = self.current_anchors()
+        if anchors is not None and len(anchors) and len(keys):
+            at = pd.MultiIndex.from_arrays(
+                [np.asarray(cell_ids, np.int64).reshape(-1), np.asarray(grid_ids, np.int64).reshape(-1)]
+            )
+            shift = torch.as_tensor(
+                anchors.reindex(at).fillna(0.0).to_numpy(np.float32, copy=True), dtype=torch.float32, device=self.device
+            )
+            out = out * torch.pow(10.0, shift / 10.0)[:, None]
         return out * self.scene.x_ref
 
     def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
@@ -492,9 +507,20 @@ class RFLSCM(LSCMModel):
             self.levels, self._levels_step = self._fit_levels(), self.step
         return self.levels
 
+    def current_anchors(self) -> pd.Series | None:
+        """The per-pair level anchors [dB] for the current weights (re-measured, like :meth:`current_levels`, when
+        the weights moved since the last measurement), or None when switched off or not known."""
+        if not self.config.train.pair_anchors:
+            return None
+        if self._train is not None and self._anchors_step != self.step:
+            self.anchors, self._anchors_step = self._fit_anchors(), self.step
+        return self.anchors
+
     def finish_training(self) -> None:
-        """After the last step: measure the level correction that predictions and the checkpoint carry."""
+        """After the last step: measure the level correction and the pair anchors that predictions and the
+        checkpoint carry."""
         self.current_levels()
+        self.current_anchors()
 
     @torch.no_grad()
     def _fit_levels(self) -> torch.Tensor:
@@ -507,7 +533,7 @@ class RFLSCM(LSCMModel):
         keeps every beam low to respect the bounds, so its reported beams come out too weak (a CSI-RS bias
         of −3 to −5 dB after a few hundred steps on the shipped scenario).  This correction, measured on the
         reported beams alone, removes that level error from the predictions without touching the field."""
-        d, train = self._training().data, self._training()
+        d = self._training().data
         assert self.scene is not None
         num_cells = len(self.scene.cell_ids)
         observed = d.beam_mask & ~torch.isnan(d.rsrp)
@@ -517,20 +543,8 @@ class RFLSCM(LSCMModel):
         levels = torch.zeros(num_cells, 2)
         if not picks:
             return levels.to(self.device)
-        pairs = torch.cat(picks)
-        resid, cell_of, type_of = [], [], []
-        for start in range(0, pairs.numel(), PAIR_CHUNK):
-            batch = pairs[start : start + PAIR_CHUNK]
-            cells = d.cell_index[batch]
-            bins, values = self._renderer().output(cells, d.grid_xyz[batch], self.position)
-            pred = torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
-            seen = observed[batch]
-            rows, beams = seen.nonzero(as_tuple=True)
-            ratio = d.rsrp[batch][rows, beams] / pred[rows, beams].clamp_min(1e-30)
-            resid.append(10.0 * torch.log10(ratio))
-            cell_of.append(cells[rows])
-            type_of.append((beams >= train.num_ssb).long())
-        r, c, t = (torch.cat(x).cpu().double().numpy() for x in (resid, cell_of, type_of))
+        resid, pair_of, type_of = self._residuals_db(torch.cat(picks))
+        r, c, t = resid.double().numpy(), d.cell_index.cpu()[pair_of].numpy(), type_of.numpy()
         for beam_type in (0, 1):
             of_type = t == beam_type
             if not bool(of_type.any()):
@@ -541,6 +555,49 @@ class RFLSCM(LSCMModel):
                 if int(mine.sum()) >= LEVEL_MIN_BEAMS:
                     levels[cell, beam_type] = float(np.median(r[mine]))
         return levels.to(self.device)
+
+    @torch.no_grad()
+    def _fit_anchors(self) -> pd.Series:
+        """Median (measured − predicted) [dB] over each training pair's reported round-1 training beams (SSB and
+        CSI-RS pooled, after the level correction), indexed by (cell_id, grid_id).
+
+        An under-trained field gets the angular shape and the antenna's effect right long before it gets each
+        grid's level (its path loss) right; the pair's own reports pin that level, as a per-grid fit would,
+        and a changed antenna moves both rounds' paths alike.  Validation beams are not used, so
+        :meth:`validation_mae` stays an honest held-aside score of the field alone."""
+        d = self._training().data
+        assert self.scene is not None
+        observed = d.beam_mask & ~torch.isnan(d.rsrp)
+        resid, pair_of, type_of = self._residuals_db(torch.nonzero(observed.any(1)).squeeze(1))
+        levels = self.current_levels()
+        if levels is not None:
+            resid = resid - levels.cpu()[d.cell_index.cpu()[pair_of], type_of]
+        median = pd.Series(resid.double().numpy()).groupby(pair_of.numpy()).median()
+        pairs = median.index.to_numpy()
+        cells = np.asarray(self.scene.cell_ids, np.int64)[d.cell_index.cpu().numpy()[pairs]]
+        index = pd.MultiIndex.from_arrays([cells, d.grid_ids[pairs]], names=["cell_id", "grid_id"])
+        return pd.Series(median.to_numpy(), index=index, name="anchor_db")
+
+    def _residuals_db(self, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """10 log10(measured / predicted) of every reported training beam of the training pairs ``pairs [B]``,
+        without any correction: ``(residual [N], training pair [N], beam type [N] (0 SSB, 1 CSI-RS))`` on the CPU."""
+        d, train = self._training().data, self._training()
+        observed = d.beam_mask & ~torch.isnan(d.rsrp)
+        resid, pair_of, type_of = [], [], []
+        for start in range(0, pairs.numel(), PAIR_CHUNK):
+            batch = pairs[start : start + PAIR_CHUNK]
+            cells = d.cell_index[batch]
+            bins, values = self._renderer().output(cells, d.grid_xyz[batch], self.position)
+            pred = torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
+            rows, beams = observed[batch].nonzero(as_tuple=True)
+            ratio = d.rsrp[batch][rows, beams] / pred[rows, beams].clamp_min(1e-30)
+            resid.append(10.0 * torch.log10(ratio))
+            pair_of.append(batch[rows])
+            type_of.append((beams >= train.num_ssb).long())
+        if not resid:
+            empty = torch.zeros(0, dtype=torch.long)
+            return torch.zeros(0), empty, empty
+        return tuple(torch.cat(x).cpu() for x in (resid, pair_of, type_of))  # type: ignore[return-value]
 
     # --- persistence --------------------------------------------------------------------------
     def state_dict_for_checkpoint(self) -> dict[str, Any]:
@@ -554,6 +611,7 @@ class RFLSCM(LSCMModel):
             "step": self.step,
             "position": self.position,
             "levels": self.levels.detach().cpu().clone() if self.levels is not None else None,
+            "anchors": _anchors_state(self.anchors),
             "train_state": self.train_state,
         }
 
@@ -573,6 +631,7 @@ class RFLSCM(LSCMModel):
         (model.step, model.position), model.train_state = _step_and_position(state), state.get("train_state")
         levels = state.get("levels")  # none in checkpoints before the level correction: no correction
         model.levels = torch.as_tensor(levels, dtype=torch.float32, device=model.device) if levels is not None else None
+        model.anchors = _anchors_from_state(state.get("anchors"))  # none before the pair anchors: none applied
         return model
 
     def _load_stage_weights(self, weights: dict[str, torch.Tensor]) -> None:
@@ -593,6 +652,26 @@ class RFLSCM(LSCMModel):
         self.stages.to(self.device)
         if self._train is not None:
             self._train.selection = None
+
+
+def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:
+    if anchors is None:
+        return None
+    cells, grids = (
+        torch.as_tensor(anchors.index.get_level_values(k).to_numpy(np.int64)) for k in ("cell_id", "grid_id")
+    )
+    return {"cell_id": cells, "grid_id": grids, "anchor_db": torch.as_tensor(anchors.to_numpy(np.float32))}
+
+
+def _anchors_from_state(state: dict[str, Any] | None) -> pd.Series | None:
+    if state is None:
+        return None
+    cols = {k: torch.as_tensor(state[k]).numpy() for k in ("cell_id", "grid_id", "anchor_db")}
+    if not len(cols["cell_id"]) == len(cols["grid_id"]) == len(cols["anchor_db"]):
+        raise CheckpointError("the checkpoint's pair anchors are damaged (columns of different lengths).")
+    index = pd.MultiIndex.from_arrays([cols["cell_id"].astype(np.int64), cols["grid_id"].astype(np.int64)],
+                                      names=["cell_id", "grid_id"])  # fmt: skip
+    return pd.Series(cols["anchor_db"].astype(np.float64), index=index, name="anchor_db")
 
 
 def _without_removed_options(config: dict[str, Any], config_class: type = RFLSCMConfig) -> dict[str, Any]:

@@ -304,6 +304,11 @@ class TrainConfig:
     calibrate_levels: bool = True
     """Correct each cell's SSB and CSI-RS predictions by the median error on its reported round-1 beams, measured
     after training (:meth:`~rflscm.models.rflscm.RFLSCM.current_levels`); the training itself is unchanged."""
+    pair_anchors: bool = True
+    """Move each training pair's (cell, grid) predictions, in every round, by the median error that remains on
+    its own reported round-1 beams (:meth:`~rflscm.models.rflscm.RFLSCM.current_anchors`): the field gives the
+    angular shape and what a changed antenna does, the pair's own reports its level.  Measured after training;
+    pairs without round-1 reports (unseen grids) keep the field's level."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_pairs", "pairs_per_cell", "val_every", "checkpoint_every"):

@@ -1,8 +1,12 @@
-"""RF-LSCM's level correction: per cell and beam type, the median error on reported round-1 training beams."""
+"""RF-LSCM's level correction (per cell and beam type, the median error on reported round-1 training beams) and
+its pair anchors (per training pair, the median error that remains)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 from tiny_rflscm import tiny_config
@@ -43,7 +47,7 @@ def test_the_correction_centres_each_cells_round1_errors_and_survives_a_checkpoi
 
     monkeypatch.setattr(module, "LEVEL_PAIRS_PER_CELL", 10**6)  # measure on every pair: exact medians
     torch.manual_seed(0)
-    model = RFLSCM.build(tiny_config(train={"val_pairs": 0}), GRID)
+    model = RFLSCM.build(tiny_config(train={"val_pairs": 0, "pair_anchors": False}), GRID)  # cell levels alone
     fit(model, scenario, progress=False)
     levels = model.levels
     assert levels is not None and levels.shape == (len(scenario.cell_ids()), 2)
@@ -103,3 +107,60 @@ def test_evaluation_through_the_aps_cache_sees_the_csi_rs_correction(scenario) -
             model.predict_rsrp(scenario, 1, beam_type, pairs),
             atol=1e-4,
         )
+
+
+def test_pair_anchors_centre_each_training_pairs_errors_in_both_rounds_and_survive_a_checkpoint(
+    scenario, tmp_path
+) -> None:
+    torch.manual_seed(0)
+    model = RFLSCM.build(tiny_config(train={"val_pairs": 0, "steps": 4}), GRID)
+    fit(model, scenario, progress=False)
+    anchors = model.anchors
+    assert anchors is not None and len(anchors) > 0 and float(anchors.abs().max()) > 0.5
+    # round 1: each pair's median error over its reported beams (SSB and CSI-RS pooled) is now 0
+    frames = []
+    for beam_type in ("ssb", "csi"):
+        pairs, measured = scenario.rsrp_table(1, beam_type)
+        pairs = pairs.reset_index(drop=True)
+        pred = model.predict_rsrp(scenario, 1, beam_type, pairs)[:, : measured.shape[1]]
+        diff = measured - pred
+        rows, beams = np.nonzero(np.isfinite(diff))
+        frames.append(pd.DataFrame({"cell_id": pairs["cell_id"].to_numpy()[rows],
+                                    "grid_id": pairs["grid_id"].to_numpy()[rows], "err": diff[rows, beams]}))  # fmt: skip
+    medians = pd.concat(frames).groupby(["cell_id", "grid_id"])["err"].median()
+    assert len(medians) == len(anchors) and float(medians.abs().max()) < 0.05
+    # round 2 (the changed antennas): the same pair moves by its anchor; a grid never measured does not move
+    pairs = pd.DataFrame(
+        {"cell_id": anchors.index.get_level_values(0)[:5], "grid_id": anchors.index.get_level_values(1)[:5]}
+    )
+    saved = model.anchors
+    with_anchor = model.predict_rsrp(scenario, 2, "ssb", pairs)
+    model.config = dataclasses.replace(model.config, train=dataclasses.replace(model.config.train, pair_anchors=False))
+    without = model.predict_rsrp(scenario, 2, "ssb", pairs)
+    model.config = dataclasses.replace(model.config, train=dataclasses.replace(model.config.train, pair_anchors=True))
+    np.testing.assert_allclose(with_anchor - without, np.repeat(anchors.to_numpy()[:5, None], without.shape[1], 1),
+                               atol=1e-3)  # fmt: skip
+    cell = int(pairs["cell_id"][0])
+    measured_grids = set(anchors.loc[cell].index)
+    unmeasured = [g for g in scenario.grid_ids() if int(g) not in measured_grids][:1]
+    if unmeasured:
+        lone = pd.DataFrame({"cell_id": [cell], "grid_id": unmeasured})
+        assert model.anchors is saved and anchors.reindex(pd.MultiIndex.from_frame(lone)).isna().all()
+    model.save(tmp_path / "a.ckpt")
+    loaded = load_model(tmp_path / "a.ckpt")
+    pd.testing.assert_series_equal(loaded.anchors, anchors, check_exact=False, atol=1e-5)
+    np.testing.assert_allclose(loaded.predict_rsrp(scenario, 2, "ssb", pairs), with_anchor, atol=1e-4)
+
+
+def test_pair_anchors_can_be_switched_off_and_leave_validation_alone(scenario) -> None:
+    runs = {}
+    for on in (True, False):
+        torch.manual_seed(0)
+        model = RFLSCM.build(tiny_config(train={"steps": 4, "pair_anchors": on}), GRID)
+        summary = fit(model, scenario, progress=False)
+        runs[on] = (model, summary)
+    assert runs[False][0].anchors is None and runs[False][0].current_anchors() is None
+    assert runs[True][0].anchors is not None
+    # training and the held-aside validation score (the field alone) are the same either way
+    assert runs[True][1]["final_loss"] == runs[False][1]["final_loss"]
+    assert runs[True][1]["val_mae_db"] == runs[False][1]["val_mae_db"]
