@@ -6,14 +6,14 @@ For every round-1 pair with reported beams, the anchor is the median (measured â
 its reported round-1 beams (SSB and CSI-RS pooled, after the model's own level correction), shrunk
 towards 0 by n / (n + k) for n beams.  The round-2 prediction of the same (cell, grid) is moved by
 the anchor; pairs round 1 never reported keep the model's prediction.  Prints the round-2 MAE
-(all / changed cells) and mean signed error for each k, k = "off" being the model unchanged.
+(all / changed cells) and mean signed error for each k, k = "off" being the field with its per-cell level
+correction only.  ``train.pair_anchors`` (k = 0) is what this probe measured before it existed.
 """
 
 from __future__ import annotations
 
 import argparse
 
-import numpy as np
 import pandas as pd
 
 from rflscm.data import load_scenario
@@ -56,6 +56,7 @@ def main() -> None:
     args = ap.parse_args()
     scenario = load_scenario(args.scenario)
     model = load_model(args.checkpoint, scenario)
+    model.anchors = None  # the model's own anchors (train.pair_anchors) off: the probe computes its own
     cache = APSCache(model)
     res = residuals(cache, scenario)
     grouped = res.groupby(["cell_id", "grid_id"])["resid"]
