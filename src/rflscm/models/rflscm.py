@@ -666,9 +666,16 @@ def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:
 def _anchors_from_state(state: dict[str, Any] | None) -> pd.Series | None:
     if state is None:
         return None
-    cols = {k: torch.as_tensor(state[k]).numpy() for k in ("cell_id", "grid_id", "anchor_db")}
+    keys = ("cell_id", "grid_id", "anchor_db")
+    if not isinstance(state, dict) or any(k not in state for k in keys):
+        raise CheckpointError(
+            "the checkpoint's pair anchors are damaged (expected columns cell_id, grid_id, anchor_db)."
+        )
+    cols = {k: torch.as_tensor(state[k]).reshape(-1).numpy() for k in keys}
     if not len(cols["cell_id"]) == len(cols["grid_id"]) == len(cols["anchor_db"]):
         raise CheckpointError("the checkpoint's pair anchors are damaged (columns of different lengths).")
+    if not np.isfinite(cols["anchor_db"]).all():
+        raise CheckpointError("the checkpoint's pair anchors are damaged (non-finite values); retrain the model.")
     index = pd.MultiIndex.from_arrays([cols["cell_id"].astype(np.int64), cols["grid_id"].astype(np.int64)],
                                       names=["cell_id", "grid_id"])  # fmt: skip
     return pd.Series(cols["anchor_db"].astype(np.float64), index=index, name="anchor_db")

@@ -164,3 +164,15 @@ def test_pair_anchors_can_be_switched_off_and_leave_validation_alone(scenario) -
     # training and the held-aside validation score (the field alone) are the same either way
     assert runs[True][1]["final_loss"] == runs[False][1]["final_loss"]
     assert runs[True][1]["val_mae_db"] == runs[False][1]["val_mae_db"]
+
+
+def test_damaged_pair_anchors_in_a_checkpoint_are_refused_in_one_line() -> None:
+    from rflscm.errors import CheckpointError
+    from rflscm.models.rflscm import _anchors_from_state
+
+    good = {"cell_id": torch.tensor([1, 2]), "grid_id": torch.tensor([5, 6]), "anchor_db": torch.tensor([0.5, -1.0])}
+    assert _anchors_from_state(good).loc[(2, 6)] == -1.0 and _anchors_from_state(None) is None
+    for bad in ({"cell_id": good["cell_id"]}, {**good, "grid_id": torch.tensor([5])},
+                {**good, "anchor_db": torch.tensor([float("nan"), 0.0])}, [1, 2]):  # fmt: skip
+        with pytest.raises(CheckpointError, match="pair anchors are damaged"):
+            _anchors_from_state(bad)
