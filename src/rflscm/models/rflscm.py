@@ -661,7 +661,7 @@ def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:
     if anchors is None:
         return None
     cells, grids = (
-        torch.as_tensor(anchors.index.get_level_values(k).to_numpy(np.int64)) for k in ("cell_id", "grid_id")
+        torch.as_tensor(anchors.index.get_level_values(k).to_numpy(np.int64, copy=True)) for k in ("cell_id", "grid_id")
     )
     return {"cell_id": cells, "grid_id": grids, "anchor_db": torch.as_tensor(anchors.to_numpy(np.float32))}
 
