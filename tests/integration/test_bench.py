@@ -275,3 +275,10 @@ def test_b8_realism_tiny(tmp_path: Path, scenario_dir: Path) -> None:
     assert reported["reporting"] < reported["ideal"]  # serving-cell top-4 CSI-RS reports fewer beams
     table = (tmp_path / "b8.md").read_text().splitlines()
     assert len(table) == 4 and table[2].startswith("| ideal |")
+    from rflscm.bench.b08_realism import measured
+
+    stamp = (tmp_path / "b8" / "ideal" / "scenario.yaml").stat().st_mtime_ns
+    assert measured(scenario_dir, "ideal", tmp_path / "b8" / "ideal").name == "ideal"  # same measurement: reused
+    assert (tmp_path / "b8" / "ideal" / "scenario.yaml").stat().st_mtime_ns == stamp
+    measured(scenario_dir, "reporting", tmp_path / "b8" / "ideal")  # another regime in that folder: re-measured
+    assert load_scenario(tmp_path / "b8" / "ideal").meta.reporting == field.meta.reporting

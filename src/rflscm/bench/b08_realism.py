@@ -68,14 +68,22 @@ def run_b8(ctx: BenchContext, size: BenchSize, steps: tuple[str, ...] = tuple(ST
 
 
 def measured(trace: Path, step: str, folder: Path) -> Path:
-    """``trace`` re-measured in ``step``'s regime into ``folder`` (reused when already there)."""
+    """``trace`` re-measured in ``step``'s regime into ``folder`` (reused when it holds exactly that
+    measurement: the same recorded simulation config; otherwise measured again, never silently stale)."""
+    from rflscm.config import to_dict
+    from rflscm.errors import RflscmError
     from rflscm.sim.remeasure import remeasure, trace_config
 
     regime, effects = STEPS[step]
-    if not (folder / "scenario.yaml").is_file():
-        shutil.rmtree(folder, ignore_errors=True)
-        cfg = dataclasses.replace(trace_config(trace), measurements=regime, field_model=effects, name=f"b8-{step}")
-        remeasure(trace, cfg, folder)
+    cfg = dataclasses.replace(trace_config(trace), measurements=regime, field_model=effects, name=f"b8-{step}")
+    if (folder / "scenario.yaml").is_file():
+        try:
+            if to_dict(trace_config(folder)) == to_dict(cfg):
+                return folder
+        except RflscmError:  # an unreadable leftover is measured again
+            pass
+    shutil.rmtree(folder, ignore_errors=True)
+    remeasure(trace, cfg, folder)
     return folder
 
 
