@@ -24,6 +24,9 @@ def test_b9_time_to_target_on_a_hand_made_curve() -> None:
     assert missed["old_best_mae_db"] == 6.0 and missed["old_time_to_best_s"] == 20
     assert missed["new_time_to_old_best_s"] == 20 and missed["ratio_to_old_best"] == 1.0
     assert missed["new_best_mae_db"] == 4.0
+    # a row's time carries its own finish_training, so a later row can be quicker than an earlier one
+    finished = rows((60, 6.0), (45, 5.0), (70, 5.0))
+    assert time_to(finished, "ssb", 6.0) == 45 and best(finished, "ssb") == (5.0, 45)
 
 
 def test_b9_baseline_may_be_a_folder_holding_src(tmp_path) -> None:

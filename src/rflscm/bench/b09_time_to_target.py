@@ -140,14 +140,12 @@ def run_b9(ctx: BenchContext, size: str) -> dict[str, Any]:
 def time_to(
     rows: Sequence[dict[str, Any]], beam_type: str, level: float | None, cells: str = "changed"
 ) -> float | None:
-    """Training seconds of the first row whose MAE [dB] (``cells`` of ``beam_type``) is at or below ``level``."""
+    """The fewest training seconds of a row whose MAE [dB] (``cells`` of ``beam_type``) is at or below ``level``
+    (rows are in step order; a row's time includes its own ``finish_training``, so times need not rise)."""
     if level is None or not np.isfinite(level):
         return None
-    for row in rows:
-        mae = _mae(row, beam_type, cells)
-        if mae is not None and mae <= level:
-            return float(row["train_s"])
-    return None
+    times = [float(row["train_s"]) for row in rows if (mae := _mae(row, beam_type, cells)) is not None and mae <= level]
+    return min(times) if times else None
 
 
 def best(rows: Sequence[dict[str, Any]], beam_type: str, cells: str = "changed") -> tuple[float | None, float | None]:
@@ -156,7 +154,7 @@ def best(rows: Sequence[dict[str, Any]], beam_type: str, cells: str = "changed")
     if not values:
         return None, None
     low = min(m for m, _ in values)
-    return low, next(t for m, t in values if m == low)
+    return low, min(t for m, t in values if m == low)
 
 
 def compare(old: Sequence[dict[str, Any]], new: Sequence[dict[str, Any]], beam_type: str,

@@ -9,7 +9,10 @@ it uses only what both have: ``rflscm.data.load_scenario``, ``rflscm.geometry.An
 of every step) and ``rflscm.eval.run_evaluation``.  It is never imported as part of ``rflscm``.
 
 Training time counts from the call of ``fit_with_protocol`` (data preparation included); every
-evaluation's wall time (and CPU time) is taken off, so ``train_s`` is training alone.  When
+evaluation's wall time (and CPU time) is taken off, so ``train_s`` is training alone.  Before each
+evaluation the model's ``finish_training`` runs (where it has one: the post-training measurements a
+saved checkpoint carries); its time is added to that row's ``train_s`` (and given as ``finish_s``) but
+not to later rows', so every row is the time to a model as ``rflscm train`` would save it at that point.  When
 ``train_s`` passes a mark the model is evaluated (adjust protocol, no oracle) and one row is
 written; once more at the end of the schedule or when ``--max-seconds`` stops the run.
 
@@ -119,12 +122,26 @@ def main(argv: list[str] | None = None) -> None:
             torch.cuda.synchronize()
         return time.perf_counter(), time.process_time()
 
-    def evaluate(step: int) -> None:
+    def finish_clocks() -> tuple[float, float]:
+        """Run the model's ``finish_training`` (where it has one); its wall and CPU seconds, which count for this row
+        alone (a run that goes on does not pay them)."""
+        finish = getattr(model, "finish_training", None)
+        if finish is None:
+            return 0.0, 0.0
+        wall, cpu = clocks()
+        finish()
+        wall2, cpu2 = clocks()
+        excluded["wall"] += wall2 - wall
+        excluded["cpu"] += cpu2 - cpu
+        return wall2 - wall, cpu2 - cpu
+
+    def evaluate(step: int, finish_s: tuple[float, float] = (0.0, 0.0)) -> None:
         wall, cpu = clocks()
         row: dict[str, Any] = {
             "step": step,
-            "train_s": wall - start["wall"] - excluded["wall"],
-            "cpu_s": cpu - start["cpu"] - excluded["cpu"],
+            "train_s": wall - start["wall"] - excluded["wall"] + finish_s[0],
+            "cpu_s": cpu - start["cpu"] - excluded["cpu"] + finish_s[1],
+            "finish_s": finish_s[0],
         }
         metrics = run_evaluation(model, scenario, AdjustProtocol(), oracle=None, max_aps_pairs=0).metrics
         row["mae_db"] = _block(metrics, "mae_db")
@@ -147,7 +164,7 @@ def main(argv: list[str] | None = None) -> None:
             due = True
         over = args.max_seconds is not None and train_s >= args.max_seconds
         if due or over:
-            evaluate(step)
+            evaluate(step, finish_clocks())
         if over:
             raise _Stop
 

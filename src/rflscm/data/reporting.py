@@ -141,7 +141,8 @@ def missing_bounds(
         full = reported.sum(axis=1) >= rule.top_n
         weakest = np.where(reported, rsrp_dbm, np.inf).min(axis=1)
         bound = np.where(full[:, None], np.maximum(bound, weakest[:, None]), bound)
-    sizes = np.array([scenario.num_beams(int(c), beam_type, round) for c in pairs["cell_id"].to_numpy()], dtype=int)
+    cells, at = np.unique(pairs["cell_id"].to_numpy(), return_inverse=True)  # one codebook lookup per cell
+    sizes = np.array([scenario.num_beams(int(c), beam_type, round) for c in cells], dtype=int)[at.reshape(-1)]
     exists = np.arange(rsrp_dbm.shape[1])[None, :] < sizes.reshape(-1, 1)
     return np.where(exists & np.isnan(rsrp_dbm), bound, np.nan)
 

@@ -57,6 +57,14 @@ from rflscm.models.base import LSCMModel, TrainingPlan, register_model
 from rflscm.models.hitam import HiTAM
 from rflscm.models.losses import lscm_loss, mae_db
 from rflscm.models.pairs import PairData, build_pair_data, reference_power, stacked_sensing
+from rflscm.models.posterior import (
+    HOLDOUT,
+    LAMBDA_PAIRS,
+    POSTERIOR_BINS,
+    LambdaChoice,
+    PairPosterior,
+    fit_gains,
+)
 from rflscm.models.radiance import FieldFactory, RadianceDecoder, RadianceStage, SceneFrame, VMFieldFactory
 from rflscm.models.rflscm_config import (
     ANY,
@@ -130,8 +138,10 @@ class RFLSCM(LSCMModel):
         self._levels_step: int | None = None
         self.anchors: pd.Series | None = None
         """Per-pair level anchor [dB] indexed by (cell_id, grid_id) (``train.pair_anchors``; see
-        :meth:`_fit_anchors`), or None."""
-        self._anchors_step: int | None = None
+        :meth:`_fit_pair_corrections`), or None."""
+        self.posterior: PairPosterior | None = None
+        """The training pairs' posterior gains (``train.pair_posterior``), or None."""
+        self._pairs_step: int | None = None
         self._train: _TrainContext | None = None
 
     @classmethod
@@ -207,7 +217,7 @@ class RFLSCM(LSCMModel):
         a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
         self._train = _TrainContext(data.to(self.device), a_norm, a_coarse, num_ssb)
         self.levels, self._levels_step = None, None
-        self.anchors, self._anchors_step = None, None
+        self.anchors, self.posterior, self._pairs_step = None, None, None
         self.step, self.position, self.train_state = 0, -1.0, None
         self._calibrate_level(INIT_LEVEL_DB)
 
@@ -489,6 +499,11 @@ class RFLSCM(LSCMModel):
                 anchors.reindex(at).fillna(0.0).to_numpy(np.float32, copy=True), dtype=torch.float32, device=self.device
             )
             out = out * torch.pow(10.0, shift / 10.0)[:, None]
+        posterior = self.current_posterior()
+        if posterior is not None:
+            out = posterior.apply(
+                out, np.asarray(cell_ids, np.int64).reshape(-1), np.asarray(grid_ids, np.int64).reshape(-1)
+            )
         return out * self.scene.x_ref
 
     def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
@@ -515,15 +530,28 @@ class RFLSCM(LSCMModel):
         the weights moved since the last measurement), or None when switched off or not known."""
         if not self.config.train.pair_anchors:
             return None
-        if self._train is not None and self._anchors_step != self.step:
-            self.anchors, self._anchors_step = self._fit_anchors(), self.step
+        self._refresh_pair_corrections()
         return self.anchors
 
+    def current_posterior(self) -> PairPosterior | None:
+        """The training pairs' posterior gains (``train.pair_posterior``, :mod:`~rflscm.models.posterior`) for the
+        current weights, re-measured like :meth:`current_anchors`, or None when switched off or not known."""
+        if not self.config.train.pair_posterior:
+            return None
+        self._refresh_pair_corrections()
+        return self.posterior
+
+    def _refresh_pair_corrections(self) -> None:
+        if self._train is not None and self._pairs_step != self.step:
+            self.anchors, self.posterior = self._fit_pair_corrections()
+            self._pairs_step = self.step
+
     def finish_training(self) -> None:
-        """After the last step: measure the level correction and the pair anchors that predictions and the
-        checkpoint carry."""
+        """After the last step: measure the level correction, the pair anchors and the pair posterior that
+        predictions and the checkpoint carry."""
         self.current_levels()
         self.current_anchors()
+        self.current_posterior()
 
     @torch.no_grad()
     def _fit_levels(self) -> torch.Tensor:
@@ -560,26 +588,98 @@ class RFLSCM(LSCMModel):
         return levels.to(self.device)
 
     @torch.no_grad()
-    def _fit_anchors(self) -> pd.Series:
-        """Median (measured − predicted) [dB] over each training pair's reported round-1 training beams (SSB and
-        CSI-RS pooled, after the level correction), indexed by (cell_id, grid_id).
+    def _fit_pair_corrections(self) -> tuple[pd.Series | None, PairPosterior | None]:
+        """One pass over the training pairs with reports: their level anchors and their posterior.
 
-        An under-trained field gets the angular shape and the antenna's effect right long before it gets each
-        grid's level (its path loss) right; the pair's own reports pin that level, as a per-grid fit would,
-        and a changed antenna moves both rounds' paths alike.  Validation beams are not used, so
-        :meth:`validation_mae` stays an honest held-aside score of the field alone."""
+        *Anchor* (``train.pair_anchors``): the median (measured − predicted) [dB] over the pair's reported round-1
+        training beams (SSB and CSI-RS pooled, after the level correction).  An under-trained field gets the
+        angular shape and the antenna's effect right long before it gets each grid's level (its path loss)
+        right; the pair's own reports pin that level, as a per-grid fit would, and a changed antenna moves
+        both rounds' paths alike.
+
+        *Posterior* (``train.pair_posterior``): per-bin gains on the anchored APS that fit the same reports
+        under a ridge prior centred on the field, λ chosen on held-aside reports
+        (:mod:`~rflscm.models.posterior`).
+
+        Validation beams are used by neither, so :meth:`validation_mae` stays an honest held-aside score of the
+        field alone."""
+        cfg = self.config.train
         d = self._training().data
         assert self.scene is not None
+        pairs = torch.nonzero((d.beam_mask & ~torch.isnan(d.rsrp)).any(1)).squeeze(1)
+        lam, scores = math.inf, {}
+        if cfg.pair_posterior and pairs.numel():
+            # λ from held-aside reports of a spread subset of the pairs, then one fit per pair
+            held = torch.rand(d.rsrp.shape, generator=torch.Generator().manual_seed(cfg.seed)) < HOLDOUT
+            subset = pairs[torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), LAMBDA_PAIRS)).round().long()]
+            choice = LambdaChoice()
+            for chunk in self._pair_chunks(subset.unique()):
+                held_here = held[chunk.pairs.cpu()].to(self.device)
+                choice.add(*chunk.fit_inputs(), chunk.resid, chunk.mask, held_here)
+            lam, scores = choice.best(), choice.mae_db()
+        anchors, gains, bins_of = [], [], []
+        for chunk in self._pair_chunks(pairs, with_columns=cfg.pair_posterior and math.isfinite(lam)):
+            anchors.append(chunk.anchor)
+            if chunk.top_bins is not None:
+                gains.append(fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, lam).cpu())
+                bins_of.append(chunk.top_bins.cpu())
+        cell_ids = np.asarray(self.scene.cell_ids, np.int64)[d.cell_index.cpu().numpy()[pairs.cpu().numpy()]]
+        index = pd.MultiIndex.from_arrays([cell_ids, d.grid_ids[pairs.cpu().numpy()]], names=["cell_id", "grid_id"])
+        median = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)
+        anchor_series = pd.Series(median, index=index, name="anchor_db") if cfg.pair_anchors else None
+        if not cfg.pair_posterior:
+            return anchor_series, None
+        if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
+            empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
+            return anchor_series, PairPosterior(
+                empty, torch.zeros(0, 0, dtype=torch.long), torch.zeros(0, 0), lam, scores
+            )
+        gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
+        return anchor_series, PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores)
+
+    def _pair_chunks(self, pairs: torch.Tensor, with_columns: bool = True) -> typing.Iterator[_PairChunk]:
+        """Training ``pairs`` rendered ``PAIR_CHUNK`` at a time: each pair's anchor and, after level correction and
+        anchor, its residuals, its strongest bins with their columns (when ``with_columns``)."""
+        cfg = self.config.train
+        train = self._training()
+        d = train.data
         observed = d.beam_mask & ~torch.isnan(d.rsrp)
-        resid, pair_of, type_of = self._residuals_db(torch.nonzero(observed.any(1)).squeeze(1))
         levels = self.current_levels()
-        if levels is not None:
-            resid = resid - levels.cpu()[d.cell_index.cpu()[pair_of], type_of]
-        median = pd.Series(resid.double().numpy()).groupby(pair_of.numpy()).median()
-        pairs = median.index.to_numpy()
-        cells = np.asarray(self.scene.cell_ids, np.int64)[d.cell_index.cpu().numpy()[pairs]]
-        index = pd.MultiIndex.from_arrays([cells, d.grid_ids[pairs]], names=["cell_id", "grid_id"])
-        return pd.Series(median.to_numpy(), index=index, name="anchor_db")
+        beam_type = (torch.arange(d.rsrp.shape[1], device=self.device) >= train.num_ssb).long()
+        for start in range(0, pairs.numel(), PAIR_CHUNK):
+            batch = pairs[start : start + PAIR_CHUNK]
+            cells = d.cell_index[batch]
+            bins, values, pred = self._render_training(batch)
+            resid = 10.0 * torch.log10(d.rsrp[batch] / pred.clamp_min(1e-30))
+            if levels is not None:
+                resid = resid - levels[cells][:, beam_type]
+            mask = observed[batch]
+            median = np.nanmedian(torch.where(mask, resid, torch.nan).cpu().double().numpy(), axis=1)
+            anchor = torch.as_tensor(median, dtype=resid.dtype, device=resid.device)
+            if cfg.pair_anchors:
+                resid = resid - anchor[:, None]
+            chunk = _PairChunk(batch, anchor, resid, mask)
+            if with_columns:
+                top = torch.topk(values, min(POSTERIOR_BINS, values.shape[1]), dim=1).indices
+                chunk.top_bins, chunk.top_x = bins.gather(1, top), values.gather(1, top)
+                chunk.cols = self._columns(cells, chunk.top_bins)
+                chunk.rest = (pred - torch.einsum("bmk,bk->bm", chunk.cols, chunk.top_x)).clamp_min(0.0)
+            yield chunk
+
+    @torch.no_grad()
+    def _render_training(self, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The current APS of training ``pairs [B]`` in sparse form ``(fine bins [B, K], values [B, K])`` and their
+        predicted round-1 reports ``[B, M]`` (normalised); during HiTAM's warm-up through the coarse columns, which
+        give the same A x as the coarse APS spread over its blocks, on ~β² fewer columns."""
+        d, R = self._training().data, self._renderer()
+        cells, xyz = d.cell_index[pairs], d.grid_xyz[pairs]
+        a_coarse = self._training().a_coarse
+        if self.hitam is not None and a_coarse is not None and self.position < self.hitam.warmup_steps:
+            coarse = R.coarse_power(cells, xyz)
+            bins, values = R.coarse_as_fine(coarse)
+            return bins, values, torch.einsum("bmk,bk->bm", a_coarse[cells], coarse)
+        bins, values = R.output(cells, xyz, self.position)
+        return bins, values, torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
 
     def _residuals_db(self, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """10 log10(measured / predicted) of every reported training beam of the training pairs ``pairs [B]``,
@@ -589,9 +689,7 @@ class RFLSCM(LSCMModel):
         resid, pair_of, type_of = [], [], []
         for start in range(0, pairs.numel(), PAIR_CHUNK):
             batch = pairs[start : start + PAIR_CHUNK]
-            cells = d.cell_index[batch]
-            bins, values = self._renderer().output(cells, d.grid_xyz[batch], self.position)
-            pred = torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
+            _, _, pred = self._render_training(batch)
             rows, beams = observed[batch].nonzero(as_tuple=True)
             ratio = d.rsrp[batch][rows, beams] / pred[rows, beams].clamp_min(1e-30)
             resid.append(10.0 * torch.log10(ratio))
@@ -615,6 +713,7 @@ class RFLSCM(LSCMModel):
             "position": self.position,
             "levels": self.levels.detach().cpu().clone() if self.levels is not None else None,
             "anchors": _anchors_state(self.anchors),
+            "posterior": self.posterior.to_state() if self.posterior is not None else None,
             "train_state": self.train_state,
         }
 
@@ -635,6 +734,7 @@ class RFLSCM(LSCMModel):
         levels = state.get("levels")  # none in checkpoints before the level correction: no correction
         model.levels = torch.as_tensor(levels, dtype=torch.float32, device=model.device) if levels is not None else None
         model.anchors = _anchors_from_state(state.get("anchors"))  # none before the pair anchors: none applied
+        model.posterior = PairPosterior.from_state(state.get("posterior"), model.angle_grid.num_bins)
         return model
 
     def _load_stage_weights(self, weights: dict[str, torch.Tensor]) -> None:
@@ -754,3 +854,25 @@ class _TrainContext:
     """Columns ``0 … num_ssb−1`` of the stacked sensing matrix are SSB beams, the rest CSI-RS beams."""
     selection: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
     """``(bins, valid, known)`` of every training pair once α = 1 (see :meth:`RFLSCM._frozen_selection`)."""
+
+
+@dataclass
+class _PairChunk:
+    """A chunk of training pairs ``pairs [B]`` as the pair corrections see them (:meth:`RFLSCM._pair_chunks`):
+    ``anchor [B]`` [dB], ``resid [B, M]`` measured − predicted [dB] after the corrections (NaN where not reported),
+    ``mask [B, M]`` the reported training beams; with columns, the strongest bins ``top_bins [B, n]``, the APS
+    there ``top_x [B, n]``, their columns ``cols [B, M, n]`` and the other bins' ``rest [B, M]`` (normalised)."""
+
+    pairs: torch.Tensor
+    anchor: torch.Tensor
+    resid: torch.Tensor
+    mask: torch.Tensor
+    top_bins: torch.Tensor | None = None
+    top_x: torch.Tensor | None = None
+    cols: torch.Tensor | None = None
+    rest: torch.Tensor | None = None
+
+    def fit_inputs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(cols, top_x, rest)``, the posterior's view of the chunk (made ``with_columns``)."""
+        assert self.cols is not None and self.top_x is not None and self.rest is not None
+        return self.cols, self.top_x, self.rest

@@ -309,6 +309,11 @@ class TrainConfig:
     its own reported round-1 beams (:meth:`~rflscm.models.rflscm.RFLSCM.current_anchors`): the field gives the
     angular shape and what a changed antenna does, the pair's own reports its level.  Measured after training;
     pairs without round-1 reports (unseen grids) keep the field's level."""
+    pair_posterior: bool = True
+    """Refine each training pair's APS on its own reported round-1 beams: per-bin gains on the field's strongest
+    bins under a ridge prior centred on the field, the ridge chosen on held-aside reports (off when no choice
+    beats the field there; :mod:`~rflscm.models.posterior`).  Measured after training, like the anchors; pairs
+    without round-1 reports keep the field's APS."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_pairs", "pairs_per_cell", "val_every", "checkpoint_every"):

@@ -64,6 +64,7 @@ CHANGES = [
     ("train", "seed", 1),
     ("train", "calibrate_levels", False),
     ("train", "pair_anchors", False),
+    ("train", "pair_posterior", False),
 ]
 # options that bound memory or I/O only: the same results, by design
 NEUTRAL = [("render", "chunk_samples", 64), ("train", "checkpoint_every", 1)]
@@ -87,7 +88,9 @@ def run(scenario, section: str | None = None, key: str | None = None, value=None
     history: list[tuple[float, float]] = []
     summary = fit(model, scenario, progress=False, callback=lambda m: history.append((m["total"], m["val_mae_db"])))
     aps = model.aps(np.array([11, 12]), np.array([100, 101])).double().sum(1).tolist()
-    return repr((tuple(history), summary["val_mae_db"], tuple(aps)))  # repr: NaN (no validation yet) compares equal
+    # the pair posterior's choice of λ on held-aside reports (it is applied only where it beats the field)
+    posterior = None if model.posterior is None else sorted(model.posterior.scores.items())
+    return repr((tuple(history), summary["val_mae_db"], tuple(aps), posterior))  # repr: NaN compares equal
 
 
 @pytest.fixture(scope="module")
@@ -96,7 +99,7 @@ def reference(scenario) -> str:
 
 
 def test_every_option_is_listed_once() -> None:
-    assert len(CHANGES) + len(NEUTRAL) + 1 == 34  # issue 11: at most 40
+    assert len(CHANGES) + len(NEUTRAL) + 1 == 35  # issue 11: at most 40
     listed = [(s, k) for s, k, _ in CHANGES + NEUTRAL] + [("field", "init_voxel_m")]  # tested with upsample_at
     sections = typing.get_type_hints(RFLSCMConfig)
     options = [(f.name, g.name) for f in dataclasses.fields(RFLSCMConfig) for g in dataclasses.fields(sections[f.name])]

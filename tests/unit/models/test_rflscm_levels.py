@@ -47,7 +47,9 @@ def test_the_correction_centres_each_cells_round1_errors_and_survives_a_checkpoi
 
     monkeypatch.setattr(module, "LEVEL_PAIRS_PER_CELL", 10**6)  # measure on every pair: exact medians
     torch.manual_seed(0)
-    model = RFLSCM.build(tiny_config(train={"val_pairs": 0, "pair_anchors": False}), GRID)  # cell levels alone
+    model = RFLSCM.build(
+        tiny_config(train={"val_pairs": 0, "pair_anchors": False, "pair_posterior": False}), GRID
+    )  # cell levels alone
     fit(model, scenario, progress=False)
     levels = model.levels
     assert levels is not None and levels.shape == (len(scenario.cell_ids()), 2)
@@ -113,7 +115,7 @@ def test_pair_anchors_centre_each_training_pairs_errors_in_both_rounds_and_survi
     scenario, tmp_path
 ) -> None:
     torch.manual_seed(0)
-    model = RFLSCM.build(tiny_config(train={"val_pairs": 0, "steps": 4}), GRID)
+    model = RFLSCM.build(tiny_config(train={"val_pairs": 0, "steps": 4, "pair_posterior": False}), GRID)
     fit(model, scenario, progress=False)
     anchors = model.anchors
     assert anchors is not None and len(anchors) > 0 and float(anchors.abs().max()) > 0.5

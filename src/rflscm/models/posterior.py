@@ -1,0 +1,185 @@
+"""The pair posterior: each training pair's APS refined on its own round-1 reports (no parameters).
+
+A field fitted for a few minutes is a good *prior* for a pair's APS (where the power comes from, how
+a changed antenna sees it) long before it fits every pair's reports.  The reports of a training pair
+are noisy linear measurements of that pair's APS (r = A x, in dB), so the pair's posterior APS is
+one small regularised fit away: per-bin gains ``g = 10^(v/10)`` on the field's strongest bins that
+bring ``A (x ⊙ g)`` closest to the reports in dB, with a ridge ``λ ‖v‖²`` that keeps the field's
+shape where the reports say nothing (a MAP estimate under a log-normal prior centred on the field).
+WNOMP fits the same reports with sparse atoms from nothing; here the field supplies the atoms and
+their prior weights, and a changed antenna (round 2) reads the refined APS through its own A′.
+
+The fit is Gauss–Newton in the dual: per pair and iteration one ``M × M`` solve over the pair's
+``M`` beams (reports not used carry no row).  λ is chosen per fit by holding aside a share of the
+reported beams (:func:`choose_lambda`); λ = ∞ (no posterior) is always a candidate, so a posterior
+that does not predict held-aside beams better than the field is not applied.  Pairs the training
+data never reported (unseen grids, other carriers) keep the field's APS.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+import torch
+
+from rflscm.errors import CheckpointError
+
+POSTERIOR_BINS = 256
+"""Bins per pair the posterior may re-weight: the strongest of the rendered APS (HiTAM's β² K_C refined
+bins fit whole at the presets' sizes)."""
+LAMBDAS = (0.1, 0.3, 1.0, 3.0)
+"""Candidate ridge weights [1/dB² per dB² of report error]; λ = ∞ (off) is always a candidate too."""
+ITERATIONS = 6
+"""Gauss–Newton iterations per fit (the fit of a 3-minute field settles by 6: DECISIONS, "The pair posterior")."""
+HOLDOUT = 0.2
+"""Share of the reports held aside to choose λ."""
+LAMBDA_PAIRS = 512
+"""λ is chosen on this many training pairs (spread over the pairs' order, which groups them by cell)."""
+MAX_GAIN_DB = 30.0
+"""A bin's gain is kept within ±30 dB (the reports of one pair cannot justify more)."""
+_DB = 10.0 / math.log(10.0)
+
+
+def fit_gains(
+    cols: torch.Tensor, x: torch.Tensor, rest: torch.Tensor, resid_db: torch.Tensor, mask: torch.Tensor,
+    lam: float, iterations: int = ITERATIONS,
+) -> torch.Tensor:  # fmt: skip
+    """Per-bin gains [dB] ``v [B, n]`` minimising Σ_m∈mask (e_m(v))² + λ ‖v‖² per pair.
+
+    Args:
+        cols: sensing columns ``[B, M, n]`` of each pair's re-weighted bins (any linear power unit).
+        x: the field's APS at those bins ``[B, n]`` (same unit as ``cols``' products with it).
+        rest: ``A x`` over the pair's other bins ``[B, M]`` (kept as they are).
+        resid_db: measured − predicted [dB] at v = 0 ``[B, M]`` (any value where not ``mask``).
+        mask: ``[B, M]`` the reports to fit.
+        lam: ridge weight λ > 0.
+    """
+    num_beams = cols.shape[1]
+    mask_f = mask.to(cols.dtype)
+    resid = torch.where(mask, resid_db, torch.zeros((), dtype=resid_db.dtype, device=resid_db.device))
+    f0 = (torch.einsum("bmn,bn->bm", cols, x) + rest).clamp_min(1e-30)
+    eye = lam * torch.eye(num_beams, dtype=cols.dtype, device=cols.device)
+    pair_mask = mask_f[:, :, None] * mask_f[:, None, :]
+    v = torch.zeros_like(x)
+    # the Jacobian d(dB_m)/d(v_n) is S = diag(1/f) cols diag(w), never formed: S Sᵀ, S v and Sᵀ z go through cols
+    for _ in range(iterations):
+        w = x * torch.exp(v / _DB)
+        f = (torch.einsum("bmn,bn->bm", cols, w) + rest).clamp_min(1e-30)
+        e = (resid - 10.0 * torch.log10(f / f0)) * mask_f
+        scaled = cols * w[:, None, :]  # [B, M, n]
+        gram = scaled @ scaled.transpose(1, 2) / (f[:, :, None] * f[:, None, :])
+        rhs = e + torch.einsum("bmn,bn->bm", cols, w * v) / f * mask_f
+        z = torch.linalg.solve(gram * pair_mask + eye, rhs[..., None])[..., 0]
+        v = (w * torch.einsum("bmn,bm->bn", cols, z * mask_f / f)).clamp(-MAX_GAIN_DB, MAX_GAIN_DB)
+    return v
+
+
+def predicted_change_db(cols: torch.Tensor, x: torch.Tensor, rest: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """How much gains ``v [B, n]`` move each beam's prediction [dB] ``[B, M]``."""
+    f0 = (torch.einsum("bmn,bn->bm", cols, x) + rest).clamp_min(1e-30)
+    f = (torch.einsum("bmn,bn->bm", cols, x * torch.exp(v / _DB)) + rest).clamp_min(1e-30)
+    return 10.0 * torch.log10(f / f0)
+
+
+@dataclass
+class LambdaChoice:
+    """Held-aside error sums per candidate λ (``inf``: no posterior), accumulated over chunks of pairs."""
+
+    lambdas: tuple[float, ...] = LAMBDAS
+    error_sum: dict[float, float] = field(default_factory=dict)
+    count: int = 0
+
+    def add(self, cols: torch.Tensor, x: torch.Tensor, rest: torch.Tensor, resid_db: torch.Tensor,
+            mask: torch.Tensor, held: torch.Tensor) -> None:  # fmt: skip
+        """Fit every candidate on ``mask & ~held`` and score it on ``mask & held``."""
+        score = mask & held
+        n = int(score.sum())
+        if not n:
+            return
+        self.count += n
+        self.error_sum[math.inf] = self.error_sum.get(math.inf, 0.0) + float(resid_db[score].abs().sum())
+        for lam in self.lambdas:
+            v = fit_gains(cols, x, rest, resid_db, mask & ~held, lam)
+            err = resid_db - predicted_change_db(cols, x, rest, v)
+            self.error_sum[lam] = self.error_sum.get(lam, 0.0) + float(err[score].abs().sum())
+
+    def mae_db(self) -> dict[float, float]:
+        return {k: v / self.count for k, v in self.error_sum.items()} if self.count else {}
+
+    def best(self) -> float:
+        """The λ with the least held-aside MAE (∞ when nothing was held aside or nothing beats the field)."""
+        scores = self.mae_db()
+        return min(scores, key=lambda k: (scores[k], -k)) if scores else math.inf
+
+
+@dataclass
+class PairPosterior:
+    """Per-pair bin gains of the training pairs: ``bins [P, n]`` (fine bin ids) and ``gain_db [P, n]``,
+    row ``i`` belonging to pair ``index[i]`` = (cell_id, grid_id); ``lam`` is the chosen λ and ``scores`` the
+    held-aside MAE [dB] of every candidate."""
+
+    index: pd.MultiIndex
+    bins: torch.Tensor
+    gain_db: torch.Tensor
+    lam: float
+    scores: dict[float, float]
+
+    def apply(self, aps: torch.Tensor, cell_ids: np.ndarray, grid_ids: np.ndarray) -> torch.Tensor:
+        """``aps [N, K]`` of pairs (``cell_ids``, ``grid_ids`` [N]) with each training pair's gains applied."""
+        if not len(self.index) or not len(aps):
+            return aps
+        at = self.index.get_indexer(
+            pd.MultiIndex.from_arrays(
+                [np.asarray(cell_ids, np.int64).reshape(-1), np.asarray(grid_ids, np.int64).reshape(-1)]
+            )
+        )
+        rows = np.flatnonzero(at >= 0)
+        if not rows.size:
+            return aps
+        src = torch.as_tensor(at[rows], dtype=torch.long)
+        gain_db = torch.zeros(rows.size, aps.shape[1], dtype=aps.dtype, device=aps.device)
+        gain_db.scatter_add_(1, self.bins[src].to(aps.device), self.gain_db[src].to(aps.device, aps.dtype))
+        out = aps.clone()
+        dst = torch.as_tensor(rows, dtype=torch.long, device=aps.device)
+        out[dst] = aps[dst] * torch.pow(10.0, gain_db / 10.0)
+        return out
+
+    def to_state(self) -> dict[str, object]:
+        return {
+            "cell_id": torch.as_tensor(self.index.get_level_values("cell_id").to_numpy(np.int64, copy=True)),
+            "grid_id": torch.as_tensor(self.index.get_level_values("grid_id").to_numpy(np.int64, copy=True)),
+            "bins": self.bins.to(torch.int32).cpu().clone(),
+            "gain_db": self.gain_db.to(torch.float16).cpu().clone(),
+            "lam": float(self.lam),
+            "scores": {str(k): float(v) for k, v in self.scores.items()},
+        }
+
+    @classmethod
+    def from_state(cls, state: dict[str, object] | None, num_bins: int) -> PairPosterior | None:
+        """Inverse of :meth:`to_state`; refuses damaged data in one line (:class:`CheckpointError`)."""
+        if state is None:
+            return None
+        damaged = "the checkpoint's pair posterior is damaged"
+        keys = ("cell_id", "grid_id", "bins", "gain_db", "lam")
+        if not isinstance(state, dict) or any(k not in state for k in keys):
+            raise CheckpointError(f"{damaged} (expected {', '.join(keys)}); retrain the model.")
+        try:
+            cells = torch.as_tensor(state["cell_id"]).long().reshape(-1)
+            grids = torch.as_tensor(state["grid_id"]).long().reshape(-1)
+            bins = torch.as_tensor(state["bins"]).long()
+            gain = torch.as_tensor(state["gain_db"]).float()
+            lam = float(state["lam"])  # type: ignore[arg-type]
+        except (TypeError, ValueError, RuntimeError):
+            raise CheckpointError(f"{damaged} (not numeric); retrain the model.") from None
+        if bins.dim() != 2 or bins.shape != gain.shape or not len(cells) == len(grids) == bins.shape[0]:
+            raise CheckpointError(f"{damaged} (columns of different shapes); retrain the model.")
+        if not bool(torch.isfinite(gain).all()) or (
+            bins.numel() and (int(bins.min()) < 0 or int(bins.max()) >= num_bins)
+        ):
+            raise CheckpointError(f"{damaged} (non-finite gains or bins off the angle grid); retrain the model.")
+        index = pd.MultiIndex.from_arrays([cells.numpy(), grids.numpy()], names=["cell_id", "grid_id"])
+        scores = {float(k): float(v) for k, v in dict(state.get("scores") or {}).items()}  # type: ignore[call-overload]
+        return cls(index, bins, gain, lam, scores)

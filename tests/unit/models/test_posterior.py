@@ -1,0 +1,151 @@
+"""The pair posterior: per-bin gains that fit a pair's reports under a ridge prior (rflscm.models.posterior),
+and RF-LSCM's use of it (``train.pair_posterior``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from tiny_rflscm import tiny_config
+
+from rflscm.data import load_scenario
+from rflscm.data.examples import tiny_scenario
+from rflscm.errors import CheckpointError
+from rflscm.geometry import AngleGrid
+from rflscm.models import load_model
+from rflscm.models.posterior import LambdaChoice, PairPosterior, fit_gains, predicted_change_db
+from rflscm.models.rflscm import RFLSCM
+from rflscm.train import fit
+
+GRID = AngleGrid.full_sphere(10, 12)
+
+
+def problem(seed: int = 0, pairs: int = 6, beams: int = 12, bins: int = 20):
+    """Random positive columns and APS, and reports made by true gains ``v_true`` (dB) on the APS."""
+    g = torch.Generator().manual_seed(seed)
+    cols = torch.rand(pairs, beams, bins, generator=g) ** 4
+    x = torch.rand(pairs, bins, generator=g) + 0.1
+    rest = 0.05 * torch.rand(pairs, beams, generator=g)
+    v_true = 6.0 * torch.randn(pairs, bins, generator=g)
+    resid = predicted_change_db(cols, x, rest, v_true)  # the reports' error against the field at v = 0
+    return cols, x, rest, v_true, resid
+
+
+def test_a_weak_ridge_fits_the_reports_and_a_strong_one_keeps_the_field() -> None:
+    cols, x, rest, _, resid = problem()
+    mask = torch.ones_like(resid, dtype=torch.bool)
+    before = float(resid.abs().mean())
+    weak = fit_gains(cols, x, rest, resid, mask, lam=1e-3, iterations=20)
+    after = float((resid - predicted_change_db(cols, x, rest, weak)).abs().mean())
+    assert before > 2.0 and after < 0.1 * before
+    strong = fit_gains(cols, x, rest, resid, mask, lam=1e6)
+    assert float(strong.abs().max()) < 1e-2
+
+
+def test_reports_outside_the_mask_carry_no_information() -> None:
+    cols, x, rest, _, resid = problem(seed=1)
+    mask = torch.rand(resid.shape, generator=torch.Generator().manual_seed(2)) < 0.6
+    v = fit_gains(cols, x, rest, resid, mask, lam=0.3)
+    scrambled = torch.where(mask, resid, torch.full_like(resid, 1e3))
+    torch.testing.assert_close(fit_gains(cols, x, rest, scrambled, mask, lam=0.3), v)
+    none = fit_gains(cols, x, rest, resid, torch.zeros_like(mask), lam=0.3)
+    assert float(none.abs().max()) == 0.0
+
+
+def test_lambda_choice_prefers_a_fit_that_predicts_held_aside_reports_and_else_none() -> None:
+    cols, x, rest, _, resid = problem(seed=3, pairs=40)
+    mask = torch.ones_like(resid, dtype=torch.bool)
+    held = torch.rand(resid.shape, generator=torch.Generator().manual_seed(4)) < 0.2
+    choice = LambdaChoice()
+    choice.add(cols, x, rest, resid, mask, held)
+    scores = choice.mae_db()
+    assert set(scores) == {math.inf, *choice.lambdas}
+    assert math.isfinite(choice.best()) and scores[choice.best()] < scores[math.inf]
+    # every beam sees its own bins only: fitted beams say nothing about held-aside ones, so no posterior
+    beams = resid.shape[1]
+    diagonal = torch.eye(beams).expand(40, beams, beams).contiguous()
+    noise = torch.randn(40, beams, generator=torch.Generator().manual_seed(5))
+    alone = LambdaChoice()
+    alone.add(diagonal, torch.ones(40, beams), torch.zeros(40, beams), noise, mask, held)
+    assert alone.best() == math.inf
+    assert LambdaChoice().best() == math.inf  # nothing held aside: nothing chosen
+
+
+def test_apply_moves_only_the_training_pairs_bins_and_survives_its_state() -> None:
+    index = pd.MultiIndex.from_arrays([np.array([1, 1]), np.array([7, 8])], names=["cell_id", "grid_id"])
+    bins = torch.tensor([[0, 3, 3], [5, 6, 2]])  # a repeated bin with a 0 dB gain (an empty slot) adds nothing
+    gain = torch.tensor([[10.0, -10.0, 0.0], [3.0, 0.0, 0.0]])
+    post = PairPosterior(index, bins, gain, 0.3, {0.3: 1.0, math.inf: 2.0})
+    aps = torch.ones(3, 8)
+    out = post.apply(aps, np.array([1, 2, 1]), np.array([8, 7, 7]))
+    torch.testing.assert_close(out[1], aps[1])  # (2, 7) is no training pair
+    assert float(out[2, 0]) == pytest.approx(10.0) and float(out[2, 3]) == pytest.approx(0.1)
+    assert float(out[0, 5]) == pytest.approx(10**0.3, rel=1e-5) and float(out[0].sum()) == pytest.approx(7 + 10**0.3)
+    again = PairPosterior.from_state(post.to_state(), num_bins=8)
+    assert again is not None and again.lam == 0.3 and again.scores == post.scores
+    torch.testing.assert_close(again.apply(aps, np.array([1, 2, 1]), np.array([8, 7, 7])), out, rtol=1e-3, atol=1e-3)
+    assert PairPosterior.from_state(None, 8) is None
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        lambda s: s.pop("gain_db"),
+        lambda s: s.update(bins=torch.tensor([[0, 1]])),
+        lambda s: s.update(gain_db=torch.full((2, 3), float("nan"))),
+        lambda s: s.update(bins=torch.tensor([[0, 1, 99], [0, 1, 2]])),
+        lambda s: s.update(lam="many"),
+    ],
+)
+def test_damaged_posterior_state_is_refused_in_one_line(damage) -> None:
+    index = pd.MultiIndex.from_arrays([np.array([1, 1]), np.array([7, 8])], names=["cell_id", "grid_id"])
+    state = PairPosterior(index, torch.zeros(2, 3, dtype=torch.long), torch.zeros(2, 3), 1.0, {}).to_state()
+    damage(state)
+    with pytest.raises(CheckpointError, match="pair posterior is damaged"):
+        PairPosterior.from_state(state, num_bins=8)
+
+
+@pytest.fixture(scope="module")
+def scenario(tmp_path_factory):
+    return load_scenario(tiny_scenario(tmp_path_factory.mktemp("posterior"), seed=0))
+
+
+def round1_mae(model: RFLSCM, scenario) -> float:
+    errs = []
+    for beam_type in ("ssb", "csi"):
+        pairs, measured = scenario.rsrp_table(1, beam_type)
+        pred = model.predict_rsrp(scenario, 1, beam_type, pairs.reset_index(drop=True))[:, : measured.shape[1]]
+        diff = measured - pred
+        errs.append(np.abs(diff[np.isfinite(diff)]))
+    return float(np.concatenate(errs).mean())
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_the_posterior_fits_training_reports_leaves_training_alone_and_survives_a_checkpoint(
+    scenario, tmp_path
+) -> None:
+    runs = {}
+    for on in (True, False):
+        torch.manual_seed(0)
+        model = RFLSCM.build(tiny_config(train={"steps": 4, "pair_posterior": on}), GRID)
+        runs[on] = (model, fit(model, scenario, progress=False))
+    model, summary = runs[True]
+    post = model.posterior
+    assert runs[False][0].posterior is None and runs[False][0].current_posterior() is None
+    assert post is not None and math.isfinite(post.lam) and len(post.index) == len(model.anchors)
+    assert post.scores[post.lam] < post.scores[math.inf]
+    # training and the field's held-aside validation score do not change; the training reports fit better
+    assert (
+        summary["final_loss"] == runs[False][1]["final_loss"] and summary["val_mae_db"] == runs[False][1]["val_mae_db"]
+    )
+    assert round1_mae(model, scenario) < round1_mae(runs[False][0], scenario) - 0.3
+    # round 2 reads the refined APS; a checkpoint carries the posterior
+    pairs = pd.DataFrame({"cell_id": post.index.get_level_values(0)[:6], "grid_id": post.index.get_level_values(1)[:6]})
+    moved = model.predict_rsrp(scenario, 2, "ssb", pairs)
+    assert np.nanmax(np.abs(moved - runs[False][0].predict_rsrp(scenario, 2, "ssb", pairs))) > 0.1
+    model.save(tmp_path / "p.ckpt")
+    loaded = load_model(tmp_path / "p.ckpt")
+    np.testing.assert_allclose(loaded.predict_rsrp(scenario, 2, "ssb", pairs), moved, atol=0.02)
