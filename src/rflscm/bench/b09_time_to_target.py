@@ -352,7 +352,7 @@ def plot(ctx: BenchContext, regime: str, entry: dict[str, Any], labels: dict[str
     fig, axes = new_figure(ncols=2)
     for ax, bt in zip(axes, BEAM_TYPES, strict=True):
         for who, color in (("old", "tab:grey"), ("new", "tab:blue")):
-            rows = entry[who]["rows"]
+            rows = sorted(entry[who]["rows"], key=lambda r: r["train_s"])  # a row carries its own finish time
             t = [max(r["train_s"], 1e-3) for r in rows]
             for cells, style in (("changed", "-"), ("all", ":")):
                 y = [_mae(r, bt, cells) for r in rows]

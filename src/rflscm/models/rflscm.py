@@ -27,9 +27,11 @@ Decisions where the paper is silent (the constants and options of :mod:`~rflscm.
 * HiTAM: coarse rays through block centres with block-mean columns; the refinement model starts
   as a copy of the coarse one, rescaled to the coarse model's level;
 * loss in bels by default (paper: linear), L1 relative to each pair's power scale;
-* after training, predictions carry a level correction per cell and beam type and a level anchor per
-  training pair (the median error left on the pair's own round-1 reports); the paper predicts from the
-  field alone (docs/DECISIONS.md, "Learning faster").
+* after training, predictions carry a level correction per cell and beam type, a level anchor per
+  training pair (the median error left on the pair's own round-1 reports) and a posterior per training
+  pair (per-bin gains fitted to those reports under a ridge prior centred on the field,
+  :mod:`~rflscm.models.posterior`); the paper predicts from the field alone (docs/DECISIONS.md,
+  "Learning faster").
 """
 
 from __future__ import annotations
