@@ -543,17 +543,17 @@ class RFLSCM(LSCMModel):
         self._refresh_pair_corrections()
         return self.posterior
 
-    def _refresh_pair_corrections(self) -> None:
+    def _refresh_pair_corrections(self, progress: bool = False) -> None:
         if self._train is not None and self._pairs_step != self.step:
-            self.anchors, self.posterior = self._fit_pair_corrections()
+            self.anchors, self.posterior = self._fit_pair_corrections(progress)
             self._pairs_step = self.step
 
-    def finish_training(self) -> None:
+    def finish_training(self, progress: bool = False) -> None:
         """After the last step: measure the level correction, the pair anchors and the pair posterior that
-        predictions and the checkpoint carry."""
+        predictions and the checkpoint carry (one pass over the training pairs; ``progress``: a bar)."""
         self.current_levels()
-        self.current_anchors()
-        self.current_posterior()
+        if self.config.train.pair_anchors or self.config.train.pair_posterior:
+            self._refresh_pair_corrections(progress)
 
     @torch.no_grad()
     def _fit_levels(self) -> torch.Tensor:
@@ -590,7 +590,7 @@ class RFLSCM(LSCMModel):
         return levels.to(self.device)
 
     @torch.no_grad()
-    def _fit_pair_corrections(self) -> tuple[pd.Series | None, PairPosterior | None]:
+    def _fit_pair_corrections(self, progress: bool = False) -> tuple[pd.Series | None, PairPosterior | None]:
         """One pass over the training pairs with reports: their level anchors and their posterior.
 
         *Anchor* (``train.pair_anchors``): the median (measured − predicted) [dB] over the pair's reported round-1
@@ -619,12 +619,17 @@ class RFLSCM(LSCMModel):
                 held_here = held[chunk.pairs.cpu()].to(self.device)
                 choice.add(*chunk.fit_inputs(), chunk.resid, chunk.mask, held_here)
             lam, scores = choice.best(), choice.mae_db()
+        from tqdm.auto import tqdm
+
         anchors, gains, bins_of = [], [], []
+        bar = tqdm(total=pairs.numel(), desc="pair corrections", unit="pair", disable=not progress, leave=False)
         for chunk in self._pair_chunks(pairs, with_columns=cfg.pair_posterior and math.isfinite(lam)):
+            bar.update(chunk.pairs.numel())
             anchors.append(chunk.anchor)
             if chunk.top_bins is not None:
                 gains.append(fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, lam).cpu())
                 bins_of.append(chunk.top_bins.cpu())
+        bar.close()
         cell_ids = np.asarray(self.scene.cell_ids, np.int64)[d.cell_index.cpu().numpy()[pairs.cpu().numpy()]]
         index = pd.MultiIndex.from_arrays([cell_ids, d.grid_ids[pairs.cpu().numpy()]], names=["cell_id", "grid_id"])
         median = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)

@@ -52,7 +52,7 @@ class Trainable(Protocol):
     * :meth:`resume_from` — load weights and step from a checkpoint payload (refusing a foreign one)
       and return the trainer state saved with it;
     * :meth:`finish_training` — once after the last step (before the final checkpoint): work that only the
-      trained weights need (RF-LSCM's level correction);
+      trained weights need (RF-LSCM's level correction and pair corrections; ``progress``: show a bar);
     * ``step`` (steps done), ``train_state`` (the trainer state :meth:`save` writes along),
       ``train_config`` and :meth:`decoder_evals` (a work counter for throughput).
     """
@@ -79,7 +79,7 @@ class Trainable(Protocol):
 
     def save(self, path: str | Path) -> Path: ...
 
-    def finish_training(self) -> None: ...
+    def finish_training(self, progress: bool = False) -> None: ...
 
 
 def fit(
@@ -126,7 +126,7 @@ def fit(
         started=started if budget_s is not None else None,
     )
     summary["decoder_evals_per_s"] = (model.decoder_evals() - evals0) / max(clock() - time0, 1e-9)
-    model.finish_training()
+    model.finish_training(progress=progress)
     if checkpoint_path is not None:
         trainer.save(checkpoint_path)
     model.run_info["train"] = {k: float(v) for k, v in summary.items()}

@@ -149,3 +149,15 @@ def test_the_posterior_fits_training_reports_leaves_training_alone_and_survives_
     model.save(tmp_path / "p.ckpt")
     loaded = load_model(tmp_path / "p.ckpt")
     np.testing.assert_allclose(loaded.predict_rsrp(scenario, 2, "ssb", pairs), moved, atol=0.02)
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_the_pass_after_training_shows_a_progress_bar_only_when_asked(scenario, capsys) -> None:
+    torch.manual_seed(0)
+    model = RFLSCM.build(tiny_config(train={"steps": 2}), GRID)
+    fit(model, scenario, progress=False)
+    assert "pair corrections" not in capsys.readouterr().err
+    before = model.posterior
+    model.step += 1  # the weights "moved": the next finish measures again
+    model.finish_training(progress=True)
+    assert "pair corrections" in capsys.readouterr().err and model.posterior is not before
