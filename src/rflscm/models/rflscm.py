@@ -644,14 +644,17 @@ class RFLSCM(LSCMModel):
         gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
         return anchor_series, PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores)
 
-    def _pair_chunks(self, pairs: torch.Tensor, with_columns: bool = True) -> typing.Iterator[_PairChunk]:
+    def _pair_chunks(
+        self, pairs: torch.Tensor, with_columns: bool = True, corrected: bool = True
+    ) -> typing.Iterator[_PairChunk]:
         """Training ``pairs`` rendered ``PAIR_CHUNK`` at a time: each pair's anchor and, after level correction and
-        anchor, its residuals, its strongest bins with their columns (when ``with_columns``)."""
+        anchor (unless not ``corrected``: the raw residuals the level correction itself is measured on), its
+        residuals, its strongest bins with their columns (when ``with_columns``)."""
         cfg = self.config.train
         train = self._training()
         d = train.data
         observed = d.beam_mask & ~torch.isnan(d.rsrp)
-        levels = self.current_levels()
+        levels = self.current_levels() if corrected else None
         beam_type = (torch.arange(d.rsrp.shape[1], device=self.device) >= train.num_ssb).long()
         for start in range(0, pairs.numel(), PAIR_CHUNK):
             batch = pairs[start : start + PAIR_CHUNK]
@@ -663,7 +666,7 @@ class RFLSCM(LSCMModel):
             mask = observed[batch]
             median = np.nanmedian(torch.where(mask, resid, torch.nan).cpu().double().numpy(), axis=1)
             anchor = torch.as_tensor(median, dtype=resid.dtype, device=resid.device)
-            if cfg.pair_anchors:
+            if cfg.pair_anchors and corrected:
                 resid = resid - anchor[:, None]
             chunk = _PairChunk(batch, anchor, resid, mask)
             if with_columns:
@@ -691,17 +694,13 @@ class RFLSCM(LSCMModel):
     def _residuals_db(self, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """10 log10(measured / predicted) of every reported training beam of the training pairs ``pairs [B]``,
         without any correction: ``(residual [N], training pair [N], beam type [N] (0 SSB, 1 CSI-RS))`` on the CPU."""
-        d, train = self._training().data, self._training()
-        observed = d.beam_mask & ~torch.isnan(d.rsrp)
+        num_ssb = self._training().num_ssb
         resid, pair_of, type_of = [], [], []
-        for start in range(0, pairs.numel(), PAIR_CHUNK):
-            batch = pairs[start : start + PAIR_CHUNK]
-            _, _, pred = self._render_training(batch)
-            rows, beams = observed[batch].nonzero(as_tuple=True)
-            ratio = d.rsrp[batch][rows, beams] / pred[rows, beams].clamp_min(1e-30)
-            resid.append(10.0 * torch.log10(ratio))
-            pair_of.append(batch[rows])
-            type_of.append((beams >= train.num_ssb).long())
+        for chunk in self._pair_chunks(pairs, with_columns=False, corrected=False):
+            rows, beams = chunk.mask.nonzero(as_tuple=True)
+            resid.append(chunk.resid[rows, beams])
+            pair_of.append(chunk.pairs[rows])
+            type_of.append((beams >= num_ssb).long())
         if not resid:
             empty = torch.zeros(0, dtype=torch.long)
             return torch.zeros(0), empty, empty
