@@ -550,34 +550,51 @@ class RFLSCM(LSCMModel):
 
     def finish_training(self, progress: bool = False) -> None:
         """After the last step: measure the level correction, the pair anchors and the pair posterior that
-        predictions and the checkpoint carry (one pass over the training pairs; ``progress``: a bar)."""
-        self.current_levels()
+        predictions and the checkpoint carry (one render of every training pair; ``progress``: a bar)."""
         if self.config.train.pair_anchors or self.config.train.pair_posterior:
-            self._refresh_pair_corrections(progress)
+            self._refresh_pair_corrections(progress)  # measures the level correction on the same render
+        self.current_levels()
+
+    def _level_picks(self) -> torch.Tensor:
+        """The training pairs the level correction is measured on: up to ``LEVEL_PAIRS_PER_CELL`` evenly spaced
+        pairs with reports per cell (sorted)."""
+        d = self._training().data
+        assert self.scene is not None
+        reported = (d.beam_mask & ~torch.isnan(d.rsrp)).any(1)
+        picks = []
+        for c in range(len(self.scene.cell_ids)):
+            p = torch.nonzero(reported & (d.cell_index == c)).squeeze(1)
+            if p.numel():
+                picks.append(p[torch.linspace(0, p.numel() - 1, min(p.numel(), LEVEL_PAIRS_PER_CELL)).round().long()])
+        return torch.cat(picks).unique() if picks else torch.zeros(0, dtype=torch.long, device=self.device)
 
     @torch.no_grad()
-    def _fit_levels(self) -> torch.Tensor:
-        """Median (measured − predicted) [dB] over the reported round-1 training beams of up to
-        ``LEVEL_PAIRS_PER_CELL`` pairs of each cell, per cell and beam type (the median over every cell where
-        a cell has fewer than ``LEVEL_MIN_BEAMS`` such beams; 0 where a type has none).
+    def _fit_levels(self, rendered: _Rendered | None = None) -> torch.Tensor:
+        """Median (measured − predicted) [dB] over the reported round-1 training beams of the
+        :meth:`_level_picks`, per cell and beam type (the median over every cell where a cell has fewer than
+        ``LEVEL_MIN_BEAMS`` such beams; 0 where a type has none); from ``rendered`` when it holds them.
 
         The training loss weighs each report's reported beams against the bounds of its unreported ones
         (the missing-beam penalty); under top-N or SINR reporting a model that cannot yet resolve the beams
         keeps every beam low to respect the bounds, so its reported beams come out too weak (a CSI-RS bias
         of −3 to −5 dB after a few hundred steps on the shipped scenario).  This correction, measured on the
         reported beams alone, removes that level error from the predictions without touching the field."""
-        d = self._training().data
+        train = self._training()
+        d = train.data
         assert self.scene is not None
         num_cells = len(self.scene.cell_ids)
-        observed = d.beam_mask & ~torch.isnan(d.rsrp)
-        pairs_of_cell = [torch.nonzero(observed.any(1) & (d.cell_index == c)).squeeze(1) for c in range(num_cells)]
-        picks = [p[torch.linspace(0, p.numel() - 1, min(p.numel(), LEVEL_PAIRS_PER_CELL)).round().long()]
-                 for p in pairs_of_cell if p.numel()]  # fmt: skip
         levels = torch.zeros(num_cells, 2)
-        if not picks:
+        picks = self._level_picks()
+        if not picks.numel():
             return levels.to(self.device)
-        resid, pair_of, type_of = self._residuals_db(torch.cat(picks))
-        r, c, t = resid.double().numpy(), d.cell_index.cpu()[pair_of].numpy(), type_of.numpy()
+        if rendered is None:
+            rendered = self._render_pairs(picks, top=False)
+        pred = rendered.pred[rendered.rows_of(picks)]
+        resid = 10.0 * torch.log10(d.rsrp[picks] / pred.clamp_min(1e-30))
+        rows, beams = (d.beam_mask[picks] & ~torch.isnan(d.rsrp[picks])).nonzero(as_tuple=True)
+        r = resid[rows, beams].cpu().double().numpy()
+        c = d.cell_index[picks][rows].cpu().numpy()
+        t = (beams >= train.num_ssb).cpu().numpy()
         for beam_type in (0, 1):
             of_type = t == beam_type
             if not bool(of_type.any()):
@@ -591,7 +608,8 @@ class RFLSCM(LSCMModel):
 
     @torch.no_grad()
     def _fit_pair_corrections(self, progress: bool = False) -> tuple[pd.Series | None, PairPosterior | None]:
-        """One pass over the training pairs with reports: their level anchors and their posterior.
+        """One render of every training pair with reports, then their level anchors and their posterior (and,
+        when stale, the level correction, from the same render).
 
         *Anchor* (``train.pair_anchors``): the median (measured − predicted) [dB] over the pair's reported round-1
         training beams (SSB and CSI-RS pooled, after the level correction).  An under-trained field gets the
@@ -605,30 +623,37 @@ class RFLSCM(LSCMModel):
 
         Validation beams are used by neither, so :meth:`validation_mae` stays an honest held-aside score of the
         field alone."""
+        from tqdm.auto import tqdm
+
         cfg = self.config.train
         d = self._training().data
         assert self.scene is not None
         pairs = torch.nonzero((d.beam_mask & ~torch.isnan(d.rsrp)).any(1)).squeeze(1)
+        bar = tqdm(
+            total=pairs.numel() * (2 if cfg.pair_posterior else 1), desc="pair corrections", unit="pair",
+            disable=not progress, leave=False,
+        )  # fmt: skip
+        rendered = self._render_pairs(pairs, top=cfg.pair_posterior, bar=bar)
+        if cfg.calibrate_levels and self._levels_step != self.step:
+            self.levels, self._levels_step = self._fit_levels(rendered), self.step
         lam, scores = math.inf, {}
         if cfg.pair_posterior and pairs.numel():
             # λ from held-aside reports of a spread subset of the pairs, then one fit per pair
             held = torch.rand(d.rsrp.shape, generator=torch.Generator().manual_seed(cfg.seed)) < HOLDOUT
             subset = pairs[torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), LAMBDA_PAIRS)).round().long()]
             choice = LambdaChoice()
-            for chunk in self._pair_chunks(subset.unique()):
+            for chunk in self._pair_chunks(rendered, rendered.rows_of(subset.unique())):
                 held_here = held[chunk.pairs.cpu()].to(self.device)
                 choice.add(*chunk.fit_inputs(), chunk.resid, chunk.mask, held_here)
             lam, scores = choice.best(), choice.mae_db()
-        from tqdm.auto import tqdm
-
         anchors, gains, bins_of = [], [], []
-        bar = tqdm(total=pairs.numel(), desc="pair corrections", unit="pair", disable=not progress, leave=False)
-        for chunk in self._pair_chunks(pairs, with_columns=cfg.pair_posterior and math.isfinite(lam)):
-            bar.update(chunk.pairs.numel())
+        fitting = cfg.pair_posterior and math.isfinite(lam)
+        for chunk in self._pair_chunks(rendered, torch.arange(pairs.numel(), device=self.device), fitting):
             anchors.append(chunk.anchor)
             if chunk.top_bins is not None:
                 gains.append(fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, lam).cpu())
                 bins_of.append(chunk.top_bins.cpu())
+            bar.update(chunk.pairs.numel() if cfg.pair_posterior else 0)
         bar.close()
         cell_ids = np.asarray(self.scene.cell_ids, np.int64)[d.cell_index.cpu().numpy()[pairs.cpu().numpy()]]
         index = pd.MultiIndex.from_arrays([cell_ids, d.grid_ids[pairs.cpu().numpy()]], names=["cell_id", "grid_id"])
@@ -644,34 +669,52 @@ class RFLSCM(LSCMModel):
         gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
         return anchor_series, PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores)
 
+    @torch.no_grad()
+    def _render_pairs(self, pairs: torch.Tensor, top: bool, bar: Any = None) -> _Rendered:
+        """Render training ``pairs [P]`` (sorted) ``PAIR_CHUNK`` at a time: their predicted round-1 reports and,
+        with ``top``, their ``POSTERIOR_BINS`` strongest bins and the APS there (``bar``: a progress bar)."""
+        preds, tops, xs = [], [], []
+        for start in range(0, pairs.numel(), PAIR_CHUNK):
+            bins, values, pred = self._render_training(pairs[start : start + PAIR_CHUNK])
+            preds.append(pred)
+            if top:
+                best = torch.topk(values, min(POSTERIOR_BINS, values.shape[1]), dim=1).indices
+                tops.append(bins.gather(1, best))
+                xs.append(values.gather(1, best))
+            if bar is not None:
+                bar.update(min(PAIR_CHUNK, pairs.numel() - start))
+        num_beams = self._training().data.rsrp.shape[1]
+        pred = torch.cat(preds) if preds else torch.zeros(0, num_beams, device=self.device)
+        return _Rendered(pairs, pred, torch.cat(tops) if tops else None, torch.cat(xs) if xs else None)
+
     def _pair_chunks(
-        self, pairs: torch.Tensor, with_columns: bool = True, corrected: bool = True
+        self, rendered: _Rendered, rows: torch.Tensor, with_columns: bool = True
     ) -> typing.Iterator[_PairChunk]:
-        """Training ``pairs`` rendered ``PAIR_CHUNK`` at a time: each pair's anchor and, after level correction and
-        anchor (unless not ``corrected``: the raw residuals the level correction itself is measured on), its
-        residuals, its strongest bins with their columns (when ``with_columns``)."""
+        """Rows ``rows`` of ``rendered``, ``PAIR_CHUNK`` at a time, as the pair corrections see them: each pair's
+        anchor and, after level correction and anchor, its residuals and (``with_columns``) its strongest bins
+        with their columns."""
         cfg = self.config.train
         train = self._training()
         d = train.data
         observed = d.beam_mask & ~torch.isnan(d.rsrp)
-        levels = self.current_levels() if corrected else None
+        levels = self.current_levels()
         beam_type = (torch.arange(d.rsrp.shape[1], device=self.device) >= train.num_ssb).long()
-        for start in range(0, pairs.numel(), PAIR_CHUNK):
-            batch = pairs[start : start + PAIR_CHUNK]
-            cells = d.cell_index[batch]
-            bins, values, pred = self._render_training(batch)
+        for start in range(0, rows.numel(), PAIR_CHUNK):
+            at = rows[start : start + PAIR_CHUNK]
+            batch = rendered.pairs[at]
+            cells, pred = d.cell_index[batch], rendered.pred[at]
             resid = 10.0 * torch.log10(d.rsrp[batch] / pred.clamp_min(1e-30))
             if levels is not None:
                 resid = resid - levels[cells][:, beam_type]
             mask = observed[batch]
             median = np.nanmedian(torch.where(mask, resid, torch.nan).cpu().double().numpy(), axis=1)
             anchor = torch.as_tensor(median, dtype=resid.dtype, device=resid.device)
-            if cfg.pair_anchors and corrected:
+            if cfg.pair_anchors:
                 resid = resid - anchor[:, None]
             chunk = _PairChunk(batch, anchor, resid, mask)
             if with_columns:
-                top = torch.topk(values, min(POSTERIOR_BINS, values.shape[1]), dim=1).indices
-                chunk.top_bins, chunk.top_x = bins.gather(1, top), values.gather(1, top)
+                assert rendered.top_bins is not None and rendered.top_x is not None
+                chunk.top_bins, chunk.top_x = rendered.top_bins[at], rendered.top_x[at]
                 chunk.cols = self._columns(cells, chunk.top_bins)
                 chunk.rest = (pred - torch.einsum("bmk,bk->bm", chunk.cols, chunk.top_x)).clamp_min(0.0)
             yield chunk
@@ -690,21 +733,6 @@ class RFLSCM(LSCMModel):
             return bins, values, torch.einsum("bmk,bk->bm", a_coarse[cells], coarse)
         bins, values = R.output(cells, xyz, self.position)
         return bins, values, torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
-
-    def _residuals_db(self, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """10 log10(measured / predicted) of every reported training beam of the training pairs ``pairs [B]``,
-        without any correction: ``(residual [N], training pair [N], beam type [N] (0 SSB, 1 CSI-RS))`` on the CPU."""
-        num_ssb = self._training().num_ssb
-        resid, pair_of, type_of = [], [], []
-        for chunk in self._pair_chunks(pairs, with_columns=False, corrected=False):
-            rows, beams = chunk.mask.nonzero(as_tuple=True)
-            resid.append(chunk.resid[rows, beams])
-            pair_of.append(chunk.pairs[rows])
-            type_of.append((beams >= num_ssb).long())
-        if not resid:
-            empty = torch.zeros(0, dtype=torch.long)
-            return torch.zeros(0), empty, empty
-        return tuple(torch.cat(x).cpu() for x in (resid, pair_of, type_of))  # type: ignore[return-value]
 
     # --- persistence --------------------------------------------------------------------------
     def state_dict_for_checkpoint(self) -> dict[str, Any]:
@@ -860,6 +888,25 @@ class _TrainContext:
     """Columns ``0 … num_ssb−1`` of the stacked sensing matrix are SSB beams, the rest CSI-RS beams."""
     selection: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
     """``(bins, valid, known)`` of every training pair once α = 1 (see :meth:`RFLSCM._frozen_selection`)."""
+
+
+@dataclass
+class _Rendered:
+    """Training pairs ``pairs [P]`` (sorted) rendered once with the current weights (:meth:`RFLSCM._render_pairs`):
+    their predicted round-1 reports ``pred [P, M]`` (normalised, uncorrected) and optionally their strongest
+    bins ``top_bins [P, n]`` with the APS there ``top_x [P, n]``."""
+
+    pairs: torch.Tensor
+    pred: torch.Tensor
+    top_bins: torch.Tensor | None = None
+    top_x: torch.Tensor | None = None
+
+    def rows_of(self, pairs: torch.Tensor) -> torch.Tensor:
+        """Rows of ``pairs`` (each one of :attr:`pairs`)."""
+        rows = torch.searchsorted(self.pairs, pairs)
+        if not bool((self.pairs[rows.clamp_max(max(self.pairs.numel() - 1, 0))] == pairs).all()):
+            raise ValueError("pairs that were not rendered")
+        return rows
 
 
 @dataclass

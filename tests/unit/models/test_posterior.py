@@ -161,3 +161,24 @@ def test_the_pass_after_training_shows_a_progress_bar_only_when_asked(scenario, 
     model.step += 1  # the weights "moved": the next finish measures again
     model.finish_training(progress=True)
     assert "pair corrections" in capsys.readouterr().err and model.posterior is not before
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_the_pass_after_training_renders_each_training_pair_once_and_measures_the_levels_on_it(
+    scenario, monkeypatch
+) -> None:
+    torch.manual_seed(0)
+    model = RFLSCM.build(tiny_config(train={"steps": 3}), GRID)
+    fit(model, scenario, progress=False)
+    levels, anchors = model.levels.clone(), model.anchors.copy()
+    rendered: list[torch.Tensor] = []
+    render = model._render_training
+    monkeypatch.setattr(model, "_render_training", lambda pairs: (rendered.append(pairs.clone()), render(pairs))[1])
+    model.step += 1  # the weights "moved": measure everything again
+    model.finish_training()
+    seen = torch.cat(rendered)
+    assert seen.numel() == len(model.anchors) == seen.unique().numel()  # every pair with reports, once
+    # the same corrections as a level correction measured on its own pairs
+    torch.testing.assert_close(model.levels, levels)
+    pd.testing.assert_series_equal(model.anchors, anchors)
+    torch.testing.assert_close(model._fit_levels(), levels)
