@@ -7,7 +7,7 @@
 * :mod:`~rflscm.fields.mlp`, :mod:`~rflscm.fields.encoding` — the radiance decoder's parts.
 """
 
-from rflscm.fields.encoding import encoded_dim, positional_encoding
+from rflscm.fields.encoding import encoded_dim, positional_encoding, positional_encoding_t
 from rflscm.fields.fdam import PassiveMedium, fdam_attenuation
 from rflscm.fields.mlp import MLP
 from rflscm.fields.point_prior import PointPrior, density_grid, modulate, phi_of_density
@@ -24,5 +24,6 @@ __all__ = [
     "modulate",
     "phi_of_density",
     "positional_encoding",
+    "positional_encoding_t",
     "resolution_for",
 ]

@@ -44,5 +44,5 @@ class MLP(nn.Module):
         for i, layer in enumerate(self.hidden):
             if self.skip_at is not None and i == self.skip_at:
                 h = torch.cat((h, x), dim=-1)
-            h = torch.relu(layer(h))
+            h = layer(h).relu_()  # in place: the linear layer's backward does not need its output
         return self.out(h)

@@ -28,6 +28,7 @@ from rflscm.fields import (
     fdam_attenuation,
     modulate,
     positional_encoding,
+    positional_encoding_t,
     resolution_for,
 )
 from rflscm.fields.surfaces import specularity
@@ -230,19 +231,29 @@ class RadianceDecoder(nn.Module):
                      direction: torch.Tensor, surface: torch.Tensor | None) -> torch.Tensor:  # fmt: skip
         """Per (query, sample) inputs ``[J, ·]``: PE of the unit vector to the grid, of the half-vector
         (∥ the surface normal of a specular reflection), of the scaled log-distances and sⁿ of the
-        specularity s = hᵀ T h given the structure tensors ``surface [J, 6]`` (0 without them)."""
+        specularity s = hᵀ T h given the structure tensors ``surface [J, 6]`` (0 without them).
+
+        Pure geometry (no parameter reaches it), so it is built without a graph, each part written into its
+        columns of one buffer: the largest tensor of a step is written once, not concatenated twice."""
         scale = math.log1p(self.frame.reference_distance_m / self.step_m)
-        logs = torch.stack((torch.log1p(dist / self.step_m), torch.log1p(along / self.step_m), miss), -1) / scale
-        half = to_grid - direction
-        half = half / half.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-        parts = [
-            positional_encoding(to_grid, DIR_FREQS),
-            positional_encoding(half, DIR_FREQS),
-            positional_encoding(logs, POS_FREQS),
-        ]
-        spec = specularity(surface, half).clamp(0.0, 1.0) if surface is not None else torch.zeros_like(dist)
-        parts.append(torch.stack([spec**p for p in SPECULAR_POWERS], -1))
-        return torch.cat(parts, -1)
+        with torch.no_grad():
+            logs = torch.stack((torch.log1p(dist / self.step_m), torch.log1p(along / self.step_m), miss), -1) / scale
+            half = to_grid - direction
+            half = half / half.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+            assert self.pair_in is not None
+            out = to_grid.new_empty(self.pair_in.in_features, to_grid.shape[0])  # transposed: parts in whole rows
+            row = 0
+            for x, freqs in ((to_grid, DIR_FREQS), (half, DIR_FREQS), (logs, POS_FREQS)):
+                width = encoded_dim(x.shape[-1], freqs)
+                positional_encoding_t(x, freqs, out[row : row + width])
+                row += width
+            if surface is None:
+                out[row:] = 0.0
+            else:
+                spec = specularity(surface, half).clamp(0.0, 1.0)
+                for i, p in enumerate(SPECULAR_POWERS):
+                    torch.pow(spec, p, out=out[row + i])
+        return out.T
 
     def forward(
         self, features: torch.Tensor, points: torch.Tensor, along_m: torch.Tensor,
@@ -259,14 +270,17 @@ class RadianceDecoder(nn.Module):
         footprint = (along * rays.radius_rad[queries.ray][join_query]).clamp_min(self.step_m)  # cone radius [m]
         miss = torch.log1p(dist / footprint)  # how far the grid lies outside the ray's cone
         query = self.query_in(self._query_inputs(rays, queries, grid_features))
-        hidden = self.sample_in(features)[join_sample] + query[join_query]
+        # [J, hidden] is the widest tensor of a step: summed and rectified in place (no op here needs its output
+        # kept for the backward pass but the ReLU, which keeps its own result)
+        hidden = self.sample_in(features)[join_sample]
+        hidden += query[join_query]
         if self.pair_in is not None:
             direction = rays.direction[queries.ray][join_query]
             pair = self._pair_inputs(
                 offset / dist[:, None], dist, along, miss, direction, None if surface is None else surface[join_sample]
             )
-            hidden = hidden + self.pair_in(pair)
-        out = self.mlp(torch.relu(hidden))  # [J, 2]
+            hidden += self.pair_in(pair)
+        out = self.mlp(hidden.relu_())  # [J, 2]
         # free-space amplitude ∝ λ / d
         log_wl = torch.log(rays.wavelength_m / frame.reference_wavelength_m)[queries.ray][join_query]
         log_spread = log_wl + torch.log(frame.reference_distance_m / (along + dist).clamp_min(self.step_m))

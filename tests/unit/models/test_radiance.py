@@ -80,3 +80,45 @@ def test_early_termination_drops_only_negligible_samples() -> None:
     pruned = stage(rays, gather_samples(samples, torch.arange(3)), queries)
     assert stage.decoder_evals - evals0 < all_evals
     assert torch.allclose(pruned, full, rtol=1e-3, atol=0.0)
+
+
+def test_the_pair_inputs_are_the_concatenated_encodings_and_the_decoder_still_learns() -> None:
+    from rflscm.fields import positional_encoding
+    from rflscm.fields.surfaces import specularity
+    from rflscm.models.rflscm_config import DIR_FREQS, POS_FREQS, SPECULAR_POWERS
+
+    decoder = make_stage().decoder
+    g = torch.Generator().manual_seed(3)
+    to_grid = torch.nn.functional.normalize(torch.randn(400, 3, generator=g), dim=-1)
+    direction = torch.nn.functional.normalize(torch.randn(400, 3, generator=g), dim=-1)
+    dist, along, miss = (
+        50 * torch.rand(400, generator=g),
+        80 * torch.rand(400, generator=g),
+        torch.rand(400, generator=g),
+    )
+    surface = torch.rand(400, 6, generator=g)
+    got = decoder._pair_inputs(to_grid, dist, along, miss, direction, surface)
+    # the reference: each encoding made on its own and concatenated
+    scale = torch.log1p(torch.tensor(decoder.frame.reference_distance_m / decoder.step_m))
+    logs = torch.stack((torch.log1p(dist / 4.0), torch.log1p(along / 4.0), miss), -1) / scale
+    half = torch.nn.functional.normalize(to_grid - direction, dim=-1)
+    spec = specularity(surface, half).clamp(0.0, 1.0)
+    want = torch.cat([positional_encoding(to_grid, DIR_FREQS), positional_encoding(half, DIR_FREQS),
+                      positional_encoding(logs, POS_FREQS), torch.stack([spec**p for p in SPECULAR_POWERS], -1)], -1)  # fmt: skip
+    torch.testing.assert_close(got, want, atol=3e-5, rtol=1e-5)
+    assert (
+        float(decoder._pair_inputs(to_grid, dist, along, miss, direction, None)[:, -len(SPECULAR_POWERS) :].abs().max())
+        == 0.0
+    )
+    # the in-place sums and ReLUs keep the graph: a step on the rendered power moves every decoder weight
+    stage = make_stage()
+    phi = (torch.rand(3, 12, generator=torch.Generator().manual_seed(2)) > 0.3) * torch.rand(3, 12)
+    queries = Queries(
+        torch.tensor([0, 1, 2, 2]),
+        torch.tensor([[10.0, 5.0, 1.5], [-20.0, 7.0, 1.5], [3.0, -30.0, 1.5], [0.0, 0.0, 1.5]]),
+    )
+    power = stage(rays_for(3), gather_samples(select_samples(phi), torch.arange(3)), queries)
+    power.sum().backward()
+    for name, p in stage.decoder.named_parameters():
+        assert p.grad is not None and bool(torch.isfinite(p.grad).all()), name
+    assert all(float(p.grad.abs().sum()) > 0 for p in (stage.decoder.pair_in.weight, stage.decoder.sample_in.weight))
