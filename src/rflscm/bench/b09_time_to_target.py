@@ -63,6 +63,7 @@ from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import tiny_size
 from rflscm.bench.report import new_figure, save_figure, seeds_of
 from rflscm.errors import ConfigError
+from rflscm.runtime import MALLOC_ENV
 
 BEAM_TYPES = ("ssb", "csi")
 DEFAULT_BASELINE = "c7460d6"
@@ -331,7 +332,14 @@ def run_worker(src: Path, scenario: Path, config: str, out: Path, *, marks: list
     if minutes is not None:
         cmd += ["--minutes", f"{minutes:g}"]
     path = os.pathsep.join([str(src), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))])
-    env = {**os.environ, "PYTHONPATH": path, "OMP_NUM_THREADS": str(threads), "RFLSCM_THREADS": str(threads)}
+    # both models run with the allocator settings `rflscm` itself applies (rflscm.runtime): the same process setup
+    env = {
+        **MALLOC_ENV,
+        **os.environ,
+        "PYTHONPATH": path,
+        "OMP_NUM_THREADS": str(threads),
+        "RFLSCM_THREADS": str(threads),
+    }
     log = out.with_suffix(".log")
     with log.open("w") as fh:
         done = subprocess.run(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT, cwd=out.parent)

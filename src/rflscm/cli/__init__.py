@@ -20,6 +20,7 @@ import typer
 from rflscm import __version__
 from rflscm.cli.common import ThreadsOption, set_threads
 from rflscm.errors import RflscmError
+from rflscm.runtime import keep_freed_memory
 
 app = typer.Typer(
     name="rflscm",
@@ -46,6 +47,7 @@ def _root(
 ) -> None:
     """rflscm: radiance-field channel models from multi-beam RSRP."""
     set_threads(threads)  # before any command runs
+    keep_freed_memory()  # renders re-use their large buffers instead of faulting fresh pages in (rflscm.runtime)
 
 
 def _register_commands() -> None:
