@@ -194,6 +194,9 @@ class NeRF2LSCM(RFLSCM):
     name: ClassVar[str] = "nerf2"
     config_class: ClassVar[type] = NeRF2Config
     config_family: ClassVar[str] = "nerf2"
+    init_fit: ClassVar[tuple[int, float]] = (100, 0.05)
+    """The MLP trunk keeps the slower attenuation fit: at RF-LSCM's 0.2 its ReLUs die (no gradient reaches the
+    trunk afterwards; ``test_gradient_reaches_every_parameter``)."""
 
     def __init__(self, config: NeRF2Config, angle_grid: AngleGrid, device: torch.device | str = "cpu") -> None:
         super().__init__(config, angle_grid, device, fields=MLPFieldFactory(config.field, config.decoder.head_hidden))  # type: ignore[arg-type]
