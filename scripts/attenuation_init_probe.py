@@ -37,14 +37,8 @@ with torch.no_grad():
 torch.optim.Adam(field.parameters())  # the optimiser's first construction imports torch._dynamo: not timed
 for lr, steps in [(0.05, 100), (0.05, 50), (0.1, 50), (0.2, 50), (0.1, 30), (0.2, 30)]:
     field.load_state_dict(start)
-    opt = torch.optim.Adam(field.parameters(), lr=lr)
     began = time.perf_counter()
-    for _ in range(steps):
-        out = fields.delta(fields.encode(points))
-        loss = (out[:, 0] - target).square().mean() + (out[:, 1:] - keep).square().mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+    rflscm_module.fit_loss_channel(fields, points, target, keep, steps, lr)
     with torch.no_grad():
         out = fields.delta(fields.encode(points))
     rms = float((out[:, 0] - target).square().mean().sqrt())

@@ -67,7 +67,14 @@ from rflscm.models.posterior import (
     PairPosterior,
     fit_gains,
 )
-from rflscm.models.radiance import FieldFactory, RadianceDecoder, RadianceStage, SceneFrame, VMFieldFactory
+from rflscm.models.radiance import (
+    FieldFactory,
+    RadianceDecoder,
+    RadianceStage,
+    SceneFields,
+    SceneFrame,
+    VMFieldFactory,
+)
 from rflscm.models.rflscm_config import (
     ANY,
     FLOOR_DB,
@@ -285,19 +292,11 @@ class RFLSCM(LSCMModel):
         target = share * math.log(f.building_loss_db / INIT_LOSS_DB)  # raw loss channel
         stages = self.all_stages()
         fields = stages[0].fields
-        field = fields.delta_module()
         with torch.no_grad():
             keep = fields.delta(fields.encode(points))[:, 1:]
-        steps, lr = self.init_fit
-        opt = torch.optim.Adam(field.parameters(), lr=lr)
-        for _ in range(steps):
-            out = fields.delta(fields.encode(points))
-            loss = (out[:, 0] - target).square().mean() + (out[:, 1:] - keep).square().mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
+        fit_loss_channel(fields, points, target, keep, *self.init_fit)
         for stage in stages[1:]:
-            stage.fields.delta_module().load_state_dict(field.state_dict())
+            stage.fields.delta_module().load_state_dict(fields.delta_module().state_dict())
 
     def on_step_begin(self, step: int, position: float) -> bool:
         """Begin step ``step`` at schedule ``position``: upsample the tensors when the position crosses an
@@ -794,6 +793,20 @@ class RFLSCM(LSCMModel):
         self.stages.to(self.device)
         if self._train is not None:
             self._train.selection = None
+
+
+def fit_loss_channel(
+    fields: SceneFields, points: torch.Tensor, target: torch.Tensor, keep: torch.Tensor, steps: int, lr: float
+) -> None:
+    """Adam on ``fields``' δ module so that its raw loss channel at ``points [n, 3]`` approaches ``target [n]``
+    while its other channels stay at ``keep [n, C_δ − 1]`` (mean squared errors, ``steps`` steps at ``lr``)."""
+    opt = torch.optim.Adam(fields.delta_module().parameters(), lr=lr)
+    for _ in range(steps):
+        out = fields.delta(fields.encode(points))
+        loss = (out[:, 0] - target).square().mean() + (out[:, 1:] - keep).square().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
 
 
 def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:
