@@ -5,8 +5,9 @@ rising to at most 32 MiB as such blocks are freed) with a fresh ``mmap`` and ret
 ``free``.  A render allocates tensors of tens of megabytes per chunk (``[decoder evaluations, 64]``
 hidden activations, gathered rows), so each one is faulted in page by page again: gathering 200 k rows of
 64 floats took 28 ms with a fresh allocation and 2.5 ms into an existing one (one thread).  Raising the
-mmap and trim thresholds keeps freed blocks in the heap for the next chunk.  The peak footprint is the
-same; the process just does not hand memory back between chunks.  PyTorch's CPU tuning guide makes the
+mmap and trim thresholds keeps freed blocks in the heap for the next chunk; the process does not hand
+memory back between chunks, and its peak grows a little with fragmentation (`rflscm demo`: 1.6–1.7 GB
+peak RSS before, 1.7–1.8 GB after; BENCHMARKS.md).  PyTorch's CPU tuning guide makes the
 same point with jemalloc/tcmalloc; this uses glibc's own knobs, with no dependency.
 """
 

@@ -234,7 +234,8 @@ class RadianceDecoder(nn.Module):
         specularity s = hᵀ T h given the structure tensors ``surface [J, 6]`` (0 without them).
 
         Pure geometry (no parameter reaches it), so it is built without a graph, each part written into its
-        columns of one buffer: the largest tensor of a step is written once, not concatenated twice."""
+        rows of one transposed buffer (returned as its ``.T`` view): the largest tensor of a step is written
+        once, not concatenated twice."""
         scale = math.log1p(self.frame.reference_distance_m / self.step_m)
         with torch.no_grad():
             logs = torch.stack((torch.log1p(dist / self.step_m), torch.log1p(along / self.step_m), miss), -1) / scale
