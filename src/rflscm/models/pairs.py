@@ -43,6 +43,11 @@ class PairData:
     def num_pairs(self) -> int:
         return int(self.cell_index.numel())
 
+    @property
+    def observed(self) -> torch.Tensor:
+        """bool ``[P, M]``: the training beams that were reported (``beam_mask`` and a value)."""
+        return self.beam_mask & ~torch.isnan(self.rsrp)
+
     def to(self, device: torch.device | str) -> PairData:
         """A copy with every tensor on ``device``."""
         moved = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in vars(self).items()}

@@ -11,7 +11,7 @@ their prior weights, and a changed antenna (round 2) reads the refined APS throu
 
 The fit is Gauss–Newton in the dual: per pair and iteration one ``M × M`` solve over the pair's
 ``M`` beams (reports not used carry no row).  λ is chosen per fit by holding aside a share of the
-reported beams (:func:`choose_lambda`); λ = ∞ (no posterior) is always a candidate, so a posterior
+reported beams (:class:`LambdaChoice`); λ = ∞ (no posterior) is always a candidate, so a posterior
 that does not predict held-aside beams better than the field is not applied.  Pairs the training
 data never reported (unseen grids, other carriers) keep the field's APS.
 """

@@ -423,7 +423,7 @@ class RFLSCM(LSCMModel):
             bins, valid = self._renderer().expand(cells, self._renderer().coarse_power(cells, xyz))
             values = self._renderer().fine_power(cells, xyz, bins, valid)
         pred = torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
-        observed = d.beam_mask[pairs] & ~torch.isnan(d.rsrp[pairs])
+        observed = d.observed[pairs]
         diff = 10.0 * torch.log10(pred[observed].clamp_min(1e-30) / d.rsrp[pairs][observed])
         return float(diff.median())
 
@@ -564,7 +564,7 @@ class RFLSCM(LSCMModel):
         pairs with reports per cell (sorted)."""
         d = self._training().data
         assert self.scene is not None
-        reported = (d.beam_mask & ~torch.isnan(d.rsrp)).any(1)
+        reported = d.observed.any(1)
         picks = []
         for c in range(len(self.scene.cell_ids)):
             p = torch.nonzero(reported & (d.cell_index == c)).squeeze(1)
@@ -595,7 +595,7 @@ class RFLSCM(LSCMModel):
             rendered = self._render_pairs(picks, top=False)
         pred = rendered.pred[rendered.rows_of(picks)]
         resid = 10.0 * torch.log10(d.rsrp[picks] / pred.clamp_min(1e-30))
-        rows, beams = (d.beam_mask[picks] & ~torch.isnan(d.rsrp[picks])).nonzero(as_tuple=True)
+        rows, beams = d.observed[picks].nonzero(as_tuple=True)
         r = resid[rows, beams].cpu().double().numpy()
         c = d.cell_index[picks][rows].cpu().numpy()
         t = (beams >= train.num_ssb).cpu().numpy()
@@ -632,7 +632,7 @@ class RFLSCM(LSCMModel):
         cfg = self.config.train
         d = self._training().data
         assert self.scene is not None
-        pairs = torch.nonzero((d.beam_mask & ~torch.isnan(d.rsrp)).any(1)).squeeze(1)
+        pairs = torch.nonzero(d.observed.any(1)).squeeze(1)
         bar = tqdm(
             total=pairs.numel() * (2 if cfg.pair_posterior else 1), desc="pair corrections", unit="pair",
             disable=not progress, leave=False,
@@ -700,7 +700,7 @@ class RFLSCM(LSCMModel):
         cfg = self.config.train
         train = self._training()
         d = train.data
-        observed = d.beam_mask & ~torch.isnan(d.rsrp)
+        observed = d.observed
         levels = self.current_levels()
         beam_type = (torch.arange(d.rsrp.shape[1], device=self.device) >= train.num_ssb).long()
         for start in range(0, rows.numel(), PAIR_CHUNK):
