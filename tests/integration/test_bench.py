@@ -180,17 +180,23 @@ def test_b5_alpha_p(tmp_path: Path, scenario_dir: Path) -> None:
     assert set(res["sweep"]) == {"0", "0.5"}
     # α_P reaches the loss: the two runs differ (same seed, same data)
     assert res["sweep"]["0"]["mae_db"]["ssb"]["all"] != res["sweep"]["0.5"]["mae_db"]["ssb"]["all"]
-    # the tiny scenario has beams missing in round 2, so the false-report rate is defined
-    assert res["sweep"]["0"]["missing_above_threshold"] is not None
+    # the tiny scenario has beams missing in round 2, so the share above the bound is defined
+    assert res["sweep"]["0"]["missing_above_bound"] is not None
+    # the truth scores every beam above r_th: defined for the sweep, the oracle and trivial
+    assert res["sweep"]["0.5"]["truth_mae_db"]["csi"]["all"] is not None
+    assert res["oracle"]["truth_mae_db"]["ssb"]["all"] < res["trivial"]["truth_mae_db"]["ssb"]["all"]
+    assert res["best_alpha_truth"]["ssb"] in (0.0, 0.5)
 
 
-def test_false_report_rate_counts_missing_beams_predicted_above_the_threshold(
+def test_missing_above_bound_rate_counts_missing_beams_predicted_above_their_bound(
     tmp_path: Path, scenario_dir: Path
 ) -> None:
-    from rflscm.bench.b05_alpha_p import false_report_rate
+    from rflscm.bench.b05_alpha_p import missing_above_bound_rate
 
     data = load_bench_data(ctx_for(tmp_path, scenario_dir), tiny_size())
     threshold = data.scenario.meta.rsrp_threshold_dbm
+    _pairs, measured = data.scenario.rsrp_table(2, "ssb")
+    top = float(np.nanmax(measured))
 
     class Constant:
         def __init__(self, dbm: float) -> None:
@@ -199,8 +205,8 @@ def test_false_report_rate_counts_missing_beams_predicted_above_the_threshold(
         def predict_rsrp(self, scenario, round, beam_type, pairs):
             return np.full((len(pairs), 64), self.dbm)
 
-    assert false_report_rate(Constant(threshold + 10.0), data) == 1.0
-    assert false_report_rate(Constant(threshold - 10.0), data) == 0.0
+    assert missing_above_bound_rate(Constant(top + 10.0), data) == 1.0  # every bound is a reported level or r_th
+    assert missing_above_bound_rate(Constant(threshold - 10.0), data) == 0.0  # every bound is at least r_th
 
 
 def test_b6_unseen(tmp_path: Path, scenario_dir: Path) -> None:

@@ -20,6 +20,7 @@ def record(result: Any) -> dict[str, Any]:
     aps = m.get("aps") or {}
     return {
         "mae_db": mae_summary(m)["model"] if m else None,
+        "truth_mae_db": truth_summary(m)["model"] if m else None,
         "unseen_mae_db": {bt: unseen.get(bt) for bt in ("ssb", "csi")},
         "aps_nmse_db": aps.get("nmse_db"),
         "aps_angle_error_deg": aps.get("angle_error_deg"),
@@ -51,6 +52,16 @@ def mae_summary(metrics: dict[str, Any]) -> dict[str, Any]:
         block = metrics.get(key) or {}
         out[who] = {bt: dict(block.get(bt) or {"all": None, "changed": None}) for bt in ("ssb", "csi")}
     return out
+
+
+def truth_summary(metrics: dict[str, Any]) -> dict[str, Any]:
+    """``truth_mae_db`` (every beam ≥ r_th against the noiseless truth): model / oracle / trivial × {ssb, csi} ×
+    {all, changed} [dB], ``None`` leaves without ground truth."""
+    block = metrics.get("truth_mae_db") or {}
+    return {
+        who: {bt: dict((block.get(who) or {}).get(bt) or {"all": None, "changed": None}) for bt in ("ssb", "csi")}
+        for who in ("model", "oracle", "trivial")
+    }
 
 
 # --- reporting -----------------------------------------------------------------------------------------

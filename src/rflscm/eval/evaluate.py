@@ -19,6 +19,12 @@ key                                    meaning
 ``bias_db.{ssb,csi}.{all,changed}``    the model's mean signed error (prediction − measurement) [dB]
 ``missing_above_bound.{model,oracle,trivial}.{ssb,csi}``  share of the test round's missing beams predicted
                                        above their bound under the reporting rule (:mod:`rflscm.data.reporting`)
+``truth_mae_db.{model,oracle,trivial}.{ssb,csi}.{all,changed}``  MAE [dB] against the noiseless truth
+                                       (``truth/rsrp_noiseless``) over *every* beam of the scored test pairs whose
+                                       true RSRP is at least r_th, reported or not: free of which beams the
+                                       reporting rule let through (the measured MAE scores only those, and a
+                                       top-N or SINR rule keeps the beams whose error happened to be high);
+                                       ``null`` without ground truth
 ``trivial_mae_db.{ssb,csi}.{all,...}`` the same for the trivial baseline (each pair's mean round-1 RSRP of
                                        that beam type for every beam; the cell's mean for unseen pairs)
 ``per_cell[<cell_id>]``                ``changed`` (bool), ``ssb``, ``csi`` (model MAE [dB]), ``oracle.{ssb,csi}``,
@@ -86,6 +92,7 @@ class BeamResult:
     scored: np.ndarray
     changed: np.ndarray
     noiseless: np.ndarray | None = None  # [num_pairs, max_beams] dBm, truth through the real antenna
+    truth_target: np.ndarray | None = None  # [num_pairs, max_beams] dBm, ``noiseless`` where >= r_th, else NaN
     bound: np.ndarray | None = None  # [num_pairs, max_beams] dBm, bound of each missing beam (NaN elsewhere)
 
     def rows(self) -> np.ndarray:
@@ -178,6 +185,9 @@ def run_evaluation(
         )
         res.changed = res.pairs["cell_id"].isin(changed).to_numpy()
         res.noiseless = _noiseless(scenario, test.round, beam_type, pairs, measured.shape[1])
+        if res.noiseless is not None:
+            above = res.noiseless >= scenario.meta.rsrp_threshold_dbm
+            res.truth_target = np.where(above, res.noiseless, np.nan)
         res.bound = _bounds(scenario, test.round, beam_type, pairs, measured)
         beams[beam_type] = res
         unsupported = unsupported or why
@@ -349,6 +359,28 @@ def _mae_triplet(res: BeamResult, rows: np.ndarray) -> dict[str, float | None]:
     }
 
 
+def _truth_triplet(res: BeamResult, rows: np.ndarray) -> dict[str, float | None]:
+    """Model, oracle and trivial MAE against the noiseless truth over every beam of ``rows`` above r_th."""
+    if res.truth_target is None:
+        return dict.fromkeys(("model", "oracle", "trivial"))
+    return {
+        name: None if pred is None else M.mae_db(M.abs_error_db(pred, res.truth_target), rows)
+        for name, pred in (("model", res.model), ("oracle", res.oracle), ("trivial", res.trivial))
+    }
+
+
+def _truth_block(beams: dict[str, BeamResult], any_changed: bool) -> dict[str, dict[str, dict[str, float | None]]]:
+    """``{model|oracle|trivial: {ssb|csi: {all, changed}}}`` of :func:`_truth_triplet`."""
+    out: dict[str, dict[str, dict[str, float | None]]] = {k: {} for k in ("model", "oracle", "trivial")}
+    for beam_type, res in beams.items():
+        rows = res.rows()
+        every = _truth_triplet(res, rows)
+        changed = _truth_triplet(res, rows & res.changed) if any_changed else dict.fromkeys(every)
+        for k in out:
+            out[k][beam_type] = {"all": every[k], "changed": changed[k]}
+    return out
+
+
 def _above_bound(beams: dict[str, BeamResult]) -> dict[str, dict[str, float | None]]:
     """Share of each beam type's missing test beams that model / oracle / trivial predict above their bound."""
     out: dict[str, dict[str, float | None]] = {k: {} for k in ("model", "oracle", "trivial")}
@@ -501,6 +533,7 @@ def _assemble(
         "trivial_mae_db": maes["trivial"],
         "bias_db": maes["bias"],
         "missing_above_bound": _above_bound(beams),
+        "truth_mae_db": _truth_block(beams, any_changed=len(changed) > 0),
         "per_cell": _per_cell(beams, changed),
         "aps": aps,
         "unseen": _unseen_block(model, beams),

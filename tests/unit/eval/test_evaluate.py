@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pandas as pd
 import pytest
 from eval_helpers import GRID, on_grid_truth_scenario, simulate
 
@@ -25,6 +26,7 @@ DOCUMENTED_KEYS = [
     "test_round", "scenario.name", "unsupported", "timing_s.predict",
     "noise_floor_mae_db.ssb.all", "noise_floor_mae_db.csi.changed", "bias_db.ssb.all", "bias_db.csi.changed",
     "missing_above_bound.model.ssb", "missing_above_bound.trivial.csi", "unseen.noise_floor_mae_db.ssb",
+    "truth_mae_db.model.ssb.all", "truth_mae_db.oracle.csi.changed", "truth_mae_db.trivial.ssb.all",
 ]  # fmt: skip
 
 
@@ -59,6 +61,27 @@ def test_documented_keys_are_present_and_json_ready(adjust_run, sim_scenario) ->
     for cell, entry in metrics["per_cell"].items():
         assert entry["changed"] == (int(cell) in metrics["counts"]["changed_cells"])
         assert set(entry) == {"changed", "ssb", "csi", "oracle", "trivial", "noise_floor", "counts"}
+
+
+def test_truth_mae_scores_every_beam_above_threshold_against_the_noiseless_truth(adjust_run, sim_scenario) -> None:
+    _model, evaluation = adjust_run
+    metrics = evaluation.metrics
+    truth = pd.read_parquet(sim_scenario.root / sim_scenario.meta.truth / "rsrp_noiseless.parquet")
+    r_th = sim_scenario.meta.rsrp_threshold_dbm
+    for beam_type in ("ssb", "csi"):
+        res = evaluation.beams[beam_type]
+        rows = res.pairs[res.scored].reset_index(drop=True)
+        predicted = res.model[res.scored]
+        t = truth[(truth["round"] == 2) & (truth["beam_type"].astype(str) == beam_type)]
+        t = t[t["rsrp_dbm"] >= r_th].merge(
+            rows.reset_index()[["index", "cell_id", "grid_id"]], on=["cell_id", "grid_id"]
+        )
+        expected = np.abs(predicted[t["index"].to_numpy(), t["beam_id"].to_numpy()] - t["rsrp_dbm"].to_numpy())
+        assert metrics["truth_mae_db"]["model"][beam_type]["all"] == pytest.approx(np.nanmean(expected))
+        assert np.isfinite(expected).sum() > 0 and (t["rsrp_dbm"] >= r_th).all()
+        # the oracle is the truth's APS through the same antenna (ideal regime): far closer than any fit
+        oracle = metrics["truth_mae_db"]["oracle"][beam_type]["all"]
+        assert oracle is not None and oracle < 0.5 * metrics["truth_mae_db"]["trivial"][beam_type]["all"]
 
 
 def test_mae_recomputed_independently_and_wnomp_beats_trivial(adjust_run, sim_scenario) -> None:
