@@ -75,6 +75,7 @@ def run_b4(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
             "mae_std_db": agg["std"]["mae_db"],
             "truth_mae_db": agg["mean"]["truth_mae_db"],
             "unseen_mae_db": agg["mean"]["unseen_mae_db"],
+            "unseen_bias_db": agg["mean"]["unseen_bias_db"],
             "train_time_s": agg["mean"]["train_time_s"],
             "peak_memory_mb": agg["mean"]["peak_memory_mb"],
         }

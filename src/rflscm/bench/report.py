@@ -22,6 +22,7 @@ def record(result: Any) -> dict[str, Any]:
         "mae_db": mae_summary(m)["model"] if m else None,
         "truth_mae_db": truth_summary(m)["model"] if m else None,
         "unseen_mae_db": {bt: unseen.get(bt) for bt in ("ssb", "csi")},
+        "unseen_bias_db": {bt: ((m.get("unseen") or {}).get("bias_db") or {}).get(bt) for bt in ("ssb", "csi")},
         "aps_nmse_db": aps.get("nmse_db"),
         "aps_angle_error_deg": aps.get("angle_error_deg"),
         "train_time_s": result.train_time_s,

@@ -37,6 +37,7 @@ key                                    meaning
 ``unseen.mae_db.{ssb,csi}``            model MAE over test pairs whose (cell, grid) had no training data,
                                        ``null`` when there are none or the model has no notion of unseen grids
 ``unseen.{oracle,trivial}_mae_db.*``   oracle / trivial MAE over those pairs
+``unseen.bias_db.{ssb,csi}``           the model's mean signed error (prediction − measurement) [dB] over them
 ``unseen.pairs.{ssb,csi}``             number of such pairs
 ``counts.{ssb,csi}.test_pairs``        (cell, grid) pairs with a reported beam in the test set
 ``counts.{ssb,csi}.scored_pairs``      pairs the model answered (MAEs are over these)
@@ -432,12 +433,18 @@ def _unseen_block(model: LSCMModel, beams: dict[str, BeamResult]) -> dict[str, A
         "oracle_mae_db": {},
         "trivial_mae_db": {},
         "noise_floor_mae_db": {},
+        "bias_db": {},
         "pairs": {},
     }
     for beam_type, res in beams.items():
         rows = ~res.seen
-        trip = _mae_triplet(res, rows) if rows.any() else dict.fromkeys(("model", "oracle", "trivial", "noise_floor"))
+        trip = (
+            _mae_triplet(res, rows)
+            if rows.any()
+            else dict.fromkeys(("model", "oracle", "trivial", "noise_floor", "bias"))
+        )
         block["mae_db"][beam_type] = trip["model"] if model.supports_unseen_grids else None
+        block["bias_db"][beam_type] = trip["bias"] if model.supports_unseen_grids else None
         block["oracle_mae_db"][beam_type] = trip["oracle"]
         block["trivial_mae_db"][beam_type] = trip["trivial"]
         block["noise_floor_mae_db"][beam_type] = trip["noise_floor"]

@@ -26,7 +26,7 @@ DOCUMENTED_KEYS = [
     "test_round", "scenario.name", "unsupported", "timing_s.predict",
     "noise_floor_mae_db.ssb.all", "noise_floor_mae_db.csi.changed", "bias_db.ssb.all", "bias_db.csi.changed",
     "missing_above_bound.model.ssb", "missing_above_bound.trivial.csi", "unseen.noise_floor_mae_db.ssb",
-    "truth_mae_db.model.ssb.all", "truth_mae_db.oracle.csi.changed", "truth_mae_db.trivial.ssb.all",
+    "unseen.bias_db.csi", "truth_mae_db.model.ssb.all", "truth_mae_db.oracle.csi.changed", "truth_mae_db.trivial.ssb.all",
 ]  # fmt: skip
 
 
@@ -141,3 +141,17 @@ def test_no_oracle_without_truth(sim_scenario) -> None:
     metrics = evaluate(model, sim_scenario, AdjustProtocol(), oracle=None)
     assert metrics["oracle_mae_db"]["ssb"]["all"] is None and metrics["aps"]["nmse_db"] is None
     assert metrics["mae_db"]["ssb"]["all"] is not None
+
+
+def test_unseen_bias_is_the_mean_signed_error_over_pairs_round_1_never_reported(sim_scenario) -> None:
+    from rflscm.eval.oracle import OracleModel
+
+    oracle = OracleModel.for_scenario(sim_scenario, GRID, "cpu")
+    evaluation = run_evaluation(oracle, sim_scenario, AdjustProtocol(), oracle=None)
+    for beam_type, res in evaluation.beams.items():
+        unseen = ~res.seen
+        err = (res.model - res.measured)[unseen]
+        expected = float(np.nanmean(err)) if np.isfinite(err).any() else None
+        assert evaluation.metrics["unseen"]["bias_db"][beam_type] == pytest.approx(expected)
+        assert evaluation.metrics["unseen"]["pairs"][beam_type] == int(unseen.sum())
+        assert expected is not None  # round 2 reports pairs round 1 did not (the fixture's changed cells)
