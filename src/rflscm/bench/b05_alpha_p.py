@@ -21,16 +21,7 @@ import numpy as np
 
 from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import BenchSize, bench_size, load_bench_data, merge, train_and_evaluate
-from rflscm.bench.report import (
-    aggregate,
-    header,
-    mae_summary,
-    new_figure,
-    record,
-    save_figure,
-    seeds_of,
-    truth_summary,
-)
+from rflscm.bench.report import aggregate, header, mae_summary, new_figure, record, save_figure, seeds_of
 from rflscm.data.reporting import missing_bounds
 from rflscm.eval import AdjustProtocol
 
@@ -61,18 +52,17 @@ def run_b5(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
                 for s in seeds]  # fmt: skip
         agg = aggregate([record(r) for r in runs])
         rates = [missing_above_bound_rate(r.judged, data) for r in runs]
-        truth = aggregate([truth_summary(r.metrics)["model"] for r in runs])
         sweep[f"{alpha:g}"] = {
             "mae_db": agg["mean"]["mae_db"],
             "mae_std_db": agg["std"]["mae_db"],
-            "truth_mae_db": truth["mean"],
+            "truth_mae_db": agg["mean"]["truth_mae_db"],
             "val_mae_db": agg["mean"]["val_mae_db"],
             "missing_above_bound": float(np.mean([r for r in rates if r is not None]))
             if all(r is not None for r in rates)
             else None,
             "train_time_s": agg["mean"]["train_time_s"],
         }
-        reference = reference or {**mae_summary(runs[0].metrics), "truth": truth_summary(runs[0].metrics)}
+        reference = reference or mae_summary(runs[0].metrics)
         if oracle_above is None and data.oracle is not None:
             oracle_above = missing_above_bound_rate(data.oracle, data)
     out["sweep"] = sweep

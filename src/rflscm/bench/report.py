@@ -47,11 +47,13 @@ def aggregate(records: list[Any]) -> Any:
 
 
 def mae_summary(metrics: dict[str, Any]) -> dict[str, Any]:
-    """The MAE block a benchmark table shows: model / oracle / trivial × {ssb, csi} × {all, changed} [dB]."""
+    """The MAE block a benchmark table shows: model / oracle / trivial × {ssb, csi} × {all, changed} [dB], and
+    ``truth``: the same three against the noiseless truth (:func:`truth_summary`)."""
     out: dict[str, Any] = {}
     for who, key in (("model", "mae_db"), ("oracle", "oracle_mae_db"), ("trivial", "trivial_mae_db")):
         block = metrics.get(key) or {}
         out[who] = {bt: dict(block.get(bt) or {"all": None, "changed": None}) for bt in ("ssb", "csi")}
+    out["truth"] = truth_summary(metrics)
     return out
 
 

@@ -58,6 +58,7 @@ computed over the whole test set instead and ``counts.*.scored_pairs`` is 0.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, cast
 
@@ -372,14 +373,7 @@ def _truth_triplet(res: BeamResult, rows: np.ndarray) -> dict[str, float | None]
 
 def _truth_block(beams: dict[str, BeamResult], any_changed: bool) -> dict[str, dict[str, dict[str, float | None]]]:
     """``{model|oracle|trivial: {ssb|csi: {all, changed}}}`` of :func:`_truth_triplet`."""
-    out: dict[str, dict[str, dict[str, float | None]]] = {k: {} for k in ("model", "oracle", "trivial")}
-    for beam_type, res in beams.items():
-        rows = res.rows()
-        every = _truth_triplet(res, rows)
-        changed = _truth_triplet(res, rows & res.changed) if any_changed else dict.fromkeys(every)
-        for k in out:
-            out[k][beam_type] = {"all": every[k], "changed": changed[k]}
-    return out
+    return _split_blocks(beams, any_changed, _truth_triplet, ("model", "oracle", "trivial"))
 
 
 def _above_bound(beams: dict[str, BeamResult]) -> dict[str, dict[str, float | None]]:
@@ -397,13 +391,21 @@ def _above_bound(beams: dict[str, BeamResult]) -> dict[str, dict[str, float | No
 
 def _mae_blocks(beams: dict[str, BeamResult], any_changed: bool) -> dict[str, dict[str, dict[str, float | None]]]:
     """``{model|oracle|trivial|noise_floor|bias: {ssb|csi: {all, changed}}}``."""
-    out: dict[str, dict[str, dict[str, float | None]]] = {
-        k: {} for k in ("model", "oracle", "trivial", "noise_floor", "bias")
-    }
+    return _split_blocks(beams, any_changed, _mae_triplet, ("model", "oracle", "trivial", "noise_floor", "bias"))
+
+
+def _split_blocks(
+    beams: dict[str, BeamResult],
+    any_changed: bool,
+    score: Callable[[BeamResult, np.ndarray], dict[str, float | None]],
+    keys: tuple[str, ...],
+) -> dict[str, dict[str, dict[str, float | None]]]:
+    """``{key: {ssb|csi: {all, changed}}}`` of ``score`` over every scored row and over the changed cells' rows."""
+    out: dict[str, dict[str, dict[str, float | None]]] = {k: {} for k in keys}
     for beam_type, res in beams.items():
         rows = res.rows()
-        every = _mae_triplet(res, rows)
-        changed = _mae_triplet(res, rows & res.changed) if any_changed else dict.fromkeys(every)
+        every = score(res, rows)
+        changed = score(res, rows & res.changed) if any_changed else dict.fromkeys(every)
         for k in out:
             out[k][beam_type] = {"all": every[k], "changed": changed[k]}
     return out
