@@ -245,13 +245,30 @@ def sub_scenario(full: Any, size: BenchSize) -> tuple[Any, dict[str, Any]]:
     m = m[m["grid_id"].isin(grids["grid_id"]).to_numpy()]
     cells = {r: t[t["cell_id"].isin(keep_cells)].reset_index(drop=True) for r, t in full.cells.items()}
     cloud = _crop_cloud(full.point_cloud, cells[1], grids, size.crop_margin_m)
-    sub = dataclasses.replace(full, cells=cells, grids=grids, measurements=m.reset_index(drop=True), point_cloud=cloud)
+    sub = dataclasses.replace(full, cells=cells, grids=grids, measurements=m.reset_index(drop=True), point_cloud=cloud,
+                              outside_ssb=_outside_ssb(full, keep_cells, grids["grid_id"]))  # fmt: skip
     info = {
         "sites": [int(s) for s in sites], "cells": keep_cells.tolist(), "grids": int(len(grids)),
         "measurement_rows": int(len(m)), "point_cloud_points": 0 if cloud is None else int(len(cloud.xyz)),
         "full_cells": int(len(cells1)), "full_grids": int(len(full.grids)),
     }  # fmt: skip
     return sub, info
+
+
+def _outside_ssb(full: Any, keep_cells: np.ndarray, grid_ids: pd.Series) -> pd.DataFrame:
+    """The reported SSB of the cells a subset leaves out, at its grids: the interference that kept some of the
+    subset's SSB beams undetected (an SS-SINR rule's bound needs it; :mod:`rflscm.data.reporting`)."""
+    m = full.measurements
+    rows = m[
+        (m["beam_type"] == "ssb").to_numpy()
+        & ~m["cell_id"].isin(keep_cells).to_numpy()
+        & m["grid_id"].isin(grid_ids).to_numpy()
+        & m["rsrp_dbm"].notna().to_numpy()
+    ]
+    freq = full.cells[1].set_index("cell_id")["freq_hz"]
+    out = rows[["round", "grid_id", "beam_id", "rsrp_dbm"]].reset_index(drop=True)
+    out.insert(2, "freq_hz", freq.loc[rows["cell_id"]].to_numpy())
+    return out
 
 
 def _crop_cloud(cloud: Any, cells: pd.DataFrame, grids: pd.DataFrame, margin_m: float | None) -> Any:

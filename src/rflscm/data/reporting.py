@@ -158,11 +158,26 @@ def _detection_level(scenario, round: int, pairs: pd.DataFrame, rule: ReportingR
     totals = pd.DataFrame(lin).groupby(key_q.to_flat_index()).sum()
     key_p = pd.MultiIndex.from_arrays([pairs["grid_id"].to_numpy(), freq.loc[pairs["cell_id"]].to_numpy()])
     total = totals.reindex(key_p.to_flat_index()).fillna(0.0).to_numpy()  # [P, width]
+    total = total + _outside_interference(scenario, round, key_p, width)
     own = pd.DataFrame(lin, index=pd.MultiIndex.from_frame(ssb_pairs[["cell_id", "grid_id"]]))
     own = own.reindex(pd.MultiIndex.from_frame(pairs[["cell_id", "grid_id"]])).fillna(0.0).to_numpy()
     assert rule.noise_dbm is not None  # checked by ReportingRule for rule `sinr`
     interference = np.maximum(total - own, 0.0) + 10.0 ** (rule.noise_dbm / 10.0)
     return rule.detection_db + 10.0 * np.log10(interference)
+
+
+def _outside_interference(scenario, round: int, key_p: pd.MultiIndex, width: int) -> np.ndarray:
+    """``[P, width]`` mW of reported SSB from cells cut away from the scenario (``Scenario.outside_ssb``) at each
+    pair's (grid, carrier), beam index by beam index; zeros for a scenario loaded whole."""
+    outside = getattr(scenario, "outside_ssb", None)
+    if outside is None or len(outside) == 0:
+        return np.zeros((len(key_p), width))
+    rows = outside[(outside["round"] == round).to_numpy() & (outside["beam_id"] < width).to_numpy()]
+    lin = pd.Series(10.0 ** (rows["rsrp_dbm"].to_numpy(np.float64) / 10.0))
+    keys = [rows["grid_id"].to_numpy(), rows["freq_hz"].to_numpy(), rows["beam_id"].to_numpy()]
+    wide = lin.groupby(keys).sum().unstack(fill_value=0.0).reindex(columns=range(width), fill_value=0.0)
+    wide.index = wide.index.to_flat_index()
+    return wide.reindex(key_p.to_flat_index()).fillna(0.0).to_numpy()
 
 
 def check_reporting(scenario) -> list[str]:

@@ -55,6 +55,10 @@ class Scenario:
         grids: ``grid_id``, ``x``, ``y``, ``z`` [m] (+ extra columns), sorted by ``grid_id``.
         measurements: long-form RSRP (see :mod:`rflscm.data.measurements`), in file order.
         point_cloud: the building/ground scan, or ``None``.
+        outside_ssb: for a part cut from a larger scenario (the benchmarks' subsets), the reported SSB of the
+            cells left out at the kept grids (``round``, ``grid_id``, ``freq_hz``, ``beam_id``, ``rsrp_dbm``):
+            interference that the SS-SINR detection level of :mod:`rflscm.data.reporting` must still count.
+            ``None`` for a scenario loaded from its folder.
 
     ``==`` compares contents (meta without file names, tables, point cloud), not locations.
     """
@@ -65,6 +69,7 @@ class Scenario:
     grids: pd.DataFrame
     measurements: pd.DataFrame
     point_cloud: PointCloud | None = None
+    outside_ssb: pd.DataFrame | None = None
     _elements: dict[str, ElementPattern] = field(default_factory=dict, init=False, repr=False)
 
     # ---- ids and per-cell facts --------------------------------------------------------------

@@ -161,6 +161,27 @@ def test_bounds_follow_the_declared_rule_per_report() -> None:
     assert bound[row, 2] == -120.0  # no interferer on beam 2: −6 dB above the noise is below r_th
 
 
+def test_a_subset_keeps_the_detection_level_of_the_cells_it_left_out() -> None:
+    rsrp = {(1, 7): [-70.0, -80.0, np.nan], (2, 7): [np.nan, -75.0, -90.0]}
+    rule = {"ssb": {"rule": "sinr", "detection_db": -6.0, "noise_dbm": -120.0}}
+    whole = _toy_scenario(rsrp, rule)
+    part = _toy_scenario({(2, 7): rsrp[(2, 7)]}, rule, freq={2: 3.5e9})
+    pairs, table = part.rsrp_table(1, "ssb")
+    cut = missing_bounds(part, 1, "ssb", pairs, table)  # cell 1's −70 dBm on beam 0 is gone
+    part.outside_ssb = pd.DataFrame(
+        {"round": 1, "grid_id": 7, "freq_hz": 3.5e9, "beam_id": [0, 1], "rsrp_dbm": [-70.0, -80.0]}
+    )  # what a benchmark subset carries for the cells it left out
+    kept = missing_bounds(part, 1, "ssb", pairs, table)
+    full_pairs, full_table = whole.rsrp_table(1, "ssb")
+    full = missing_bounds(whole, 1, "ssb", full_pairs, full_table)
+    row = int(np.flatnonzero((full_pairs["cell_id"] == 2).to_numpy())[0])
+    np.testing.assert_allclose(kept[0], full[row])
+    assert kept[0, 0] == pytest.approx(-76.0, abs=0.01) and cut[0, 0] == -120.0
+    # another carrier's reports do not interfere
+    part.outside_ssb = part.outside_ssb.assign(freq_hz=2.1e9)
+    np.testing.assert_array_equal(missing_bounds(part, 1, "ssb", pairs, table), cut)
+
+
 def test_zero_array_errors_give_the_nominal_sensing_matrix() -> None:
     grid = AngleGrid(num_el=11, num_az=12, el_min_deg=-60.0, el_step_deg=12.0)
     antenna, book, wl = CellAntenna(azimuth_deg=30.0), DFTCodebook(), 0.0857
