@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from rflscm.data import BEAM_TYPES
-from rflscm.data.reporting import missing_bounds, rule_of
+from rflscm.data.reporting import missing_bounds
 from rflscm.errors import DataError
 from rflscm.geometry import AngleGrid
 
@@ -71,16 +71,14 @@ def stacked_sensing(
 
 def build_pair_data(
     scenario: Scenario, cell_ids: np.ndarray, a_norm: torch.Tensor, num_ssb: int, r_ref_mw: float,
-    val_pairs: int, val_fraction: float, seed: int, detection_bounds: bool = True,
+    val_pairs: int, val_fraction: float, seed: int,
 ) -> PairData:  # fmt: skip
     """Stack the round-1 SSB and CSI-RS tables of ``scenario`` into :class:`PairData`.
 
     ``a_norm [num_cells, M, N]`` is the normalised stacked sensing matrix (for ``x_scale``).  ``bound``
     holds each missing beam's upper bound under the scenario's reporting rule, per report
     (:func:`rflscm.data.reporting.missing_bounds`): r_th, the weakest reported beam of a full top-N
-    report, or the SS-SINR detection level.  Without ``detection_bounds`` the beams of a beam type reported under
-    an SS-SINR rule get no bound (no penalty): neither r_th nor a top-N level bounds a beam that interference
-    kept undetected.
+    report, or the SS-SINR detection level.
     """
     grid_all = scenario.grid_ids()
     keys, tables = [], {}
@@ -88,10 +86,7 @@ def build_pair_data(
         pairs, rsrp_dbm = scenario.rsrp_table(1, t)
         c = np.searchsorted(cell_ids, pairs["cell_id"].to_numpy())
         k = c * len(grid_all) + np.searchsorted(grid_all, pairs["grid_id"].to_numpy())
-        bound = missing_bounds(scenario, 1, t, pairs, rsrp_dbm)
-        if not detection_bounds and rule_of(scenario, t).rule == "sinr":
-            bound = np.full_like(bound, np.nan)
-        tables[t] = (k, rsrp_dbm, bound)
+        tables[t] = (k, rsrp_dbm, missing_bounds(scenario, 1, t, pairs, rsrp_dbm))
         keys.append(k)
     union = np.unique(np.concatenate(keys))
     if union.size == 0:

@@ -207,15 +207,7 @@ class RFLSCM(LSCMModel):
         r_ref = reference_power(np.concatenate([scenario.rsrp_table(1, t)[1].ravel() for t in BEAM_TYPES]))
         a_norm = a_mw / a_ref
         data = build_pair_data(
-            scenario,
-            cell_ids,
-            a_norm,
-            num_ssb,
-            r_ref,
-            cfg.train.val_pairs,
-            VAL_BEAM_FRACTION,
-            cfg.train.seed,
-            cfg.loss.detection_bounds,
+            scenario, cell_ids, a_norm, num_ssb, r_ref, cfg.train.val_pairs, VAL_BEAM_FRACTION, cfg.train.seed
         )
         cell_xyz = np.stack([scenario.cell_position(int(c)) for c in cell_ids])
         wavelengths = np.array([scenario.wavelength_m(int(c)) for c in cell_ids])

@@ -268,10 +268,7 @@ class LossConfig:
     sparsity: float = 1e-3
     """β_pen (L1 on x̃)."""
     missing_penalty: float = 0.5
-    """α_P (one-sided penalty on missing beams predicted above their bound under the reporting rule)."""
-    detection_bounds: bool = True
-    """Penalise the missing beams of an SS-SINR reporting rule against their detection level; ``false``: no
-    penalty on them (docs/DECISIONS.md, issue 15 ablations: a young field cannot meet them)."""
+    """α_P (one-sided penalty on missing beams predicted above r_th)."""
 
     def __post_init__(self) -> None:
         _positive("model.loss.sparsity", self.sparsity, allow_zero=True)
