@@ -165,10 +165,15 @@ def test_b3_multifreq(tmp_path: Path, scenario_dir: Path) -> None:
 def test_b4_point_cloud(tmp_path: Path, scenario_dir: Path) -> None:
     from rflscm.bench.b04_point_cloud import run_b4
 
-    res = run_b4(ctx_for(tmp_path, scenario_dir), tiny_size())
+    res = run_b4(ctx_for(tmp_path, scenario_dir, seeds=2), tiny_size())
     check_common(res, tmp_path)
     assert set(res["variants"]) == {"prior_on", "prior_off"} and len(res["plots"]) == 2
     assert res["train_grids"] >= 1 and set(res["prior_gain_db"]) == {"ssb", "csi"}
+    # each seed draws its own training grids, and the gain is the mean of the paired per-seed gains
+    draws = list(res["train_grid_ids"].values())
+    assert len(draws) == 2 and draws[0] != draws[1]
+    per_seed = res["prior_gain_per_seed_db"]
+    assert res["prior_gain_db"]["ssb"] == pytest.approx((per_seed[0]["ssb"] + per_seed[1]["ssb"]) / 2)
     assert res["variants"]["prior_on"]["mae_db"]["csi"]["all"] is not None
 
 

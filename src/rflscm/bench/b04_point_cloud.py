@@ -9,6 +9,9 @@ MAE on the unseen grids, the oracle, training time; plots: the MAEs and the
 attenuation maps (paper Fig. "deltahanghzou"): the largest per-voxel loss Φ·loss_dB at the
 reference carrier over height, top-down, with and without the prior.
 
+Seeds: seed ``s`` draws the 10 % of grids (``split_grids(…, s)``) and initialises both arms; ``--seeds N``
+averages over N draws (with 15 training grids the draw decides more than the initialisation).
+
 Sizes: ``quick`` = the B1 quick scenario (one site, 150 grids → 15 training grids), 200 steps of 8
 pairs (HiTAM warm-up 80, ramp 20): without the prior every one of the Q samples of a ray is
 rendered (~10× the cost of a step and of the evaluation), 2 CPU cores; ``full`` = the whole
@@ -48,19 +51,27 @@ def run(ctx: BenchContext) -> dict[str, Any]:
     return run_b4(ctx, bench_size(ctx.size))
 
 
-def run_b4(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
-    data, train_grids = restrict_round1(load_bench_data(ctx, size), TRAIN_FRACTION, seed=0)
+def run_b4(ctx: BenchContext, size: BenchSize, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """B4 at ``size``; ``extra``: overrides for both arms on top of the size's (probes:
+    ``scripts/b4_probe.py``).  Seed ``s`` draws the training grids and initialises both arms, so the arms
+    of one seed see the same grids and ``prior_gain_db`` is the mean of paired differences."""
+    full = load_bench_data(ctx, size)
     seeds = seeds_of(ctx)
-    out = header(ctx, data, seeds, __doc__.split("\n\n")[-1].strip())
+    draws = {s: restrict_round1(full, TRAIN_FRACTION, seed=s) for s in seeds}
+    out = header(ctx, draws[seeds[0]][0], seeds, "\n\n".join(__doc__.split("\n\n")[-2:]).strip())
     out["train_fraction"] = TRAIN_FRACTION
-    out["train_grids"] = int(len(train_grids))
+    out["train_grids"] = int(len(draws[seeds[0]][1]))
+    out["train_grid_ids"] = {str(s): sorted(int(g) for g in draws[s][1]) for s in seeds}
+    out["extra"] = extra or {}
     variants: dict[str, Any] = {}
     maps: dict[str, np.ndarray] = {}
-    reference: dict[str, Any] = {}
-    for key, extra in VARIANTS.items():
-        over = merge(EXTRA[size.name], extra)
-        runs = [train_and_evaluate(data, "rflscm", AdjustProtocol(), over, s, ctx.device) for s in seeds]
-        agg = aggregate([record(r) for r in runs])
+    references: list[dict[str, Any]] = []
+    records: dict[str, list[dict[str, Any]]] = {}
+    for key, arm in VARIANTS.items():
+        over = merge(merge(EXTRA[size.name], extra or {}), arm)
+        runs = [train_and_evaluate(draws[s][0], "rflscm", AdjustProtocol(), over, s, ctx.device) for s in seeds]
+        records[key] = [record(r) for r in runs]
+        agg = aggregate(records[key])
         variants[key] = {
             "mae_db": agg["mean"]["mae_db"],
             "mae_std_db": agg["std"]["mae_db"],
@@ -70,15 +81,19 @@ def run_b4(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
             "train_time_s": agg["mean"]["train_time_s"],
             "peak_memory_mb": agg["mean"]["peak_memory_mb"],
         }
-        reference = reference or mae_summary(runs[0].metrics)
+        references = references or [mae_summary(r.metrics) for r in runs]
         maps[key] = attenuation_map(runs[0].model)
     out["variants"] = variants
+    reference = aggregate(references)["mean"]
     out["oracle"] = {"mae_db": reference["oracle"], "truth_mae_db": reference["truth"]["oracle"]}
     out["trivial"] = {"mae_db": reference["trivial"], "truth_mae_db": reference["truth"]["trivial"]}
-    out["prior_gain_db"] = {
-        bt: _diff(variants["prior_off"]["mae_db"][bt]["all"], variants["prior_on"]["mae_db"][bt]["all"])
-        for bt in ("ssb", "csi")
-    }
+    gains = [
+        {bt: _diff(off["mae_db"][bt]["all"], on["mae_db"][bt]["all"]) for bt in ("ssb", "csi")}
+        for on, off in zip(records["prior_on"], records["prior_off"], strict=True)
+    ]
+    out["prior_gain_per_seed_db"] = gains
+    out["prior_gain_db"] = aggregate(gains)["mean"]
+    out["prior_gain_std_db"] = aggregate(gains)["std"]
     out["plots"] = [_plot_mae(ctx, variants), _plot_maps(ctx, maps, runs[0].model)]
     return out
 
