@@ -39,3 +39,17 @@ def test_b9_baseline_may_be_a_folder_holding_src(tmp_path) -> None:
     assert baseline_src(str(tmp_path / "old"), tmp_path / "out") == ((tmp_path / "old" / "src").resolve(), None)
     assert baseline_src(str(tmp_path / "old" / "src"), tmp_path / "out")[0] == (tmp_path / "old" / "src").resolve()
     assert not (tmp_path / "out").exists()  # nothing exported
+
+
+def test_b9_marks_are_geometric_and_end_at_the_cap() -> None:
+    import itertools
+
+    import pytest
+
+    from rflscm.bench.b09_time_to_target import MARK_FACTOR, SETTINGS, _marks
+
+    assert _marks(5.0, 40.0) == [5.0, 10.0, 20.0, 40.0]  # the cap itself is a mark when it falls on one
+    marks = SETTINGS["quick"]["marks_s"]
+    ratios = [b / a for a, b in itertools.pairwise(marks)]
+    assert all(r == pytest.approx(MARK_FACTOR, rel=1e-4) for r in ratios)
+    assert marks[0] == 5.0 and marks[-1] <= SETTINGS["quick"]["max_train_s"] < marks[-1] * MARK_FACTOR

@@ -34,7 +34,8 @@ DIR``), which needs no git where B9 runs.  The trainers' own periodic validation
 Sizes: ``quick`` = the whole scenario, both models at their ``quick`` preset (``AngleGrid()``),
 the baseline on its step schedule, the new model trained to the demo's budget of 3 minutes
 (``rflscm train --minutes 3``: its schedule follows the budget, whose clock also leaves the
-evaluations out), marks 5, 10, 20, … s, each model capped at 1800 s of training, 2 CPU cores (the
+evaluations out), marks 5, 7.07, 10, 14.1, 20, … s (×√2: a time to target is resolved to
+within 41 %; at ×2 a crossing just after a mark was counted at the next, up to twice late), each model capped at 1800 s of training, 2 CPU cores (the
 baseline's quick schedule takes about 10 min there); ``full`` = the same with the ``full`` presets, no cap
 (for a GPU); ``tiny`` (tests only) = a tiny scenario, the tiny overrides, marks of a fraction of a
 second, baseline ``HEAD``.
@@ -68,12 +69,15 @@ from rflscm.runtime import MALLOC_ENV
 BEAM_TYPES = ("ssb", "csi")
 DEFAULT_BASELINE = "c7460d6"
 WORKER = Path(__file__).with_name("b09_worker.py")
+MARK_FACTOR = 2**0.5
+"""Spacing of the evaluation marks (quick, full): a time to target is known to within this factor."""
 
 
-def _marks(first: float, last: float) -> list[float]:
+def _marks(first: float, last: float, factor: float = 2.0) -> list[float]:
+    """``first``, ``first·factor``, ``first·factor²``, … up to ``last`` (rounded to 0.1 ms)."""
     out = [first]
-    while out[-1] * 2 <= last:
-        out.append(out[-1] * 2)
+    while out[-1] * factor <= last * (1 + 1e-9):
+        out.append(round(first * factor ** len(out), 4))
     return out
 
 
@@ -89,9 +93,9 @@ SETTINGS: dict[str, dict[str, Any]] = {  # per size: presets of the old and new 
              "angle_grid": tiny_size().angle_grid, "marks_s": _marks(0.25, 64.0), "max_train_s": 60.0, "new_minutes": None,
              "baseline": "HEAD"},
     "quick": {"old_config": "quick", "new_config": "quick", "overrides": {}, "angle_grid": None,
-              "marks_s": _marks(5.0, 1800.0), "max_train_s": 1800.0, "baseline": DEFAULT_BASELINE, "new_minutes": 3.0},
+              "marks_s": _marks(5.0, 1800.0, MARK_FACTOR), "max_train_s": 1800.0, "baseline": DEFAULT_BASELINE, "new_minutes": 3.0},
     "full": {"old_config": "full", "new_config": "full", "overrides": {}, "angle_grid": None,
-             "marks_s": _marks(5.0, 86400.0), "max_train_s": None, "baseline": DEFAULT_BASELINE, "new_minutes": None},
+             "marks_s": _marks(5.0, 86400.0, MARK_FACTOR), "max_train_s": None, "baseline": DEFAULT_BASELINE, "new_minutes": None},
 }  # fmt: skip
 
 
