@@ -193,27 +193,6 @@ def test_b5_alpha_p(tmp_path: Path, scenario_dir: Path) -> None:
     assert res["best_alpha_truth"]["ssb"] in (0.0, 0.5)
 
 
-def test_missing_above_bound_rate_counts_missing_beams_predicted_above_their_bound(
-    tmp_path: Path, scenario_dir: Path
-) -> None:
-    from rflscm.bench.b05_alpha_p import missing_above_bound_rate
-
-    data = load_bench_data(ctx_for(tmp_path, scenario_dir), tiny_size())
-    threshold = data.scenario.meta.rsrp_threshold_dbm
-    _pairs, measured = data.scenario.rsrp_table(2, "ssb")
-    top = float(np.nanmax(measured))
-
-    class Constant:
-        def __init__(self, dbm: float) -> None:
-            self.dbm = dbm
-
-        def predict_rsrp(self, scenario, round, beam_type, pairs):
-            return np.full((len(pairs), 64), self.dbm)
-
-    assert missing_above_bound_rate(Constant(top + 10.0), data) == 1.0  # every bound is a reported level or r_th
-    assert missing_above_bound_rate(Constant(threshold - 10.0), data) == 0.0  # every bound is at least r_th
-
-
 def test_b6_unseen(tmp_path: Path, scenario_dir: Path) -> None:
     from rflscm.bench.b06_unseen import run_b6
 

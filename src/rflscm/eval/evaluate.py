@@ -17,8 +17,9 @@ key                                    meaning
                                        (``truth/rsrp_noiseless``) against the measurements: what fading, report
                                        error and quantisation alone cost; ``null`` without ground truth
 ``bias_db.{ssb,csi}.{all,changed}``    the model's mean signed error (prediction − measurement) [dB]
-``missing_above_bound.{model,oracle,trivial}.{ssb,csi}``  share of the test round's missing beams predicted
-                                       above their bound under the reporting rule (:mod:`rflscm.data.reporting`)
+``missing_above_bound.{model,oracle,trivial}.{ssb,csi,pooled}``  share of the test round's missing beams
+                                       predicted above their bound under the reporting rule
+                                       (:mod:`rflscm.data.reporting`); ``pooled``: over both beam types' beams
 ``truth_mae_db.{model,oracle,trivial}.{ssb,csi}.{all,changed}``  MAE [dB] against the noiseless truth
                                        (``truth/rsrp_noiseless``) over *every* beam of the scored test pairs whose
                                        true RSRP is at least r_th, reported or not: free of which beams the
@@ -377,15 +378,22 @@ def _truth_block(beams: dict[str, BeamResult], any_changed: bool) -> dict[str, d
 
 
 def _above_bound(beams: dict[str, BeamResult]) -> dict[str, dict[str, float | None]]:
-    """Share of each beam type's missing test beams that model / oracle / trivial predict above their bound."""
+    """Share of each beam type's missing test beams that model / oracle / trivial predict above their bound, and
+    ``pooled``: the share over both types' missing beams together."""
     out: dict[str, dict[str, float | None]] = {k: {} for k in ("model", "oracle", "trivial")}
+    counts = {k: [0, 0] for k in out}  # hits, beams
     for beam_type, res in beams.items():
         for name, pred in (("model", res.model), ("oracle", res.oracle), ("trivial", res.trivial)):
             value = None
             if res.bound is not None and pred is not None:
                 has = np.isfinite(res.bound) & np.isfinite(pred) & res.rows()[:, None]
-                value = float((pred[has] > res.bound[has]).mean()) if has.any() else None
+                hits = int((pred[has] > res.bound[has]).sum())
+                counts[name][0] += hits
+                counts[name][1] += int(has.sum())
+                value = hits / int(has.sum()) if has.any() else None
             out[name][beam_type] = value
+    for name, (hits, total) in counts.items():
+        out[name]["pooled"] = hits / total if total else None
     return out
 
 

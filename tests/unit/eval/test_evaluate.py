@@ -25,7 +25,8 @@ DOCUMENTED_KEYS = [
     "model.name", "model.supports_unseen_grids", "model.fingerprint", "model.fit", "protocol.name",
     "test_round", "scenario.name", "unsupported", "timing_s.predict",
     "noise_floor_mae_db.ssb.all", "noise_floor_mae_db.csi.changed", "bias_db.ssb.all", "bias_db.csi.changed",
-    "missing_above_bound.model.ssb", "missing_above_bound.trivial.csi", "unseen.noise_floor_mae_db.ssb",
+    "missing_above_bound.model.ssb", "missing_above_bound.trivial.csi", "missing_above_bound.model.pooled",
+    "unseen.noise_floor_mae_db.ssb",
     "unseen.bias_db.csi", "truth_mae_db.model.ssb.all", "truth_mae_db.oracle.csi.changed", "truth_mae_db.trivial.ssb.all",
 ]  # fmt: skip
 
@@ -155,3 +156,29 @@ def test_unseen_bias_is_the_mean_signed_error_over_pairs_round_1_never_reported(
         assert evaluation.metrics["unseen"]["bias_db"][beam_type] == pytest.approx(expected)
         assert evaluation.metrics["unseen"]["pairs"][beam_type] == int(unseen.sum())
         assert expected is not None  # round 2 reports pairs round 1 did not (the fixture's changed cells)
+
+
+def test_missing_above_bound_counts_each_type_and_pools_them_by_beams() -> None:
+    from rflscm.eval.evaluate import BeamResult, _above_bound
+
+    def result(bound: np.ndarray, model: np.ndarray, scored: np.ndarray) -> BeamResult:
+        n = len(bound)
+        return BeamResult(
+            pairs=pd.DataFrame({"cell_id": np.zeros(n, int), "grid_id": np.arange(n)}), measured=np.full_like(bound, np.nan),
+            model=model, trivial=np.full_like(bound, -200.0), oracle=None, seen=np.ones(n, bool), scored=scored,
+            changed=np.zeros(n, bool), bound=bound,
+        )  # fmt: skip
+
+    nan = np.nan
+    # SSB: 4 missing beams on scored rows (one above its bound); the unscored row's beam is left out
+    ssb = result(
+        np.array([[-100.0, -100.0], [-90.0, -90.0], [-80.0, nan]]),
+        np.array([[-95.0, -105.0], [-91.0, -99.0], [0.0, 0.0]]),
+        np.array([True, True, False]),
+    )
+    # CSI-RS: 2 missing beams, both above
+    csi = result(np.array([[-100.0, nan], [-100.0, nan]]), np.array([[-50.0, 0.0], [-60.0, 0.0]]), np.ones(2, bool))
+    out = _above_bound({"ssb": ssb, "csi": csi})
+    assert out["model"]["ssb"] == pytest.approx(1 / 4) and out["model"]["csi"] == 1.0
+    assert out["model"]["pooled"] == pytest.approx(3 / 6)  # by beams, not the mean of the two shares (0.625)
+    assert out["trivial"]["pooled"] == 0.0 and out["oracle"]["ssb"] is None and out["oracle"]["pooled"] is None
