@@ -7,7 +7,8 @@ writes ``OUT/b4.json`` and the plots; prints each arm's measured MAE, truth MAE 
 ``--extra '{"loss": {"missing_penalty": 0}}'`` trains both arms without the missing-beam penalty, for
 example; ``--seed`` picks the first draw of training grids (seed s draws them and initialises both arms);
 ``--effect reporting`` (any B8 step: ideal, reporting, noise, array_error, ue_sampling, all) first re-measures
-``SCENARIO``'s trace with that field effect alone, into ``OUT/scenario``.  Used for docs/DECISIONS.md ("B4 in the field regime").
+``SCENARIO``'s trace with that field effect alone, into ``OUT/scenario``.  Used for docs/DECISIONS.md
+("B4's field reversal was one draw of 15 grids").
 """
 
 import argparse

@@ -91,9 +91,8 @@ def run_b4(ctx: BenchContext, size: BenchSize, extra: dict[str, Any] | None = No
         {bt: _diff(off["mae_db"][bt]["all"], on["mae_db"][bt]["all"]) for bt in ("ssb", "csi")}
         for on, off in zip(records["prior_on"], records["prior_off"], strict=True)
     ]
-    out["prior_gain_per_seed_db"] = gains
-    out["prior_gain_db"] = aggregate(gains)["mean"]
-    out["prior_gain_std_db"] = aggregate(gains)["std"]
+    spread = aggregate(gains)
+    out["prior_gain_per_seed_db"], out["prior_gain_db"], out["prior_gain_std_db"] = gains, spread["mean"], spread["std"]
     out["plots"] = [_plot_mae(ctx, variants), _plot_maps(ctx, maps, runs[0].model)]
     return out
 

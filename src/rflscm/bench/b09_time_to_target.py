@@ -34,8 +34,9 @@ DIR``), which needs no git where B9 runs.  The trainers' own periodic validation
 Sizes: ``quick`` = the whole scenario, both models at their ``quick`` preset (``AngleGrid()``),
 the baseline on its step schedule, the new model trained to the demo's budget of 3 minutes
 (``rflscm train --minutes 3``: its schedule follows the budget, whose clock also leaves the
-evaluations out), marks 5, 7.07, 10, 14.1, 20, … s (×√2: a time to target is resolved to
-within 41 %; at ×2 a crossing just after a mark was counted at the next, up to twice late), each model capped at 1800 s of training, 2 CPU cores (the
+evaluations out), marks 5, 7.07, 10, 14.1, 20, … s (×√2: a time to target is resolved to within
+41 %; at ×2 a crossing just after a mark counted at the next, up to twice late), each model capped at
+1800 s of training, 2 CPU cores (the
 baseline's quick schedule takes about 10 min there); ``full`` = the same with the ``full`` presets, no cap
 (for a GPU); ``tiny`` (tests only) = a tiny scenario, the tiny overrides, marks of a fraction of a
 second, baseline ``HEAD``.
