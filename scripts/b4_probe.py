@@ -19,6 +19,7 @@ import torch
 
 from rflscm.bench import BenchContext
 from rflscm.bench.b04_point_cloud import run_b4
+from rflscm.bench.b08_realism import STEPS, measured
 from rflscm.bench.harness import bench_size
 
 
@@ -28,7 +29,7 @@ def main() -> None:
     p.add_argument("out", type=Path)
     p.add_argument("--extra", default="{}", help="overrides for both arms, as JSON")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--effect", default=None, help="re-measure the trace with this B8 step's effects first")
+    p.add_argument("--effect", default=None, choices=list(STEPS), help="re-measure the trace with this B8 step first")
     p.add_argument("--seeds", type=int, default=1)
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -36,8 +37,6 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     scenario = args.scenario
     if args.effect is not None:
-        from rflscm.bench.b08_realism import measured
-
         scenario = str(measured(Path(args.scenario), args.effect, args.out / "scenario"))
     ctx = BenchContext(size="quick", seeds=args.seeds, out_dir=args.out, device="cpu", scenario=scenario)
     out = run_b4(ctx, bench_size("quick"), json.loads(args.extra))
