@@ -26,6 +26,7 @@ import torch
 from rflscm.bench import BenchContext
 from rflscm.bench.measure import MemoryProbe
 from rflscm.config import load_yaml, to_dict
+from rflscm.data.scenario import OUTSIDE_SSB_COLUMNS
 from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
 
@@ -266,9 +267,8 @@ def _outside_ssb(full: Any, keep_cells: np.ndarray, grid_ids: pd.Series) -> pd.D
         & m["rsrp_dbm"].notna().to_numpy()
     ]
     freq = full.cells[1].set_index("cell_id")["freq_hz"]
-    out = rows[["round", "grid_id", "beam_id", "rsrp_dbm"]].reset_index(drop=True)
-    out.insert(2, "freq_hz", freq.loc[rows["cell_id"]].to_numpy())
-    return out
+    out = rows.assign(freq_hz=freq.loc[rows["cell_id"]].to_numpy())
+    return out[list(OUTSIDE_SSB_COLUMNS)].reset_index(drop=True)
 
 
 def _crop_cloud(cloud: Any, cells: pd.DataFrame, grids: pd.DataFrame, margin_m: float | None) -> Any:

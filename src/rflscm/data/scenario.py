@@ -42,6 +42,9 @@ from rflscm.data.positions import GRID_COLUMNS
 from rflscm.errors import ConfigError, DataError
 from rflscm.geometry import AngleGrid
 
+OUTSIDE_SSB_COLUMNS = ("round", "grid_id", "freq_hz", "beam_id", "rsrp_dbm")
+"""Columns of :attr:`Scenario.outside_ssb`."""
+
 
 @dataclass(eq=False)
 class Scenario:
@@ -60,7 +63,7 @@ class Scenario:
             interference that the SS-SINR detection level of :mod:`rflscm.data.reporting` must still count.
             ``None`` for a scenario loaded from its folder.
 
-    ``==`` compares contents (meta without file names, tables, point cloud), not locations.
+    ``==`` compares contents (meta without file names, tables, point cloud, ``outside_ssb``), not locations.
     """
 
     root: Path
@@ -211,7 +214,8 @@ class Scenario:
 
     # ---- identity --------------------------------------------------------------------------------
     def fingerprint(self) -> str:
-        """SHA-256 (hex) of round-1 cells, grids, round-1 measurements and the data-relevant meta.
+        """SHA-256 (hex) of round-1 cells, grids, round-1 measurements (and round-1 ``outside_ssb``, where a
+        cut-out part has it) and the data-relevant meta.
 
         The meta part is origin, threshold, carriers and codebooks (names, descriptions and file
         names are not data).  Only the standard columns are hashed, in canonical dtypes, so the value
@@ -231,6 +235,9 @@ class Scenario:
             ("measurements", round1, MEASUREMENT_COLUMNS),
         ):
             _hash_table(digest, label, table, columns)
+        if self.outside_ssb is not None:  # a cut-out part: the left-out cells' SSB sets its detection bounds
+            outside = self.outside_ssb
+            _hash_table(digest, "outside_ssb", outside[(outside["round"] == 1).to_numpy()], OUTSIDE_SSB_COLUMNS)
         return digest.hexdigest()
 
     def __eq__(self, other: object) -> bool:
@@ -243,6 +250,7 @@ class Scenario:
             and self.grids.equals(other.grids)
             and self.measurements.equals(other.measurements)
             and self.point_cloud == other.point_cloud
+            and _same_table(self.outside_ssb, other.outside_ssb)
         )
 
     __hash__ = None  # type: ignore[assignment]  # mutable tables
@@ -253,6 +261,10 @@ def _beam_type(beam_type: str) -> str:
     if text not in BEAM_TYPES:
         raise ConfigError(f"beam type must be one of {', '.join(BEAM_TYPES)} (got {beam_type!r}).")
     return text
+
+
+def _same_table(a: pd.DataFrame | None, b: pd.DataFrame | None) -> bool:
+    return (a is None and b is None) or (a is not None and b is not None and a.equals(b))
 
 
 def _hash_table(digest: hashlib._Hash, label: str, table: pd.DataFrame, columns: tuple[str, ...]) -> None:

@@ -207,3 +207,15 @@ def test_truth_folder_is_copied(tiny_dir: Path, edit_yaml, tmp_path: Path) -> No
     shutil.rmtree(tiny_dir / "truth")
     with pytest.raises(DataError, match=r"`truth` = 'truth': not found"):
         load_scenario(tiny_dir)
+
+
+def test_outside_ssb_is_part_of_equality_and_of_the_round_1_fingerprint(tiny: Scenario) -> None:
+    import dataclasses
+
+    def cut(rounds: list[int]) -> Scenario:
+        table = pd.DataFrame({"round": rounds, "grid_id": 1, "freq_hz": 3.5e9, "beam_id": 0, "rsrp_dbm": -80.0})
+        return dataclasses.replace(tiny, outside_ssb=table)
+
+    assert cut([1]) != tiny and cut([1]) == cut([1]) and cut([1]) != cut([2])
+    assert cut([1]).fingerprint() != tiny.fingerprint()  # it sets the training data's detection bounds
+    assert cut([2]).fingerprint() == cut([2, 2]).fingerprint() != cut([1, 2]).fingerprint()  # round 1 only
