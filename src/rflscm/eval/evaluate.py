@@ -387,10 +387,10 @@ def _above_bound(beams: dict[str, BeamResult]) -> dict[str, dict[str, float | No
             value = None
             if res.bound is not None and pred is not None:
                 has = np.isfinite(res.bound) & np.isfinite(pred) & res.rows()[:, None]
-                hits = int((pred[has] > res.bound[has]).sum())
+                hits, beams_here = int((pred[has] > res.bound[has]).sum()), int(has.sum())
                 counts[name][0] += hits
-                counts[name][1] += int(has.sum())
-                value = hits / int(has.sum()) if has.any() else None
+                counts[name][1] += beams_here
+                value = hits / beams_here if beams_here else None
             out[name][beam_type] = value
     for name, (hits, total) in counts.items():
         out[name]["pooled"] = hits / total if total else None
