@@ -20,12 +20,20 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import BenchData, bench_size, build_model, scenario_path
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
+    from rflscm.eval.cache import ScenarioAPS
+    from rflscm.models.source import APSSource
+    from rflscm.network.kpi import KPIConfig
+    from rflscm.network.optimize import OptimizeResult
+    from rflscm.network.space import SearchSpace
 
 MODELS = ("rflscm", "nerf2", "wnomp")
 KEYS = ("coverage", "mean_sinr_db", "p5_sinr_db", "overlap")
@@ -66,7 +74,7 @@ def run_b7(ctx: BenchContext, data: BenchData, models: tuple[str, ...], restarts
                            "search_space_log10": space.size_log10(),
                            "kpi": kpi.describe(list(scen.meta.frequencies_hz)),
                            "models": {}}  # fmt: skip
-    runs: dict[str, Any] = {}
+    runs: dict[str, tuple[OptimizeResult, ScenarioAPS]] = {}
     for name in ("oracle", *models):
         model, train_s, reused = _model(ctx, data, name, folder)
         entry, result, cache = _optimise(scen, model, space, kpi, folder / f"{name}_aps.pt", restarts)
@@ -87,7 +95,7 @@ def run_b7(ctx: BenchContext, data: BenchData, models: tuple[str, ...], restarts
     return out
 
 
-def _model(ctx: BenchContext, data: BenchData, name: str, folder: Path) -> tuple[Any, float, bool]:
+def _model(ctx: BenchContext, data: BenchData, name: str, folder: Path) -> tuple[APSSource, float, bool]:
     from rflscm.errors import CheckpointError
     from rflscm.models import load_model
 
@@ -119,12 +127,19 @@ def _model(ctx: BenchContext, data: BenchData, name: str, folder: Path) -> tuple
     return model, elapsed, False
 
 
-def _optimise(scen: Any, model: Any, space: Any, kpi: Any, cache_path: Path, restarts: int) -> tuple[dict, Any, Any]:
-    from rflscm.network.optimize import load_or_cache_aps, run_optimize
+def _optimise(
+    scen: Scenario, model: APSSource, space: SearchSpace, kpi: KPIConfig, cache_path: Path, restarts: int
+) -> tuple[dict[str, Any], OptimizeResult, ScenarioAPS]:
+    from rflscm.eval.cache import APSCacheError, load_or_render
+    from rflscm.network.optimize import run_optimize
 
     if model.name == "oracle":
-        cache_path.unlink(missing_ok=True)  # the truth is cheap to read, and a stale cache must not stand in
-    cache, cache_s = load_or_cache_aps(model, scen, cache_path)
+        cache_path.unlink(missing_ok=True)  # the truth is cheap to read
+    try:
+        cache, cache_s = load_or_render(model, scen, cache_path)
+    except APSCacheError:  # B7's own cache of an earlier checkpoint (retrained): render again
+        cache_path.unlink(missing_ok=True)
+        cache, cache_s = load_or_render(model, scen, cache_path)
     result = run_optimize(scen, cache, space, 1, "coverage", "cd", kpi, verify=True, restarts=restarts)
     s = result.summary()
     entry = {
@@ -143,7 +158,9 @@ def _optimise(scen: Any, model: Any, space: Any, kpi: Any, cache_path: Path, res
     return entry, result, cache
 
 
-def _compare_optimisers(scen: Any, oracle_run: tuple[Any, Any], space: Any, kpi: Any) -> dict[str, Any]:
+def _compare_optimisers(
+    scen: Scenario, oracle_run: tuple[OptimizeResult, ScenarioAPS], space: SearchSpace, kpi: KPIConfig
+) -> dict[str, Any]:
     """Coordinate descent against scipy DE on the oracle's APS, DE given CD's wall time."""
     from rflscm.network.search import NetworkEvaluator, differential_evolution
 

@@ -29,17 +29,17 @@ from rflscm.bench.harness import scenario_path
 )
 def run(ctx: BenchContext) -> dict[str, Any]:
     from rflscm.data import load_scenario
+    from rflscm.eval.cache import ScenarioAPS
     from rflscm.eval.oracle import OracleModel
     from rflscm.geometry import AngleGrid
-    from rflscm.network.candidates import ApsCache, cache_aps
 
     path, _ = scenario_path(ctx)
     scen = load_scenario(path)
     oracle = OracleModel.for_scenario(scen, AngleGrid(), "cpu")
-    caches = {"true_aps": cache_aps(oracle, scen), "dense_6552_bins": _dense(scen)}
+    caches = {"true_aps": ScenarioAPS.render(oracle, scen), "dense_6552_bins": _dense(scen)}
     rf = Path(ctx.out_dir) / "b7_checkpoints" / "rflscm_aps.pt"
     if rf.is_file():
-        caches["rflscm_b7"] = ApsCache.load(rf)
+        caches["rflscm_b7"] = ScenarioAPS.load(rf, scenario=scen)  # B7 wrote it for its own model
     out: dict[str, Any] = {
         "threads": torch.get_num_threads(),
         "notes": __doc__.split("\n\n")[-1],
@@ -49,19 +49,19 @@ def run(ctx: BenchContext) -> dict[str, Any]:
     return out
 
 
-def _dense(scen: Any) -> Any:
+def _dense(scen: Scenario) -> ScenarioAPS:
+    from rflscm.eval.cache import ScenarioAPS
     from rflscm.geometry import AngleGrid
-    from rflscm.network.candidates import ApsCache
 
     grid = AngleGrid()
     gen = torch.Generator().manual_seed(0)
     cells, grids = scen.cell_ids(), scen.grid_ids()
     aps = [torch.rand(len(grids), grid.num_bins, generator=gen) * 1e-12 for _ in cells]
-    return ApsCache(cells, grids, [np.arange(grid.num_bins) for _ in cells], aps,
-                    np.ones((len(cells), len(grids)), dtype=bool), grid, "dense")  # fmt: skip
+    known = np.ones((len(cells), len(grids)), dtype=bool)
+    return ScenarioAPS(cells, grids, [np.arange(grid.num_bins) for _ in cells], aps, known, grid, "dense")
 
 
-def _measure(scen: Any, cache: Any, whole: bool) -> dict[str, Any]:
+def _measure(scen: Scenario, cache: ScenarioAPS, whole: bool) -> dict[str, Any]:
     from rflscm.network.kpi import KPIConfig
     from rflscm.network.search import NetworkEvaluator, _line, coordinate_descent
     from rflscm.network.space import build_space

@@ -1,45 +1,97 @@
-"""The one APS cache: a fitted model whose APS of each (cell, grid) pair is computed once.
+"""The APS cache of evaluation, prediction and optimisation: a source's APS computed once, kept safely.
 
-Evaluation asks for the APS of a pair once per beam type (through ``predict_rsrp``) and again for the
-APS metrics; the benchmarks ask again (false reports, APS recovery) and ``rflscm predict`` once per beam
-type.  A field model renders the APS each time, so :func:`rflscm.eval.run_evaluation`, the benchmark
-harness and the CLI all wrap the model in :class:`APSCache`; the models themselves keep no APS.
-Rows are stored sparse (the nonzero bins: HiTAM's K_C β² refined bins, WNOMP's atoms), so a cache of
-every test pair fits in memory even at full size.
+Two views of one thing, in one module, with one key:
+
+* :class:`APSCache` remembers, in memory, the APS of each (cell, grid) pair a source was asked for.  Evaluation
+  asks for a pair once per beam type (through ``predict_rsrp``) and again for the APS metrics, the benchmarks
+  again, ``rflscm predict`` once per beam type; a field model would render each time.  Rows are stored sparse
+  (the nonzero bins), so a cache of every test pair fits in memory even at full size.
+* :class:`ScenarioAPS` is the APS of every (cell, grid) pair of a scenario, per cell on the bins any grid uses:
+  what the optimiser searches on (``rflscm optimize --aps-cache``), and the one cache written to disk.
+
+A cache file holds tensors, numbers and text only, read with ``torch.load(weights_only=True)`` (nothing is ever
+unpickled), with a SHA-256 over its content and the key of its source (:func:`~rflscm.models.source.
+source_sha256`: for a model, the content hash of its checkpointed state).  :func:`ScenarioAPS.load` refuses, in
+one line, a file that is not a cache, a damaged one, one written for another checkpoint, grid or scenario, and
+one whose APS are not finite and ≥ 0.
 """
 
 from __future__ import annotations
 
+import os
+import pickle
+import time
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
-from rflscm.errors import UnsupportedError
+from rflscm.errors import RflscmError
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import LSCMModel
+from rflscm.models.base import content_hash
+from rflscm.models.source import APSSource, Predicts, checked_aps, source_sha256
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
+
+CACHE_FORMAT = "rflscm-aps-cache/1"
 
 
-class APSCache(LSCMModel):
-    """A view of the fitted model ``inner`` that remembers its APS per ``(cell_id, grid_id)``.
+class APSCacheError(RflscmError):
+    """An APS cache file cannot be used: not a cache, damaged, of another source or scenario, or non-finite."""
 
-    Everything but :meth:`aps` is the wrapped model's (name, fingerprint, run information); it
-    neither learns nor saves.  Only use it while ``inner``'s weights do not change.
+
+class APSCache(Predicts):
+    """A view of the fitted source ``inner`` that remembers its APS per ``(cell_id, grid_id)``.
+
+    Everything but :meth:`aps` is the wrapped source's (name, fingerprint, run information).  Only use it while
+    ``inner``'s weights do not change.
     """
 
-    def __init__(self, inner: LSCMModel) -> None:
-        super().__init__(inner.angle_grid, inner.device)
+    def __init__(self, inner: APSSource) -> None:
         self.inner = inner
-        self.name = inner.name  # type: ignore[misc]
-        self.supports_unseen_grids = inner.supports_unseen_grids  # type: ignore[misc]
-        self.fingerprint, self.run_info = inner.fingerprint, inner.run_info
         self._rows: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
+        self._sha256: str | None = None
 
     @staticmethod
-    def of(model: LSCMModel) -> APSCache:
-        """``model`` itself when it is a cache already, else a fresh cache of it."""
-        return model if isinstance(model, APSCache) else APSCache(model)
+    def of(source: APSSource) -> APSCache:
+        """``source`` itself when it is a cache already, else a fresh cache of it."""
+        return source if isinstance(source, APSCache) else APSCache(source)
+
+    # the wrapped source's facts
+    @property
+    def name(self) -> str:
+        return self.inner.name
+
+    @property
+    def angle_grid(self) -> AngleGrid:
+        return self.inner.angle_grid
+
+    @property
+    def device(self) -> torch.device:
+        return self.inner.device
+
+    @property
+    def supports_unseen_grids(self) -> bool:
+        return self.inner.supports_unseen_grids
+
+    @property
+    def fingerprint(self) -> str | None:
+        return self.inner.fingerprint
+
+    @property
+    def run_info(self) -> dict[str, Any]:
+        return self.inner.run_info
+
+    def content_sha256(self) -> str:
+        """The wrapped source's key (:func:`~rflscm.models.source.source_sha256`)."""
+        if self._sha256 is None:
+            self._sha256 = source_sha256(self.inner)
+        return self._sha256
 
     def __len__(self) -> int:
         return len(self._rows)
@@ -65,20 +117,6 @@ class APSCache(LSCMModel):
     def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
         return self.inner.level_offset_db(cell_ids, beam_type)
 
-    # the contract's learning and persistence belong to the wrapped model
-    @classmethod
-    def build(
-        cls, config: str | Path | dict[str, Any] | None, angle_grid: AngleGrid, device: torch.device | str
-    ) -> LSCMModel:
-        raise UnsupportedError("an APS cache wraps a fitted model")
-
-    def state_dict_for_checkpoint(self) -> dict[str, Any]:
-        raise UnsupportedError("an APS cache wraps a fitted model; save the model itself")
-
-    @classmethod
-    def from_checkpoint(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> LSCMModel:
-        raise UnsupportedError("an APS cache wraps a fitted model")
-
 
 def _later_duplicates(keys: list[tuple[int, int]]) -> set[int]:
     """Positions of keys that occur earlier in ``keys`` (computed once, by their first position)."""
@@ -89,3 +127,241 @@ def _later_duplicates(keys: list[tuple[int, int]]) -> set[int]:
             later.add(i)
         seen.add(key)
     return later
+
+
+def measured_grids(scenario: Scenario, cell_id: int) -> np.ndarray:
+    """Grids with round-1 measurements of ``cell_id`` (what WNOMP has an APS for), sorted."""
+    m = scenario.measurements
+    sel = ((m["round"] == 1) & (m["cell_id"] == cell_id)).to_numpy()
+    return np.unique(m["grid_id"].to_numpy()[sel])
+
+
+@dataclass
+class ScenarioAPS:
+    """Per-cell APS on the kept bins, for every grid of a scenario.
+
+    Attributes:
+        cell_ids: ``[num_cells]`` sorted; grid_ids: ``[num_grids]`` sorted.
+        bins: per cell, the kept flat bin indices ``[num_kept]`` of :attr:`angle_grid`.
+        aps: per cell, ``[num_grids, num_kept]`` float32 linear path gain (zero rows: no APS).
+        known: ``[num_cells, num_grids]`` pairs the source has an APS for (all True for field models;
+            WNOMP: the measured round-1 pairs only).
+        angle_grid: the source's angle grid; model: the source's name.
+        source_sha256: the source's key (:func:`~rflscm.models.source.source_sha256`).
+        fingerprint: the fingerprint of the scenario the source was fitted for.
+    """
+
+    cell_ids: np.ndarray
+    grid_ids: np.ndarray
+    bins: list[np.ndarray]
+    aps: list[torch.Tensor]
+    known: np.ndarray
+    angle_grid: AngleGrid
+    model: str
+    source_sha256: str = ""
+    fingerprint: str | None = None
+
+    # --- building ------------------------------------------------------------------------------------
+    @classmethod
+    def render(
+        cls,
+        source: APSSource,
+        scenario: Scenario,
+        chunk: int = 1024,
+        on_cell: Callable[[int, int], None] | None = None,
+    ) -> ScenarioAPS:
+        """Render the APS of every (cell, grid) pair once (field models) or of the measured pairs (sources
+        without unseen grids, i.e. WNOMP) and keep the bins any grid uses; a non-finite or negative APS is
+        refused (:func:`~rflscm.models.source.checked_aps`).  ``on_cell(done, total)`` after each cell."""
+        cell_ids, grid_ids = scenario.cell_ids(), scenario.grid_ids()
+        xyz_all = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
+        known = np.zeros((len(cell_ids), len(grid_ids)), dtype=bool)
+        bins, aps = [], []
+        for i, cell in enumerate(cell_ids):
+            rows = (
+                np.arange(len(grid_ids))
+                if source.supports_unseen_grids
+                else np.searchsorted(grid_ids, measured_grids(scenario, int(cell)))
+            )
+            known[i, rows] = True
+            dense = torch.zeros(len(grid_ids), source.angle_grid.num_bins)
+            for start in range(0, len(rows), chunk):
+                sel = rows[start : start + chunk]
+                with torch.no_grad():
+                    x = checked_aps(source, np.full(len(sel), cell), grid_ids[sel], xyz_all[sel])
+                dense[torch.as_tensor(sel)] = x.detach().float().cpu()
+            keep = torch.nonzero(dense.amax(dim=0) > 0).reshape(-1)
+            bins.append(keep.numpy())
+            aps.append(dense[:, keep].contiguous())
+            if on_cell is not None:
+                on_cell(i + 1, len(cell_ids))
+        return cls(cell_ids, grid_ids, bins, aps, known, source.angle_grid, source.name, source_sha256(source),
+                   source.fingerprint)  # fmt: skip
+
+    # --- the file --------------------------------------------------------------------------------------
+    def _payload(self) -> dict[str, Any]:
+        return {
+            "model": self.model,
+            "source_sha256": self.source_sha256,
+            "fingerprint": self.fingerprint,
+            "angle_grid": self.angle_grid.to_dict(),
+            "cell_ids": torch.as_tensor(np.asarray(self.cell_ids, dtype=np.int64)),
+            "grid_ids": torch.as_tensor(np.asarray(self.grid_ids, dtype=np.int64)),
+            "known": torch.as_tensor(np.asarray(self.known, dtype=bool)),
+            "bins": [torch.as_tensor(np.asarray(b, dtype=np.int64)) for b in self.bins],
+            "aps": [a.detach().cpu().float().contiguous() for a in self.aps],
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write the cache atomically (a unique temporary file in the same folder, fsync, rename)."""
+        path = Path(path)
+        if path.is_dir():
+            raise APSCacheError(f"{path}: is a folder; give the APS cache a file name (e.g. {path / 'aps.pt'}).")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        payload = self._payload()
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{time.monotonic_ns()}.tmp")
+        try:
+            with open(tmp, "wb") as f:
+                torch.save({"format": CACHE_FORMAT, "sha256": content_hash(payload), "payload": payload}, f)
+                f.flush()
+                os.fsync(f.fileno())
+            tmp.replace(path)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise APSCacheError(f"{path}: cannot write the APS cache ({exc.strerror or type(exc).__name__}).") from None
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, source: APSSource | None = None, scenario: Scenario | None = None) -> ScenarioAPS:
+        """Read a cache written by :meth:`save` (never unpickling anything) and check it.
+
+        With ``source``, refuse a cache written for another source (another checkpoint, retrained model or grid);
+        with ``scenario``, one of another scenario or whose cells and grids differ from the scenario's.
+
+        Raises:
+            APSCacheError: not a cache file, damaged or edited, holds Python objects (refused unread), of another
+                source or scenario, inconsistent shapes, or APS that are not finite and ≥ 0.
+        """
+        path = Path(path)
+        payload = _read(path)
+        try:
+            cache = cls._from_payload(payload)
+        except (KeyError, TypeError, ValueError, IndexError, RflscmError) as exc:
+            raise APSCacheError(f"{path}: not a consistent APS cache ({type(exc).__name__}: {exc}).") from None
+        cache._check(path)
+        if source is not None and cache.source_sha256 != source_sha256(source):
+            raise APSCacheError(
+                f"{path}: this APS cache was written for another checkpoint ({cache.model}, content "
+                f"{cache.source_sha256[:12]}…, this {source.name} model has {source_sha256(source)[:12]}…); delete it "
+                "or give another --aps-cache path."
+            )
+        if scenario is not None and (
+            cache.fingerprint != scenario.fingerprint()
+            or not np.array_equal(cache.cell_ids, scenario.cell_ids())
+            or not np.array_equal(cache.grid_ids, scenario.grid_ids())
+        ):
+            raise APSCacheError(
+                f"{path}: this APS cache was written for another scenario than {scenario.meta.name!r} (other "
+                "fingerprint, cells or grids); delete it or give another --aps-cache path."
+            )
+        return cache
+
+    @classmethod
+    def _from_payload(cls, p: dict[str, Any]) -> ScenarioAPS:
+        def tensor(value: object, what: str) -> torch.Tensor:
+            if not isinstance(value, torch.Tensor):
+                raise TypeError(f"`{what}` is not a tensor")
+            return value
+
+        def tensors(value: object, what: str) -> list[torch.Tensor]:
+            if not isinstance(value, list):
+                raise TypeError(f"`{what}` is not a list of tensors")
+            return [tensor(v, what) for v in value]
+
+        fingerprint = p.get("fingerprint")
+        return cls(
+            cell_ids=tensor(p["cell_ids"], "cell_ids").numpy().astype(np.int64),
+            grid_ids=tensor(p["grid_ids"], "grid_ids").numpy().astype(np.int64),
+            bins=[b.numpy().astype(np.int64) for b in tensors(p["bins"], "bins")],
+            aps=tensors(p["aps"], "aps"),
+            known=tensor(p["known"], "known").numpy().astype(bool),
+            angle_grid=AngleGrid.from_dict(p["angle_grid"]),
+            model=str(p["model"]),
+            source_sha256=str(p["source_sha256"]),
+            fingerprint=None if fingerprint is None else str(fingerprint),
+        )
+
+    def _check(self, path: Path) -> None:
+        n_cells, n_grids, n_bins = len(self.cell_ids), len(self.grid_ids), self.angle_grid.num_bins
+        if (
+            self.known.shape != (n_cells, n_grids)
+            or len(self.bins) != n_cells
+            or len(self.aps) != n_cells
+            or any(b.ndim != 1 or (len(b) and (b.min() < 0 or b.max() >= n_bins)) for b in self.bins)
+            or any(a.shape != (n_grids, len(b)) or not a.is_floating_point() for a, b in zip(self.aps, self.bins))
+        ):
+            raise APSCacheError(f"{path}: not a consistent APS cache (its shapes do not fit together); delete it.")
+        for cell, a in zip(self.cell_ids, self.aps, strict=True):
+            bad = ~torch.isfinite(a) | (a < 0)
+            if bool(bad.any()):
+                raise APSCacheError(
+                    f"{path}: the APS cache holds non-finite or negative APS (cell {int(cell)}, {int(bad.sum())} "
+                    "values); it is damaged: delete it and render the APS again."
+                )
+
+
+def _read(path: Path) -> dict[str, Any]:
+    """The verified payload of an APS cache file (``torch.load(weights_only=True)``: tensors and plain data only)."""
+    if path.is_dir():
+        raise APSCacheError(f"{path}: is a folder, not an APS cache file.")
+    if not path.is_file():
+        raise APSCacheError(f"{path}: APS cache not found (or not a regular file).")
+    try:
+        is_zip = zipfile.is_zipfile(path)
+    except OSError as exc:
+        raise APSCacheError(f"{path}: cannot read the APS cache ({exc.strerror or type(exc).__name__}).") from None
+    if not is_zip:
+        raise APSCacheError(f"{path}: not an rflscm APS cache (not a PyTorch archive; another kind of file).")
+    try:
+        archive = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        if "unsupported global" in str(exc).lower() or "unsupported class" in str(exc).lower():
+            raise APSCacheError(
+                f"{path}: refused: the file holds Python objects other than tensors and plain data, which could run "
+                "code when loaded; rflscm APS caches never do (delete it and render the APS again)."
+            ) from None
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        raise APSCacheError(f"{path}: not a readable rflscm APS cache ({first}).") from None
+    except Exception as exc:  # damaged archives raise anything from RuntimeError to EOFError
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        raise APSCacheError(f"{path}: not a readable rflscm APS cache (damaged or truncated: {first}).") from None
+    if not isinstance(archive, dict) or archive.get("format") != CACHE_FORMAT:
+        raise APSCacheError(f"{path}: not an rflscm APS cache (no `{CACHE_FORMAT}` header).")
+    payload = archive.get("payload")
+    if not isinstance(payload, dict) or archive.get("sha256") != content_hash(payload):
+        raise APSCacheError(
+            f"{path}: the APS cache's content does not match the SHA-256 written when it was saved (damaged or "
+            "edited); delete it and render the APS again."
+        )
+    return payload
+
+
+def load_or_render(
+    source: APSSource,
+    scenario: Scenario,
+    path: str | Path | None,
+    on_cell: Callable[[int, int], None] | None = None,
+) -> tuple[ScenarioAPS, float]:
+    """``source``'s APS of ``scenario``: read from ``path`` when it exists (refused unless written for this very
+    source and scenario, see :meth:`ScenarioAPS.load`), else rendered and, with ``path``, written there.
+    Returns the cache and the seconds it took."""
+    t0 = time.perf_counter()
+    if path is not None and Path(path).exists():
+        return ScenarioAPS.load(path, source, scenario), time.perf_counter() - t0
+    cache = ScenarioAPS.render(source, scenario, on_cell=on_cell)
+    if path is not None:
+        cache.save(path)
+    return cache, time.perf_counter() - t0
+
+
+__all__ = ["CACHE_FORMAT", "APSCache", "APSCacheError", "ScenarioAPS", "load_or_render", "measured_grids"]

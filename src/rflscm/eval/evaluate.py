@@ -74,7 +74,8 @@ from rflscm.eval.cache import APSCache
 from rflscm.eval.oracle import OracleModel
 from rflscm.eval.protocols import AdjustProtocol, Protocol, protocol_from_dict, protocol_to_dict
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import LSCMModel, UnsupportedError
+from rflscm.models.base import UnsupportedError
+from rflscm.models.source import APSSource, checked_aps, predict_rsrp
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
@@ -116,7 +117,7 @@ class Evaluation:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def resolve_protocol(model: LSCMModel, protocol: Protocol | str | None) -> Protocol:
+def resolve_protocol(model: APSSource, protocol: Protocol | str | None) -> Protocol:
     """The protocol to evaluate with: the one stored at training (``model.run_info["protocol"]``).
 
     ``protocol`` may name it (``"unseen"``) or give it in full; it must agree with the stored one, since
@@ -145,18 +146,25 @@ def resolve_protocol(model: LSCMModel, protocol: Protocol | str | None) -> Proto
     return protocol if isinstance(protocol, AdjustProtocol) else AdjustProtocol()
 
 
-def evaluate(model: LSCMModel, scenario: Scenario, protocol: Protocol | None = None, **options: Any) -> dict[str, Any]:
+def evaluate(
+    model: APSSource,
+    scenario: Scenario,
+    protocol: Protocol | None = None,
+    oracle: APSSource | str | None = "auto",
+    top_k: int = 5,
+    max_aps_pairs: int = MAX_APS_PAIRS,
+) -> dict[str, Any]:
     """Evaluate ``model`` on ``scenario`` under ``protocol`` (default: the one stored at training, else
-    ``adjust``); returns the nested metrics dict documented in the module docstring.  ``options`` go to
-    :func:`run_evaluation`."""
-    return run_evaluation(model, scenario, protocol, **options).metrics
+    ``adjust``); returns the nested metrics dict documented in the module docstring; the other arguments are
+    :func:`run_evaluation`'s."""
+    return run_evaluation(model, scenario, protocol, oracle, top_k, max_aps_pairs).metrics
 
 
 def run_evaluation(
-    model: LSCMModel,
+    model: APSSource,
     scenario: Scenario,
     protocol: Protocol | None = None,
-    oracle: LSCMModel | str | None = "auto",
+    oracle: APSSource | str | None = "auto",
     top_k: int = 5,
     max_aps_pairs: int = MAX_APS_PAIRS,
 ) -> Evaluation:
@@ -164,7 +172,7 @@ def run_evaluation(
 
     Args:
         oracle: ``"auto"`` (build :class:`~rflscm.eval.oracle.OracleModel` when the scenario has ground
-            truth), an already fitted model, or ``None`` (no oracle, no APS metrics).
+            truth), an already fitted source, or ``None`` (no oracle, no APS metrics).
         top_k: bins per APS compared by the angular error.
         max_aps_pairs: APS metrics use at most this many test pairs (seeded subsample).
     """
@@ -210,9 +218,9 @@ def run_evaluation(
 
 
 def _oracle(
-    scenario: Scenario, model: LSCMModel, oracle: LSCMModel | str | None, test_round: int = 1
-) -> LSCMModel | None:
-    if oracle is None or isinstance(oracle, LSCMModel):
+    scenario: Scenario, model: APSSource, oracle: APSSource | str | None, test_round: int = 1
+) -> APSSource | None:
+    if oracle is None or not isinstance(oracle, str):
         return oracle
     if oracle != "auto":
         raise ConfigError(f"oracle must be 'auto', a fitted model or None (got {oracle!r}).")
@@ -233,11 +241,11 @@ def _trained_pairs(train: Scenario) -> pd.MultiIndex:
 
 
 def _predict(
-    model: LSCMModel, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, width: int
+    model: APSSource, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, width: int
 ) -> np.ndarray:
     out = np.full((len(pairs), width), np.nan)
     if len(pairs):
-        pred = model.predict_rsrp(scenario, round, beam_type, pairs.reset_index(drop=True))
+        pred = predict_rsrp(model, scenario, round, beam_type, pairs.reset_index(drop=True))
         out[:, : pred.shape[1]] = pred[:, :width]
     return out
 
@@ -251,11 +259,18 @@ class _SensingCache:
         self._size = size
         self._cache: dict[tuple, torch.Tensor] = {}
 
-    def __getattr__(self, name: str) -> Any:
+    def __getattr__(self, name: str) -> object:
         return getattr(self._scenario, name)
 
-    def sensing(self, cell_id: int, beam_type: str, directions: Any, round: int = 1, dtype: torch.dtype = torch.float32,
-                device: Any = None) -> torch.Tensor:  # fmt: skip
+    def sensing(
+        self,
+        cell_id: int,
+        beam_type: str,
+        directions: AngleGrid | torch.Tensor,
+        round: int = 1,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str | None = None,
+    ) -> torch.Tensor:
         if not isinstance(directions, AngleGrid):
             return self._scenario.sensing(cell_id, beam_type, directions, round=round, dtype=dtype, device=device)
         key = (int(cell_id), beam_type, directions, round, dtype, str(device))
@@ -269,7 +284,7 @@ class _SensingCache:
 
 
 def _predict_where_possible(
-    model: LSCMModel, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, width: int, ask: np.ndarray
+    model: APSSource, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, width: int, ask: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, str | None]:
     """Predictions of the ``ask`` rows of one cell's pairs; :class:`UnsupportedError` leaves them NaN.
 
@@ -284,8 +299,8 @@ def _predict_where_possible(
 
 
 def _predict_beam_type(
-    model: LSCMModel,
-    oracle: LSCMModel | None,
+    model: APSSource,
+    oracle: APSSource | None,
     scenario: Scenario,
     train: Scenario,
     round: int,
@@ -318,7 +333,7 @@ def _predict_beam_type(
     return res, why
 
 
-def _noiseless(scenario: Any, round: int, beam_type: str, pairs: pd.DataFrame, width: int) -> np.ndarray | None:
+def _noiseless(scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, width: int) -> np.ndarray | None:
     """The truth's noiseless RSRP [dBm] ``[num_pairs, width]`` of the test pairs (NaN where truth left a pair out)."""
     from rflscm.data.io import read_table
 
@@ -335,7 +350,7 @@ def _noiseless(scenario: Any, round: int, beam_type: str, pairs: pd.DataFrame, w
     return out
 
 
-def _bounds(scenario: Any, round: int, beam_type: str, pairs: pd.DataFrame, measured: np.ndarray) -> np.ndarray | None:
+def _bounds(scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, measured: np.ndarray) -> np.ndarray | None:
     from rflscm.data.reporting import missing_bounds
 
     try:
@@ -437,7 +452,7 @@ def _per_cell(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, An
     return out
 
 
-def _unseen_block(model: LSCMModel, beams: dict[str, BeamResult]) -> dict[str, Any]:
+def _unseen_block(model: APSSource, beams: dict[str, BeamResult]) -> dict[str, Any]:
     block: dict[str, Any] = {
         "mae_db": {},
         "oracle_mae_db": {},
@@ -463,8 +478,8 @@ def _unseen_block(model: LSCMModel, beams: dict[str, BeamResult]) -> dict[str, A
 
 
 def _aps_metrics(
-    model: LSCMModel,
-    oracle: LSCMModel | None,
+    model: APSSource,
+    oracle: APSSource | None,
     beams: dict[str, BeamResult],
     evaluation: Evaluation,
     top_k: int,
@@ -510,9 +525,9 @@ def _aps_metrics(
     return out
 
 
-def _aps_chunk(model: LSCMModel, cells: np.ndarray, grids: np.ndarray) -> np.ndarray:
+def _aps_chunk(model: APSSource, cells: np.ndarray, grids: np.ndarray) -> np.ndarray:
     with torch.no_grad():
-        return model.checked_aps(cells, grids).detach().float().cpu().numpy()
+        return checked_aps(model, cells, grids).detach().float().cpu().numpy()
 
 
 def _counts(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, Any]:
@@ -532,7 +547,7 @@ def _counts(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, Any]
 
 
 def _assemble(
-    model: LSCMModel,
+    model: APSSource,
     scenario: Scenario,
     protocol: Protocol,
     test_round: int,

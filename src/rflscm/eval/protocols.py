@@ -25,6 +25,7 @@ protocol       train → test
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -66,7 +67,9 @@ def _measured_grids(rows: pd.DataFrame) -> np.ndarray:
     return np.unique(rows.loc[rows["rsrp_dbm"].notna().to_numpy(), "grid_id"].to_numpy(np.int64))
 
 
-def _test_tables(scenario: Scenario, round: int, keep: Any = None) -> dict[str, tuple[pd.DataFrame, np.ndarray]]:
+def _test_tables(
+    scenario: Scenario, round: int, keep: Callable[[pd.DataFrame], np.ndarray] | None = None
+) -> dict[str, tuple[pd.DataFrame, np.ndarray]]:
     """Per beam type, the pairs of ``round`` (filtered by ``keep(pairs) -> bool mask``) with a reported beam."""
     tables = {}
     for beam_type in BEAM_TYPES:
@@ -214,7 +217,7 @@ Protocol = AdjustProtocol | UnseenProtocol | MultiFreqProtocol
 PROTOCOLS: dict[str, type] = {"adjust": AdjustProtocol, "unseen": UnseenProtocol, "multifreq": MultiFreqProtocol}
 
 
-def make_protocol(name: str, **settings: Any) -> Protocol:
+def make_protocol(name: str, **settings: object) -> Protocol:
     """A protocol by name with optional settings (e.g. ``make_protocol("unseen", fraction=0.2)``)."""
     if name not in PROTOCOLS:
         raise ConfigError(f"unknown protocol {name!r}; choose one of: {', '.join(PROTOCOLS)}.")

@@ -15,6 +15,7 @@ from rflscm.geometry import engineering_to_internal
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
+    from rflscm.models.source import APSSource
 
 APS_EXAMPLES = 3
 
@@ -107,7 +108,7 @@ def _signed_errors(evaluation: Evaluation) -> dict[str, dict[str, np.ndarray]]:
     return out
 
 
-def _aps_figure(evaluation: Evaluation, scenario: Scenario, model: Any, out: Path) -> Path | None:
+def _aps_figure(evaluation: Evaluation, scenario: Scenario, model: APSSource, out: Path) -> Path | None:
     if (
         evaluation.aps_pairs is None
         or not len(evaluation.aps_pairs)
@@ -132,7 +133,7 @@ def _aps_figure(evaluation: Evaluation, scenario: Scenario, model: Any, out: Pat
     )
 
 
-def write_report(evaluation: Evaluation, scenario: Scenario, model: Any, out_dir: str | Path) -> Path:
+def write_report(evaluation: Evaluation, scenario: Scenario, model: APSSource, out_dir: str | Path) -> Path:
     """Write ``report.md``, ``metrics.json`` and the PNG figures into ``out_dir``; returns the Markdown path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

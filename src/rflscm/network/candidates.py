@@ -2,7 +2,8 @@
 
 The APS lives in the world frame (SPEC §2), so a candidate antenna setting changes only A.  Per cell
 we keep its APS at every grid, ``aps[num_grids, num_kept]``, on the bins where any grid has power
-(dropping all-zero columns is exact: they add nothing to r = A x), and build the candidate sensing
+(dropping all-zero columns is exact: they add nothing to r = A x; :class:`rflscm.eval.cache.ScenarioAPS`,
+the one APS cache of evaluation, prediction and optimisation), and build the candidate sensing
 matrices of many settings at once with the very functions :func:`rflscm.antenna.sensing_matrix`
 uses: one rotation → element gain and steering vectors ``[num_kept, num_elements]`` once, then one
 complex product with the stacked beam weights of every (electrical tilt, codebook) candidate.
@@ -11,85 +12,21 @@ complex product with the stacked beam weights of every (electrical tilt, codeboo
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 
 from rflscm.antenna.array import steering_vectors
 from rflscm.antenna.sensing import beam_weights
+from rflscm.eval.cache import ScenarioAPS
 from rflscm.network.space import CellOptions
 
-
-@dataclass
-class ApsCache:
-    """Per-cell APS on the kept bins, for every grid of the scenario.
-
-    Attributes:
-        cell_ids: ``[num_cells]`` sorted; grid_ids: ``[num_grids]`` sorted.
-        bins: per cell, the kept flat bin indices ``[num_kept]`` of the model's angle grid.
-        aps: per cell, ``[num_grids, num_kept]`` float32 linear path gain (zero rows: no APS).
-        known: ``[num_cells, num_grids]`` pairs the model has an APS for (all True for field models;
-            WNOMP: the measured round-1 pairs only).
-        angle_grid: the model's angle grid; model: the model's name.
-    """
-
-    cell_ids: np.ndarray
-    grid_ids: np.ndarray
-    bins: list[np.ndarray]
-    aps: list[torch.Tensor]
-    known: np.ndarray
-    angle_grid: Any
-    model: str
-
-    def save(self, path: Any) -> None:
-        torch.save(
-            {k: getattr(self, k) for k in (f.name for f in dataclasses.fields(self))},
-            path,
-        )
-
-    @classmethod
-    def load(cls, path: Any) -> ApsCache:
-        return cls(**torch.load(path, map_location="cpu", weights_only=False))
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 
-def measured_grids(scenario: Any, cell_id: int) -> np.ndarray:
-    """Grids with round-1 measurements of ``cell_id`` (what WNOMP has an APS for), sorted."""
-    m = scenario.measurements
-    sel = ((m["round"] == 1) & (m["cell_id"] == cell_id)).to_numpy()
-    return np.unique(m["grid_id"].to_numpy()[sel])
-
-
-def cache_aps(model: Any, scenario: Any, chunk: int = 1024, on_cell: Any = None) -> ApsCache:
-    """Render the APS of every (cell, grid) pair once (field models) or of the measured pairs (models
-    without unseen grids, i.e. WNOMP) and keep the bins any grid uses.
-
-    ``on_cell(done, total)`` is called after each cell (progress bars).
-    """
-    cell_ids, grid_ids = scenario.cell_ids(), scenario.grid_ids()
-    xyz_all = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
-    known = np.zeros((len(cell_ids), len(grid_ids)), dtype=bool)
-    bins, aps = [], []
-    for i, cell in enumerate(cell_ids):
-        rows = (
-            np.arange(len(grid_ids))
-            if model.supports_unseen_grids
-            else np.searchsorted(grid_ids, measured_grids(scenario, int(cell)))
-        )
-        known[i, rows] = True
-        dense = torch.zeros(len(grid_ids), model.angle_grid.num_bins)
-        for start in range(0, len(rows), chunk):
-            sel = rows[start : start + chunk]
-            with torch.no_grad():
-                x = model.aps(np.full(len(sel), cell), grid_ids[sel], xyz_all[sel])
-            dense[torch.as_tensor(sel)] = x.detach().float().cpu()
-        keep = torch.nonzero(dense.amax(dim=0) > 0).reshape(-1)
-        bins.append(keep.numpy())
-        aps.append(dense[:, keep].contiguous())
-        if on_cell is not None:
-            on_cell(i + 1, len(cell_ids))
-    return ApsCache(cell_ids, grid_ids, bins, aps, known, model.angle_grid, model.name)
+ApsCache = ScenarioAPS
+"""The optimiser's name for :class:`rflscm.eval.cache.ScenarioAPS` (rendered, saved and checked there)."""
 
 
 class CellSensing:
@@ -102,8 +39,9 @@ class CellSensing:
         options: the cell's search options.
     """
 
-    def __init__(self, scenario: Any, cell_id: int, base_round: int, directions: torch.Tensor,
-                 options: CellOptions) -> None:  # fmt: skip
+    def __init__(
+        self, scenario: Scenario, cell_id: int, base_round: int, directions: torch.Tensor, options: CellOptions
+    ) -> None:
         self.antenna = scenario.antenna(cell_id, base_round)
         self.wavelength_m = scenario.wavelength_m(cell_id)
         self.codebooks = [scenario.meta.codebooks[name] for name in options.values["ssb_codebook"]]

@@ -13,7 +13,8 @@ import pandas as pd
 import yaml
 
 from rflscm.errors import ConfigError
-from rflscm.network.candidates import ApsCache, cache_aps
+from rflscm.eval.cache import load_or_render as load_or_cache_aps  # noqa: F401  (the CLI and B7 call it here)
+from rflscm.network.candidates import ApsCache
 from rflscm.network.kpi import KPIConfig
 from rflscm.network.search import (
     NetworkEvaluator,
@@ -66,24 +67,6 @@ class OptimizeResult:
             out["truth"] = self.truth
             out["true_gain"] = {k: self.truth["after"][k] - self.truth["before"][k] for k in keys}
         return out
-
-
-def load_or_cache_aps(model: Any, scenario: Any, path: Path | None, on_cell: Any = None) -> tuple[ApsCache, float]:
-    """The model's APS cache (read from ``path`` when it holds this model's cache, else rendered and written)."""
-    t0 = time.perf_counter()
-    if path is not None and Path(path).is_file():
-        cache = ApsCache.load(path)
-        if (
-            cache.model == model.name
-            and np.array_equal(cache.cell_ids, scenario.cell_ids())
-            and np.array_equal(cache.grid_ids, scenario.grid_ids())
-        ):
-            return cache, time.perf_counter() - t0
-    cache = cache_aps(model, scenario, on_cell=on_cell)
-    if path is not None:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        cache.save(path)
-    return cache, time.perf_counter() - t0
 
 
 def run_optimize(

@@ -1,0 +1,150 @@
+"""What evaluation, prediction and the optimiser ask of a model: an :class:`APSSource`.
+
+A fitted model (:class:`~rflscm.models.base.LSCMModel`), the oracle (:mod:`rflscm.eval.oracle`) and an APS
+cache (:mod:`rflscm.eval.cache`) all answer the APS of (cell, grid) pairs on an angle grid; nothing downstream
+of training needs more (no ``build``, no ``fit``, no checkpoint).  The shared prediction r = A′ x lives here as
+free functions over that protocol (:func:`checked_aps`, :func:`predict_rsrp`), so the oracle and the caches
+predict exactly like the models without pretending to be one.  :func:`source_sha256` names what a source
+answers, the key of the persisted APS caches.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Protocol, cast, runtime_checkable
+
+import numpy as np
+import pandas as pd
+import torch
+
+from rflscm.models.base import MIN_POWER_MW, LSCMModel, NonFiniteError, content_hash, to_plain
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
+    from rflscm.geometry import AngleGrid
+
+
+@runtime_checkable
+class APSSource(Protocol):
+    """Anything that answers the APS of (cell, grid) pairs (a fitted model, the oracle, an APS cache).
+
+    Read-only members, so a model's class attributes (``name``, ``supports_unseen_grids``) satisfy them.
+    """
+
+    @property
+    def name(self) -> str:
+        """The model's registry name (``"rflscm"``, ``"wnomp"``, ...) or ``"oracle"``."""
+        ...
+
+    @property
+    def angle_grid(self) -> AngleGrid:
+        """The grid every APS row lives on."""
+        ...
+
+    @property
+    def device(self) -> torch.device: ...
+
+    @property
+    def supports_unseen_grids(self) -> bool:
+        """False: only pairs with training data have an APS (WNOMP)."""
+        ...
+
+    @property
+    def fingerprint(self) -> str | None:
+        """Fingerprint of the full scenario the source was fitted for."""
+        ...
+
+    @property
+    def run_info(self) -> dict[str, Any]:
+        """Plain-data facts of the run (protocol, fit summary); evaluation reads ``protocol`` and ``fit``."""
+        ...
+
+    def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
+        """APS ``[num_pairs, num_bins]`` (linear path gain) of pairs ``cell_ids`` × ``grid_ids``; ``grid_xyz
+        [num_pairs, 3]`` places grids the source has not seen.  :class:`UnsupportedError` where it has no answer."""
+        ...
+
+    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
+        """dB added to each pair's ``beam_type`` prediction on top of A x, or None."""
+        ...
+
+
+def checked_aps(
+    source: APSSource, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None
+) -> torch.Tensor:
+    """``source.aps``, refusing an answer that is not finite and ≥ 0 (never write NaN or drop beams silently)."""
+    x = source.aps(cell_ids, grid_ids, grid_xyz)
+    bad = ~torch.isfinite(x) | (x < 0)
+    if bool(bad.any()):
+        pair = int(torch.nonzero(bad.any(1))[0, 0])
+        raise NonFiniteError(
+            f"the {source.name} model answered a non-finite or negative APS for (cell {int(cell_ids[pair])}, grid "
+            f"{int(grid_ids[pair])}) ({int(bad.any(1).sum())} of {len(x)} pairs); its checkpoint is damaged or "
+            "its training diverged: retrain it with the `train` command."
+        )
+    return x
+
+
+def predict_rsrp(
+    source: APSSource, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, chunk: int = 4096
+) -> np.ndarray:
+    """Predicted RSRP [dBm] ``[num_pairs, max_beams]`` (NaN past a cell's codebook size) of ``source`` under the
+    antenna configuration of ``round`` for ``pairs`` (columns ``cell_id``, ``grid_id``): r = A′ x in dB plus the
+    source's level offset (the same computation as :meth:`LSCMModel.predict_rsrp`)."""
+    cell_ids = pairs["cell_id"].to_numpy()
+    grid_ids = pairs["grid_id"].to_numpy()
+    grid_xyz = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
+    max_beams = (
+        max(scenario.codebook(c, beam_type, round).num_beams for c in np.unique(cell_ids)) if len(pairs) else 0
+    )
+    out = np.full((len(pairs), max_beams), np.nan)
+    for cell in np.unique(cell_ids):
+        rows = np.flatnonzero(cell_ids == cell)
+        a = scenario.sensing(cell, beam_type, source.angle_grid, round=round, device=source.device)  # [beams, bins]
+        for start in range(0, len(rows), chunk):
+            sel = rows[start : start + chunk]
+            with torch.no_grad():
+                x = checked_aps(source, cell_ids[sel], grid_ids[sel], grid_xyz[sel])  # [pairs, bins]
+                power_mw = (x.to(a.dtype) @ a.T).clamp_min(MIN_POWER_MW)
+            out[sel, : a.shape[0]] = 10.0 * np.log10(power_mw.cpu().double().numpy())
+    offset = source.level_offset_db(cell_ids, beam_type)
+    return out if offset is None else out + offset[:, None]
+
+
+class Predicts:
+    """Mixin giving an :class:`APSSource` that is not a model the models' ``checked_aps`` / ``predict_rsrp``."""
+
+    def checked_aps(
+        self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None
+    ) -> torch.Tensor:
+        return checked_aps(cast("APSSource", self), cell_ids, grid_ids, grid_xyz)
+
+    def predict_rsrp(
+        self, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, chunk: int = 4096
+    ) -> np.ndarray:
+        return predict_rsrp(cast("APSSource", self), scenario, round, beam_type, pairs, chunk)
+
+
+def source_sha256(source: APSSource) -> str:
+    """SHA-256 (hex) of what ``source`` answers, the key of a persisted APS cache.
+
+    For a model, the content hash (:func:`rflscm.models.base.content_hash`) of what its checkpoint's payload
+    holds that decides an APS: model name, scenario fingerprint, angle grid and the fitted state (a retrained
+    model, another checkpoint or another grid gives another key; loading one checkpoint twice gives the same).
+    A source that is not a model provides ``content_sha256()`` itself (the oracle: its scenario and grid; a
+    cache: the source it wraps).
+    """
+    own = getattr(source, "content_sha256", None)
+    if callable(own):
+        return str(own())
+    if not isinstance(source, LSCMModel):
+        raise TypeError(f"{type(source).__name__} is neither a model nor has a content_sha256()")
+    payload = {
+        "model": source.name,
+        "fingerprint": source.fingerprint,
+        "angle_grid": source.angle_grid.to_dict(),
+        "state": source.state_dict_for_checkpoint(),
+    }
+    return content_hash(to_plain(payload))
+
+
+__all__ = ["APSSource", "Predicts", "checked_aps", "predict_rsrp", "source_sha256"]
