@@ -21,14 +21,17 @@ seed (validation every 20 steps on 64 pairs), 2 CPU cores; ``full`` = the whole 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from rflscm.bench import BenchContext, register_bench
-from rflscm.bench.harness import BenchSize, bench_size, load_bench_data, merge, train_and_evaluate
+from rflscm.bench.harness import BenchSize, bench_size, field_model, load_bench_data, merge, train_and_evaluate
 from rflscm.bench.report import aggregate, header, mean_std, new_figure, record, save_figure, seeds_of
 from rflscm.eval import AdjustProtocol
+
+if TYPE_CHECKING:
+    from rflscm.models.base import LSCMModel
 
 VARIANTS = {
     "rflscm_hitam": ("rflscm", {}),
@@ -68,14 +71,14 @@ def run_b2(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
         for seed in seeds:
             curve: list[tuple[float, float, float]] = []
 
-            def on_step(m: Any, row: dict[str, float], curve: list = curve) -> None:
+            def on_step(m: LSCMModel, row: dict[str, float], curve: list = curve) -> None:
                 if row["step"] % every == 0 or row["step"] == 1:
-                    curve.append((row["time_s"], row["step"], float(m.validation_mae())))
+                    curve.append((row["time_s"], row["step"], float(field_model(m).validation_mae())))
 
             r = train_and_evaluate(
                 data, model, AdjustProtocol(), extra, seed, ctx.device, on_step=on_step, time_budget_s=budget
             )
-            curve.append((r.history[-1]["time_s"], r.history[-1]["step"], float(r.model.validation_mae())))
+            curve.append((r.history[-1]["time_s"], r.history[-1]["step"], float(field_model(r.model).validation_mae())))
             runs.append(r)
             curves.append(curve)
         variants[key] = {"curves": curves, "runs": [record(r) for r in runs]}

@@ -20,7 +20,7 @@ scenario and the ``full`` preset.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -29,6 +29,7 @@ from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import (
     BenchSize,
     bench_size,
+    field_model,
     load_bench_data,
     merge,
     restrict_round1,
@@ -36,6 +37,9 @@ from rflscm.bench.harness import (
 )
 from rflscm.bench.report import aggregate, header, mae_summary, new_figure, record, save_figure, seeds_of
 from rflscm.eval import AdjustProtocol
+
+if TYPE_CHECKING:
+    from rflscm.models.rflscm import RFLSCM
 
 TRAIN_FRACTION = 0.1
 VARIANTS = {"prior_on": {}, "prior_off": {"prior": {"enabled": False}}}
@@ -82,7 +86,7 @@ def run_b4(ctx: BenchContext, size: BenchSize, extra: dict[str, Any] | None = No
             "peak_memory_mb": agg["mean"]["peak_memory_mb"],
         }
         references = references or [mae_summary(r.metrics) for r in runs]
-        maps[key] = attenuation_map(runs[0].model)
+        maps[key] = attenuation_map(field_model(runs[0].model))
     out["variants"] = variants
     reference = aggregate(references)["mean"]
     out["oracle"] = {"mae_db": reference["oracle"], "truth_mae_db": reference["truth"]["oracle"]}
@@ -93,7 +97,7 @@ def run_b4(ctx: BenchContext, size: BenchSize, extra: dict[str, Any] | None = No
     ]
     spread = aggregate(gains)
     out["prior_gain_per_seed_db"], out["prior_gain_db"], out["prior_gain_std_db"] = gains, spread["mean"], spread["std"]
-    out["plots"] = [_plot_mae(ctx, variants), _plot_maps(ctx, maps, runs[0].model)]
+    out["plots"] = [_plot_mae(ctx, variants), _plot_maps(ctx, maps, field_model(runs[0].model))]
     return out
 
 
@@ -102,9 +106,11 @@ def _diff(a: float | None, b: float | None) -> float | None:
 
 
 @torch.no_grad()
-def attenuation_map(model: Any, resolution_m: float = 4.0, heights: int = 12) -> np.ndarray:
+def attenuation_map(model: RFLSCM, resolution_m: float = 4.0, heights: int = 12) -> np.ndarray:
     """Top-down map ``[ny, nx]`` of the largest per-voxel loss [dB] at the reference carrier over height,
     Φ-weighted as rendered (δ̃ = δ^Φ), of the refinement (else only) stage of a field model."""
+    if model.scene is None:
+        raise ValueError("the field model has no scene (it was never trained)")
     frame = model.scene.frame
     lo, hi = np.asarray(frame.box_lo), np.asarray(frame.box_hi)
     xs = np.arange(lo[0], hi[0], resolution_m)
@@ -112,7 +118,7 @@ def attenuation_map(model: Any, resolution_m: float = 4.0, heights: int = 12) ->
     zs = np.linspace(max(lo[2], 0.0), hi[2], heights)
     pts = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), -1).reshape(-1, 3)
     points = torch.as_tensor(pts, dtype=torch.float32, device=model.device)
-    stage = model.stages["fine"]
+    stage: Any = model.stages["fine"]  # a RadianceStage; an nn.ModuleDict's items are typed nn.Module
     loss = stage.medium.loss_db(stage.fields.delta(stage.fields.encode(points)))
     if model.prior is not None:
         loss = loss * model.prior(points)
@@ -133,8 +139,10 @@ def _plot_mae(ctx: BenchContext, variants: dict[str, Any]) -> str:
     return save_figure(fig, ctx, "b4_mae")
 
 
-def _plot_maps(ctx: BenchContext, maps: dict[str, np.ndarray], model: Any) -> str:
+def _plot_maps(ctx: BenchContext, maps: dict[str, np.ndarray], model: RFLSCM) -> str:
     fig, axes = new_figure(ncols=len(maps))
+    if model.scene is None:
+        raise ValueError("the field model has no scene (it was never trained)")
     frame = model.scene.frame
     extent = (frame.box_lo[0], frame.box_hi[0], frame.box_lo[1], frame.box_hi[1])
     for ax, (key, m) in zip(axes, maps.items()):

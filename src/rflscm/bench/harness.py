@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import pandas as pd
@@ -31,7 +31,14 @@ from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
 
 if TYPE_CHECKING:
+    from rflscm.data.pointcloud import PointCloud
     from rflscm.data.scenario import Scenario
+    from rflscm.eval.cache import APSCache
+    from rflscm.eval.protocols import Protocol
+    from rflscm.models.base import LSCMModel
+    from rflscm.models.rflscm import RFLSCM
+    from rflscm.models.source import APSSource
+    from rflscm.models.wnomp import WNOMPModel
 
 FIELD_MODELS = ("rflscm", "nerf2")
 
@@ -152,9 +159,9 @@ def model_config(
 class BenchData:
     """The full scenario, the benchmark's sub-scenario of it, and the oracle fitted on the sub-scenario."""
 
-    full: Any
+    full: Scenario
     scenario: Scenario
-    oracle: Any | None
+    oracle: APSSource | None
     size: BenchSize
     info: dict[str, Any]
 
@@ -206,7 +213,7 @@ def restrict_round1(data: BenchData, fraction: float, seed: int = 0) -> tuple[Be
     return dataclasses.replace(data, scenario=scenario), keep
 
 
-def _site_order(full: Any) -> list[int]:
+def _site_order(full: Scenario) -> list[int]:
     """Sites with reported round-1 data, ranked by changed cells that have such data, then by reported
     (cell, grid) pairs, then by id (a ray-traced scene can leave whole sites without any report)."""
     cells = full.cells[1]
@@ -228,7 +235,7 @@ def _site_order(full: Any) -> list[int]:
     return [site for *_, site in sorted(rank)]
 
 
-def sub_scenario(full: Any, size: BenchSize) -> tuple[Any, dict[str, Any]]:
+def sub_scenario(full: Scenario, size: BenchSize) -> tuple[Scenario, dict[str, Any]]:
     """The part of ``full`` a size uses (deterministic; see :class:`BenchSize`) and a description."""
     cells1 = full.cells[1]
     sites = _site_order(full)[: size.max_sites] if size.max_sites else sorted(cells1["site_id"].unique().tolist())
@@ -256,7 +263,7 @@ def sub_scenario(full: Any, size: BenchSize) -> tuple[Any, dict[str, Any]]:
     return sub, info
 
 
-def _outside_ssb(full: Any, keep_cells: np.ndarray, grid_ids: pd.Series) -> pd.DataFrame:
+def _outside_ssb(full: Scenario, keep_cells: np.ndarray, grid_ids: pd.Series) -> pd.DataFrame:
     """The reported SSB of the cells a subset leaves out, at its grids: the interference that kept some of the
     subset's SSB beams undetected (an SS-SINR rule's bound needs it; :mod:`rflscm.data.reporting`)."""
     m = full.measurements
@@ -271,7 +278,9 @@ def _outside_ssb(full: Any, keep_cells: np.ndarray, grid_ids: pd.Series) -> pd.D
     return out[list(OUTSIDE_SSB_COLUMNS)].reset_index(drop=True)
 
 
-def _crop_cloud(cloud: Any, cells: pd.DataFrame, grids: pd.DataFrame, margin_m: float | None) -> Any:
+def _crop_cloud(
+    cloud: PointCloud | None, cells: pd.DataFrame, grids: pd.DataFrame, margin_m: float | None
+) -> PointCloud | None:
     if cloud is None or margin_m is None:
         return cloud
     pts = np.concatenate([cells[["x", "y", "z"]].to_numpy(np.float64), grids[["x", "y", "z"]].to_numpy(np.float64)])
@@ -286,20 +295,20 @@ def _crop_cloud(cloud: Any, cells: pd.DataFrame, grids: pd.DataFrame, margin_m: 
 class RunResult:
     """One model trained under one protocol and evaluated."""
 
-    model: Any
+    model: LSCMModel
     metrics: dict[str, Any]
     fit: dict[str, float]
     train_time_s: float
     memory: dict[str, float | None]
     history: list[dict[str, float]]
     config: dict[str, Any]
-    judged: Any = None
+    judged: APSCache
     """The model as evaluation saw it: an :class:`~rflscm.eval.cache.APSCache` holding the rendered test APS."""
 
 
 def build_model(
     data: BenchData, name: str, extra: dict[str, Any] | None = None, seed: int = 0, device: str = "cpu"
-) -> Any:
+) -> LSCMModel:
     """A fresh model ``name`` at the benchmark's size with ``extra`` overrides."""
     from rflscm.models import MODEL_REGISTRY
 
@@ -310,8 +319,8 @@ def build_model(
 
 
 def train_and_evaluate(
-    data: BenchData, name: str, protocol: Any = None, extra: dict[str, Any] | None = None, seed: int = 0,
-    device: str = "cpu", on_step: Callable[[Any, dict[str, float]], None] | None = None, evaluate_model: bool = True,
+    data: BenchData, name: str, protocol: Protocol | None = None, extra: dict[str, Any] | None = None, seed: int = 0,
+    device: str = "cpu", on_step: Callable[[LSCMModel, dict[str, float]], None] | None = None, evaluate_model: bool = True,
     time_budget_s: float | None = None, select_wnomp: bool = True,
 ) -> RunResult:  # fmt: skip
     """Train model ``name`` (size overrides ← ``extra``, ``train.seed`` = ``seed``) on ``protocol``'s training
@@ -365,7 +374,7 @@ def train_and_evaluate(
                      history, model.run_info["bench_config"], judged)  # fmt: skip
 
 
-def selected_wnomp(model: Any, training: Scenario, seed: int, device: str) -> Any:
+def selected_wnomp(model: LSCMModel, training: Scenario, seed: int, device: str) -> LSCMModel:
     """A WNOMP model whose settings were chosen on held-aside round-1 beams of ``training`` (the protocol's
     training data: never round 2, never the held-out grids), starting from ``model``'s configuration; the
     choice, every candidate's held-aside MAE and the time taken go to ``run_info["wnomp_selection"]``."""
@@ -373,13 +382,23 @@ def selected_wnomp(model: Any, training: Scenario, seed: int, device: str) -> An
     from rflscm.models.wnomp_select import select_wnomp
 
     t0 = time.perf_counter()
-    chosen, table = select_wnomp(training, model.angle_grid, seed=seed, device=device, base=model.config)
+    base = cast("WNOMPModel", model).config
+    chosen, table = select_wnomp(training, model.angle_grid, seed=seed, device=device, base=base)
     out = WNOMPModel(chosen, model.angle_grid, device)
     out.run_info = dict(model.run_info)
     out.run_info["bench_config"] = dataclasses.asdict(chosen)
     out.run_info["wnomp_selection"] = {"chosen": dataclasses.asdict(chosen), "time_s": time.perf_counter() - t0,
                                        "candidates": table.to_dict(orient="records")}  # fmt: skip
     return out
+
+
+def field_model(model: LSCMModel) -> RFLSCM:
+    """``model`` as the field model (RF-LSCM or NeRF²-LSCM) a benchmark probes inside (fields, validation MAE)."""
+    from rflscm.models.rflscm import RFLSCM
+
+    if not isinstance(model, RFLSCM):
+        raise TypeError(f"a field model (rflscm, nerf2) was expected, not {model.name}")
+    return model
 
 
 class _StopTraining(Exception):

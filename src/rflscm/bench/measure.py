@@ -5,11 +5,16 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 import torch
+
+if TYPE_CHECKING:
+    from rflscm.bench.harness import BenchData
+    from rflscm.models.base import LSCMModel
+    from rflscm.models.source import APSSource
 
 
 # --- memory and throughput ----------------------------------------------------------------------------
@@ -53,7 +58,7 @@ class MemoryProbe:
             if rss is not None and rss > (self.peak or 0.0):
                 self.peak = rss
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         if self.cuda:
             torch.cuda.synchronize()
             self.peak = torch.cuda.max_memory_allocated() / 2**20
@@ -71,14 +76,16 @@ class MemoryProbe:
         return {"kind": kind, "peak_mb": self.peak, "increase_mb": inc}
 
 
-def render_throughput(model: Any, data: Any, num_pairs: int = 64) -> dict[str, float | None]:
+def render_throughput(model: LSCMModel, data: BenchData, num_pairs: int = 64) -> dict[str, float | None]:
     """Inference throughput of a field model: ``model.aps`` on ``num_pairs`` training pairs.
 
     ``ray_samples_per_s`` counts every ray of the output (HiTAM: the coarse rays plus β²·K_C refinement
     rays per pair; without: every bin) times Q samples per ray, skipped empty samples included, so it
     compares like for like across models; ``decoder_evals_per_s`` counts the samples actually decoded.
     """
-    if not hasattr(model, "decoder_evals") or model.scene is None:
+    from rflscm.models.rflscm import RFLSCM
+
+    if not isinstance(model, RFLSCM) or model.scene is None:
         return {"pairs_per_s": None, "ray_samples_per_s": None, "decoder_evals_per_s": None}
     pairs = data.scenario.rsrp_table(1, "ssb")[0].iloc[:num_pairs]
     cells, grids = pairs["cell_id"].to_numpy(), pairs["grid_id"].to_numpy()
@@ -103,7 +110,9 @@ def render_throughput(model: Any, data: Any, num_pairs: int = 64) -> dict[str, f
     }
 
 
-def aps_recovery(model: Any, oracle: Any, pairs: pd.DataFrame, top_k: int = 5, max_pairs: int = 500) -> dict[str, Any]:
+def aps_recovery(
+    model: APSSource, oracle: APSSource | None, pairs: pd.DataFrame, top_k: int = 5, max_pairs: int = 500
+) -> dict[str, Any]:
     """APS recovery of ``model`` against the true APS (``oracle``) on ``pairs`` (a seeded subsample of at
     most ``max_pairs``), in the form of :func:`rflscm.eval.run_evaluation`'s ``aps`` block (which it
     computes on test pairs only): the mean and median over pairs of the per-pair NMSE [dB]
@@ -129,6 +138,6 @@ def aps_recovery(model: Any, oracle: Any, pairs: pd.DataFrame, top_k: int = 5, m
     return out
 
 
-def parameter_count(model: Any) -> int | None:
+def parameter_count(model: object) -> int | None:
     stages = getattr(model, "stages", None)
     return None if stages is None else int(sum(p.numel() for p in stages.parameters()))

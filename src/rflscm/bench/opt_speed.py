@@ -14,13 +14,17 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import scenario_path
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
+    from rflscm.eval.cache import ScenarioAPS
 
 
 @register_bench(

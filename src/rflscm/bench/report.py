@@ -5,15 +5,20 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from rflscm.bench import BenchContext
 
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
-def record(result: Any) -> dict[str, Any]:
+    from rflscm.bench.harness import BenchData, RunResult
+
+
+def record(result: RunResult) -> dict[str, Any]:
     """The numbers of one run a benchmark reports (stable keys; ``None`` where they do not apply)."""
     m = result.metrics
     unseen = (m.get("unseen") or {}).get("mae_db") or {}
@@ -68,7 +73,7 @@ def truth_summary(metrics: dict[str, Any]) -> dict[str, Any]:
 
 
 # --- reporting -----------------------------------------------------------------------------------------
-def header(ctx: BenchContext, data: Any, seeds: list[int], notes: str) -> dict[str, Any]:
+def header(ctx: BenchContext, data: BenchData, seeds: list[int], notes: str) -> dict[str, Any]:
     """The common head of every benchmark's result: size, scenario, seeds, what the size means."""
     return {"size": data.size.describe(), "scenario": data.info, "seeds": seeds, "notes": notes}
 
@@ -79,7 +84,7 @@ def seeds_of(ctx: BenchContext) -> list[int]:
     return [base + i for i in range(ctx.seeds)]
 
 
-def save_figure(fig: Any, ctx: BenchContext, name: str) -> str:
+def save_figure(fig: Figure, ctx: BenchContext, name: str) -> str:
     """Write ``fig`` as ``<out>/<name>.png`` and close it; returns the file name."""
     import matplotlib.pyplot as plt
 

@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from rflscm.data import load_scenario
-from rflscm.errors import ConfigError, DataError
+from rflscm.errors import DataError
 from rflscm.eval.oracle import OracleModel
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import MODEL_REGISTRY, UnsupportedError
+from rflscm.models.base import MODEL_REGISTRY, LSCMModel, UnsupportedError
 from rflscm.sim import ProceduralCity, SimulationConfig, build_scenario
 from rflscm.sim.truth import load_true_aps
 
@@ -88,8 +88,7 @@ def test_oracle_of_a_subset_scenario_matches_the_full_scenario_by_id(scenario, g
     assert (expected.sum(1) > 0).sum() >= 10  # enough pairs that some path reaches
     torch.testing.assert_close(load_true_aps(sub, grid).aps(c, g, dtype=torch.float64), expected, rtol=0, atol=0)
 
-    oracle = OracleModel.build(None, grid or GRID, "cpu")
-    oracle.fit(sub, progress=False)
+    oracle = OracleModel(grid or GRID, "cpu").read(sub)
     assert oracle.fingerprint == sub.fingerprint()
     torch.testing.assert_close(oracle.aps(c, g).double(), expected.float().double(), rtol=0, atol=0)
     left_out = np.setdiff1d(scenario.cell_ids(), cells)[:1]
@@ -118,14 +117,13 @@ def test_oracle_is_not_a_registered_model_and_predicts_the_noiseless_rsrp_up_to_
     ok = exact >= -120
     err = np.abs(predicted[ok] - exact[ok])
     assert np.median(err) < 1.0  # a coarse 6° × 10° grid here; the default grid is finer
-    with pytest.raises(UnsupportedError, match="no checkpoint"):
-        model.save(tmp_path / "oracle.ckpt")
+    # an evaluation device, not a model: nothing to train, save or load
+    assert not isinstance(model, LSCMModel) and not hasattr(model, "save") and not hasattr(model, "fit")
 
 
 def test_oracle_on_a_finer_grid_rebins_paths(scenario) -> None:
     fine = AngleGrid(num_el=61, num_az=72, el_min_deg=-90.0, el_step_deg=3.0)
-    model = OracleModel.build({}, fine, "cpu")
-    model.fit(scenario, progress=False)
+    model = OracleModel(fine, "cpu").read(scenario)
     pair = (scenario.cell_ids(), np.repeat(scenario.grid_ids()[:1], len(scenario.cell_ids())))
     aps = model.aps(*pair)
     assert aps.shape == (len(pair[0]), fine.num_bins)
@@ -134,7 +132,5 @@ def test_oracle_on_a_finer_grid_rebins_paths(scenario) -> None:
 
 
 def test_oracle_errors() -> None:
-    with pytest.raises(ConfigError, match="no settings"):
-        OracleModel.build({"lr": 1.0}, GRID, "cpu")
-    with pytest.raises(UnsupportedError, match="fit"):
+    with pytest.raises(UnsupportedError, match="has not read its truth"):
         OracleModel(GRID).aps(np.array([1]), np.array([1]))
