@@ -4,16 +4,17 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 import yaml
 
 from rflscm.errors import ConfigError
-from rflscm.eval.cache import load_or_render as load_or_cache_aps  # noqa: F401  (the CLI and B7 call it here)
+from rflscm.eval.cache import load_or_render as load_or_cache_aps  # noqa: F401  (the CLI calls it here)
 from rflscm.network.candidates import ApsCache
 from rflscm.network.kpi import KPIConfig
 from rflscm.network.search import (
@@ -23,6 +24,10 @@ from rflscm.network.search import (
     differential_evolution,
 )
 from rflscm.network.space import SearchSpace, cells_table, changes_table
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
+    from rflscm.network.verify import TruthVerifier
 
 METHODS = ("cd", "de")
 
@@ -70,7 +75,7 @@ class OptimizeResult:
 
 
 def run_optimize(
-    scenario: Any,
+    scenario: Scenario,
     cache: ApsCache,
     space: SearchSpace,
     base_round: int = 1,
@@ -82,7 +87,7 @@ def run_optimize(
     restarts: int = 2,
     time_budget_s: float = 60.0,
     sinr_weight: float = 0.1,
-    on_step: Any = None,
+    on_step: Callable[[], None] | None = None,
 ) -> OptimizeResult:
     """Search ``space`` on the cached APS and report KPIs before and after (and on truth).
 
@@ -130,7 +135,7 @@ def run_optimize(
     return out
 
 
-def _verifier(scenario: Any, verify: bool | None) -> Any:
+def _verifier(scenario: Scenario, verify: bool | None) -> TruthVerifier | None:
     from rflscm.network.verify import TruthVerifier
 
     if verify is False:
@@ -141,7 +146,7 @@ def _verifier(scenario: Any, verify: bool | None) -> Any:
     return TruthVerifier(scenario)  # raises DataError without truth/
 
 
-def write_round(scenario: Any, cells: pd.DataFrame, out_dir: Path) -> tuple[Path, int]:
+def write_round(scenario: Scenario, cells: pd.DataFrame, out_dir: Path) -> tuple[Path, int]:
     """Write ``out_dir/scenario/``: a copy of scenario.yaml with a new ``rounds:`` entry and its cells
     table; every other file stays where it is (absolute references), so the copy loads, checks and
     predicts like the original (same fingerprint, the checkpoint still fits).  Returns (folder, round)."""
@@ -166,7 +171,7 @@ def write_round(scenario: Any, cells: pd.DataFrame, out_dir: Path) -> tuple[Path
     return folder, rnd
 
 
-def _plain(value: Any) -> Any:
+def _plain(value: object) -> object:
     if isinstance(value, dict):
         return {k: _plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -176,7 +181,7 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def replace_cells(scenario: Any, rnd: int, cells: pd.DataFrame) -> Any:
+def replace_cells(scenario: Scenario, rnd: int, cells: pd.DataFrame) -> Scenario:
     """``scenario`` with round ``rnd`` set to ``cells`` (in memory)."""
     new = dataclasses.replace(scenario, cells={**scenario.cells, rnd: cells.reset_index(drop=True)})
     new._elements.update(scenario._elements)

@@ -4,11 +4,17 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rflscm.network.kpi import KPIConfig, grid_maps
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+    from rflscm.data.scenario import Scenario
+    from rflscm.network.optimize import OptimizeResult
 
 KPI_ROWS = (("coverage", "coverage ratio", 100.0, "%"), ("mean_sinr_db", "mean SS-SINR", 1.0, "dB"),
             ("p5_sinr_db", "5th-percentile SS-SINR", 1.0, "dB"), ("overlap", "overlap ratio", 100.0, "%"),
@@ -16,7 +22,7 @@ KPI_ROWS = (("coverage", "coverage ratio", 100.0, "%"), ("mean_sinr_db", "mean S
             ("no_signal", "no signal at all", 100.0, "%"))  # fmt: skip
 
 
-def kpi_table(result: Any) -> list[str]:
+def kpi_table(result: OptimizeResult) -> list[str]:
     """Markdown rows: KPI | predicted before | after | gain | (true before | after | gain)."""
     truth = result.truth
     head = "| KPI | predicted before | predicted after | predicted gain |"
@@ -36,7 +42,7 @@ def kpi_table(result: Any) -> list[str]:
     return lines
 
 
-def write_report(result: Any, scenario: Any, out_dir: Path, kpi: KPIConfig, round_written: int,
+def write_report(result: OptimizeResult, scenario: Scenario, out_dir: Path, kpi: KPIConfig, round_written: int,
                  scenario_dir: Path, command: str = "") -> Path:  # fmt: skip
     """Write ``report.md``, ``summary.json``, ``changes.csv`` and the map PNGs into ``out_dir``."""
     out_dir = Path(out_dir)
@@ -83,7 +89,7 @@ def write_report(result: Any, scenario: Any, out_dir: Path, kpi: KPIConfig, roun
     return path
 
 
-def _changes_md(changes: Any) -> list[str]:
+def _changes_md(changes: pd.DataFrame) -> list[str]:
     if len(changes) == 0:
         return ["No cell changed: the present configuration is the best found."]
     lines = ["| cell | site | carrier [GHz] | SSB codebook | elec. tilt [°] | mech. tilt [°] | azimuth [°] |",
@@ -97,7 +103,7 @@ def _changes_md(changes: Any) -> list[str]:
     return lines
 
 
-def _maps(result: Any, scenario: Any, out_dir: Path, kpi: KPIConfig) -> list[str]:
+def _maps(result: OptimizeResult, scenario: Scenario, out_dir: Path, kpi: KPIConfig) -> list[str]:
     """One PNG per carrier: rows before/after, columns best-server RSRP, serving cell, SS-SINR."""
     import matplotlib
 

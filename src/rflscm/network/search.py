@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -31,6 +31,9 @@ from rflscm.network.kpi import (
     network_kpis,
 )
 from rflscm.network.space import VARIABLES, SearchSpace
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 OBJECTIVES = ("coverage", "sinr", "weighted")
 Config = list[tuple[int, ...]]
@@ -57,7 +60,7 @@ class NetworkEvaluator:
         kpi: KPI constants; objective: ``coverage``, ``sinr`` or ``weighted``.
     """
 
-    def __init__(self, scenario: Any, base_round: int, cache: ApsCache, space: SearchSpace, kpi: KPIConfig,
+    def __init__(self, scenario: Scenario, base_round: int, cache: ApsCache, space: SearchSpace, kpi: KPIConfig,
                  objective: str = "coverage", sinr_weight: float = 0.1) -> None:  # fmt: skip
         objective_value({"coverage": torch.zeros(1), "num_samples": torch.ones(1), "margin": torch.zeros(1),
                          "mean_sinr_clipped_db": torch.zeros(1)}, objective)  # fmt: skip  # validates the name
@@ -272,7 +275,7 @@ def differential_evolution(
     x0 = np.array([ev.base[p] for p in free], dtype=np.float64).reshape(-1)
     bounds = [(0.0, s - 1.0) for s in sizes.reshape(-1)]
 
-    def stop(*_: Any, **__: Any) -> bool:
+    def stop(*_: object, **__: object) -> bool:
         if on_generation is not None:
             on_generation()
         return time.perf_counter() - t0 > time_budget_s

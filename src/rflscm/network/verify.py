@@ -11,7 +11,7 @@ errors); a field-regime scenario's extra effects are not modelled here (reported
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -19,6 +19,9 @@ import pandas as pd
 from rflscm.errors import DataError
 from rflscm.network.kpi import KPIConfig, network_kpis
 from rflscm.network.space import VARIABLES
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 
 class TruthVerifier:
@@ -28,7 +31,7 @@ class TruthVerifier:
         DataError: the scenario has no ``truth/`` folder (verification asked of a measured scenario).
     """
 
-    def __init__(self, scenario: Any) -> None:
+    def __init__(self, scenario: Scenario) -> None:
         from rflscm.data.io import read_table
         from rflscm.sim.paths import PATHS_FILE, site_groups
         from rflscm.sim.truth import truth_folder
