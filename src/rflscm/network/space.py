@@ -153,7 +153,7 @@ def _cell_id(value: Any, ids: np.ndarray, valid: str, where: str) -> int:
     return cell
 
 
-def _cell_spec(spec: Any, where: str) -> dict[str, Any]:
+def _cell_spec(spec: object, where: str) -> dict[str, Any]:
     if not isinstance(spec, dict):
         raise ConfigError(f"search spec `{where}` must be a mapping with keys {', '.join(sorted(_CELL_KEYS))}.")
     unknown = set(spec) - _CELL_KEYS
@@ -167,7 +167,7 @@ def _cell_spec(spec: Any, where: str) -> dict[str, Any]:
     return out
 
 
-def _range(value: Any, where: str) -> dict[str, float]:
+def _range(value: object, where: str) -> dict[str, float]:
     if not isinstance(value, dict) or not {"min", "max"} <= set(value) or set(value) - {"min", "max", "step"}:
         raise ConfigError(f"search spec `{where}` must be {{min: A, max: B, step: S}} in degrees (got {value!r}).")
     lo, hi, step = (

@@ -1,0 +1,171 @@
+"""The APS cache: the in-memory memo (:class:`APSCache`) is an APS source, not a model; the file cache
+(:class:`ScenarioAPS`) round-trips, is keyed by the checkpoint's content and is refused in one line when it
+is of another checkpoint or scenario, damaged, non-finite, or not a cache at all — and it never runs code."""
+
+from __future__ import annotations
+
+import builtins
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from rflscm.data import load_scenario
+from rflscm.data.examples import tiny_scenario
+from rflscm.eval import UnseenProtocol, fit_with_protocol
+from rflscm.eval.cache import CACHE_FORMAT, APSCache, APSCacheError, ScenarioAPS, load_or_render
+from rflscm.geometry import AngleGrid
+from rflscm.models import MODEL_REGISTRY, LSCMModel, load_model
+from rflscm.models.base import content_hash
+from rflscm.models.source import APSSource, predict_rsrp, source_sha256
+
+GRID = AngleGrid(num_el=31, num_az=36, el_min_deg=-90.0, el_step_deg=6.0)
+SRC = Path(__file__).resolve().parents[3] / "src"
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory: pytest.TempPathFactory):
+    """The tiny scenario, a WNOMP fitted on it and saved, and one fitted on fewer grids (another checkpoint)."""
+    root = tiny_scenario(tmp_path_factory.mktemp("cache") / "tiny", seed=3)
+    scenario = load_scenario(root)
+    model = MODEL_REGISTRY["wnomp"].build(None, GRID, "cpu")
+    fit_with_protocol(model, scenario, None, progress=False)
+    ckpt = model.save(root.parent / "w.ckpt")
+    other = MODEL_REGISTRY["wnomp"].build(None, GRID, "cpu")
+    fit_with_protocol(other, scenario, UnseenProtocol(fraction=0.34, seed=1), progress=False)
+    return scenario, model, ckpt, other
+
+
+def _one_line(exc: pytest.ExceptionInfo) -> str:
+    text = str(exc.value)
+    assert "\n" not in text
+    return text
+
+
+def test_the_memo_is_an_aps_source_not_a_model_and_predicts_like_its_model(fitted) -> None:
+    scenario, model, _, _ = fitted
+    cached = APSCache(model)
+    assert isinstance(cached, APSSource) and not isinstance(cached, LSCMModel)
+    assert not hasattr(cached, "save") and not hasattr(cached, "fit")
+    assert (cached.name, cached.angle_grid, cached.supports_unseen_grids) == ("wnomp", GRID, False)
+    pairs, _ = scenario.rsrp_table(1, "ssb")
+    pairs = pairs.iloc[:3].reset_index(drop=True)
+    np.testing.assert_array_equal(
+        cached.predict_rsrp(scenario, 1, "ssb", pairs), model.predict_rsrp(scenario, 1, "ssb", pairs)
+    )
+    assert len(cached) == 3  # each pair rendered once
+    assert cached.content_sha256() == source_sha256(model)
+
+
+def test_round_trip_and_the_key_survives_reloading_the_checkpoint(fitted, tmp_path: Path) -> None:
+    scenario, model, ckpt, _ = fitted
+    cache = ScenarioAPS.render(model, scenario)
+    assert cache.source_sha256 == source_sha256(model) and cache.fingerprint == scenario.fingerprint()
+    cache.save(tmp_path / "aps.pt")
+    reloaded = load_model(ckpt, scenario)  # another process would see this: the same checkpoint, read again
+    back = ScenarioAPS.load(tmp_path / "aps.pt", reloaded, scenario)
+    np.testing.assert_array_equal(back.cell_ids, cache.cell_ids)
+    np.testing.assert_array_equal(back.known, cache.known)
+    assert back.angle_grid == cache.angle_grid and back.model == "wnomp"
+    for a, b, c, d in zip(back.aps, cache.aps, back.bins, cache.bins, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+        np.testing.assert_array_equal(c, d)
+    again, _ = load_or_render(reloaded, scenario, tmp_path / "aps.pt")  # read, not rendered
+    torch.testing.assert_close(again.aps[0], cache.aps[0], rtol=0, atol=0)
+    assert not list(tmp_path.glob("*.tmp")) and not list(tmp_path.glob(".*.tmp"))
+
+
+def test_a_cache_of_another_checkpoint_or_scenario_is_refused(fitted, tmp_path: Path) -> None:
+    scenario, model, _, other = fitted
+    assert source_sha256(other) != source_sha256(model)  # same model name, same scenario: only the content differs
+    ScenarioAPS.render(model, scenario).save(tmp_path / "aps.pt")
+    with pytest.raises(APSCacheError, match="another checkpoint") as exc:
+        load_or_render(other, scenario, tmp_path / "aps.pt")
+    assert "--aps-cache" in _one_line(exc)
+    elsewhere = load_scenario(tiny_scenario(tmp_path / "t2", seed=4))
+    with pytest.raises(APSCacheError, match="another scenario"):
+        ScenarioAPS.load(tmp_path / "aps.pt", model, elsewhere)
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -1.0])
+def test_non_finite_or_negative_cached_aps_are_refused(fitted, tmp_path: Path, value: float) -> None:
+    scenario, model, _, _ = fitted
+    cache = ScenarioAPS.render(model, scenario)
+    cache.aps = [torch.full_like(a, value) for a in cache.aps]  # e.g. a diverged model's cache from elsewhere
+    cache.save(tmp_path / "bad.pt")
+    with pytest.raises(APSCacheError, match="non-finite or negative") as exc:
+        ScenarioAPS.load(tmp_path / "bad.pt", model, scenario)
+    _one_line(exc)
+
+
+def test_an_edited_cache_fails_its_hash_and_other_files_are_not_caches(fitted, tmp_path: Path) -> None:
+    scenario, model, ckpt, _ = fitted
+    cache = ScenarioAPS.render(model, scenario)
+    archive = {"format": CACHE_FORMAT, "sha256": "0" * 64, "payload": cache._payload()}
+    torch.save(archive, tmp_path / "edited.pt")
+    with pytest.raises(APSCacheError, match="does not match the SHA-256"):
+        ScenarioAPS.load(tmp_path / "edited.pt", model)
+    with pytest.raises(APSCacheError, match="no `rflscm-aps-cache/1` header"):
+        ScenarioAPS.load(ckpt, model)  # the checkpoint given as the cache: refused, never overwritten
+    (tmp_path / "notes.txt").write_text("hello")
+    for path, message in ((tmp_path / "notes.txt", "not a PyTorch archive"), (tmp_path, "is a folder"),
+                          (tmp_path / "missing.pt", "not found")):  # fmt: skip
+        with pytest.raises(APSCacheError, match=message) as exc:
+            load_or_render(model, scenario, path) if path.exists() else ScenarioAPS.load(path)
+        _one_line(exc)
+    payload = cache._payload()
+    payload["aps"] = payload["aps"][:-1]  # shapes that do not fit, under a valid hash
+    torch.save({"format": CACHE_FORMAT, "sha256": content_hash(payload), "payload": payload}, tmp_path / "cut.pt")
+    with pytest.raises(APSCacheError, match="not a consistent APS cache"):
+        ScenarioAPS.load(tmp_path / "cut.pt")
+
+
+class _Payload:
+    """Unpickling this object would create the marker file (what an attacker's cache would do instead)."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (builtins.open, (str(self.marker), "w"))
+
+
+def plant_payloads(folder: Path, marker: Path) -> list[Path]:
+    """Cache files carrying a code payload: in a torch archive (as the header, inside the payload) and as a bare
+    pickle."""
+    folder.mkdir(parents=True, exist_ok=True)
+    files = []
+    for name, obj in (("header.pt", _Payload(marker)), ("inside.pt", {"format": CACHE_FORMAT, "sha256": "x",
+                                                                        "payload": {"aps": _Payload(marker)}})):  # fmt: skip
+        torch.save(obj, folder / name)
+        files.append(folder / name)
+    (folder / "bare.pkl").write_bytes(pickle.dumps(_Payload(marker)))
+    files.append(folder / "bare.pkl")
+    assert not marker.exists()
+    return files
+
+
+def test_a_planted_code_payload_never_runs_and_is_refused_in_one_line(fitted, tmp_path: Path) -> None:
+    scenario, model, _, _ = fitted
+    marker = tmp_path / "pwned"
+    for path in plant_payloads(tmp_path / "evil", marker):
+        with pytest.raises(APSCacheError, match="refused|not a PyTorch archive") as exc:
+            load_or_render(model, scenario, path)
+        _one_line(exc)
+        assert not marker.exists(), path
+        assert path.stat().st_size > 0  # refused, not overwritten
+
+
+def test_no_loader_in_the_package_unpickles() -> None:
+    hits = [str(p) for p in SRC.rglob("*.py") if "weights_only=False" in p.read_text()]
+    assert hits == []
+
+
+def test_predict_rsrp_of_a_source_matches_the_model_method(fitted) -> None:
+    scenario, model, _, _ = fitted
+    pairs, _ = scenario.rsrp_table(2, "csi")
+    np.testing.assert_array_equal(
+        predict_rsrp(model, scenario, 2, "csi", pairs), model.predict_rsrp(scenario, 2, "csi", pairs)
+    )
