@@ -115,3 +115,39 @@ def test_verify_without_truth_exits_2(tmp_path) -> None:
     run = rflscm("optimize", str(ckpt), str(root), "--verify", "--out", str(tmp_path / "o"))
     assert run.returncode == 2 and "has no truth folder" in run.stderr
     assert len(run.stderr.strip().splitlines()) == 1
+
+
+def test_aps_cache_is_written_reused_and_refused_when_foreign_or_hostile(simulated, tmp_path) -> None:
+    import builtins
+
+    import torch
+
+    scenario, ckpt = simulated
+    cache = tmp_path / "aps.pt"
+    small = ["--tilt-range", "0:4:2", "--elec-tilt-range", "0:0", "--azimuth-range", "0:0", "--restarts", "0",
+             "--no-verify", "--device", "cpu", "--aps-cache", str(cache)]  # fmt: skip
+    first = rflscm("optimize", str(ckpt), str(scenario.root), "--out", str(tmp_path / "o1"), *small)
+    assert first.returncode == 0, first.stderr
+    written = cache.stat().st_mtime_ns
+    second = rflscm("optimize", str(ckpt), str(scenario.root), "--out", str(tmp_path / "o2"), *small)
+    assert second.returncode == 0, second.stderr
+    assert cache.stat().st_mtime_ns == written  # read back, not rendered again
+    s1, s2 = (json.loads((tmp_path / o / "summary.json").read_text()) for o in ("o1", "o2"))
+    assert s1["predicted"] == s2["predicted"]
+
+    retrained = MODEL_REGISTRY["wnomp"].build({"k_max": 2}, GRID, "cpu")  # same model name, other content
+    fit_with_protocol(retrained, scenario, None, progress=False)
+    other = retrained.save(tmp_path / "other.ckpt")
+    run = rflscm("optimize", str(other), str(scenario.root), "--out", str(tmp_path / "o3"), *small)
+    assert run.returncode == 2 and "written for another checkpoint" in run.stderr, run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1 and cache.stat().st_mtime_ns == written
+
+    class Payload:
+        def __reduce__(self):
+            return (builtins.open, (str(tmp_path / "pwned"), "w"))
+
+    torch.save({"format": "rflscm-aps-cache/1", "payload": Payload()}, tmp_path / "evil.pt")
+    evil = [*small[:-1], str(tmp_path / "evil.pt")]
+    run = rflscm("optimize", str(ckpt), str(scenario.root), "--out", str(tmp_path / "o4"), *evil)
+    assert run.returncode == 2 and "refused" in run.stderr and len(run.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "pwned").exists()

@@ -195,8 +195,8 @@ class ScenarioAPS:
             aps.append(dense[:, keep].contiguous())
             if on_cell is not None:
                 on_cell(i + 1, len(cell_ids))
-        return cls(cell_ids, grid_ids, bins, aps, known, source.angle_grid, source.name, source_sha256(source),
-                   source.fingerprint)  # fmt: skip
+        key = source_sha256(source)
+        return cls(cell_ids, grid_ids, bins, aps, known, source.angle_grid, source.name, key, source.fingerprint)
 
     # --- the file --------------------------------------------------------------------------------------
     def _payload(self) -> dict[str, Any]:

@@ -93,9 +93,7 @@ def predict_rsrp(
     cell_ids = pairs["cell_id"].to_numpy()
     grid_ids = pairs["grid_id"].to_numpy()
     grid_xyz = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
-    max_beams = (
-        max(scenario.codebook(c, beam_type, round).num_beams for c in np.unique(cell_ids)) if len(pairs) else 0
-    )
+    max_beams = max(scenario.codebook(c, beam_type, round).num_beams for c in np.unique(cell_ids)) if len(pairs) else 0
     out = np.full((len(pairs), max_beams), np.nan)
     for cell in np.unique(cell_ids):
         rows = np.flatnonzero(cell_ids == cell)

@@ -110,8 +110,12 @@ def test_an_edited_cache_fails_its_hash_and_other_files_are_not_caches(fitted, t
     with pytest.raises(APSCacheError, match="no `rflscm-aps-cache/1` header"):
         ScenarioAPS.load(ckpt, model)  # the checkpoint given as the cache: refused, never overwritten
     (tmp_path / "notes.txt").write_text("hello")
-    for path, message in ((tmp_path / "notes.txt", "not a PyTorch archive"), (tmp_path, "is a folder"),
-                          (tmp_path / "missing.pt", "not found")):  # fmt: skip
+    cases = [
+        (tmp_path / "notes.txt", "not a PyTorch archive"),
+        (tmp_path, "is a folder"),
+        (tmp_path / "no.pt", "not found"),
+    ]
+    for path, message in cases:
         with pytest.raises(APSCacheError, match=message) as exc:
             load_or_render(model, scenario, path) if path.exists() else ScenarioAPS.load(path)
         _one_line(exc)
@@ -137,8 +141,8 @@ def plant_payloads(folder: Path, marker: Path) -> list[Path]:
     pickle."""
     folder.mkdir(parents=True, exist_ok=True)
     files = []
-    for name, obj in (("header.pt", _Payload(marker)), ("inside.pt", {"format": CACHE_FORMAT, "sha256": "x",
-                                                                        "payload": {"aps": _Payload(marker)}})):  # fmt: skip
+    inside = {"format": CACHE_FORMAT, "sha256": "x", "payload": {"aps": _Payload(marker)}}
+    for name, obj in (("header.pt", _Payload(marker)), ("inside.pt", inside)):
         torch.save(obj, folder / name)
         files.append(folder / name)
     (folder / "bare.pkl").write_bytes(pickle.dumps(_Payload(marker)))
@@ -151,7 +155,7 @@ def test_a_planted_code_payload_never_runs_and_is_refused_in_one_line(fitted, tm
     scenario, model, _, _ = fitted
     marker = tmp_path / "pwned"
     for path in plant_payloads(tmp_path / "evil", marker):
-        with pytest.raises(APSCacheError, match="refused|not a PyTorch archive") as exc:
+        with pytest.raises(APSCacheError, match=r"refused|not a PyTorch archive") as exc:
             load_or_render(model, scenario, path)
         _one_line(exc)
         assert not marker.exists(), path
