@@ -350,7 +350,9 @@ def _noiseless(scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFra
     return out
 
 
-def _bounds(scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, measured: np.ndarray) -> np.ndarray | None:
+def _bounds(
+    scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, measured: np.ndarray
+) -> np.ndarray | None:
     from rflscm.data.reporting import missing_bounds
 
     try:
