@@ -55,7 +55,7 @@ class NetworkEvaluator:
 
     Args:
         scenario: the scenario; base_round: the configuration the search starts from.
-        cache: the model's APS (:func:`~rflscm.network.candidates.cache_aps`).
+        cache: the model's APS (:meth:`~rflscm.eval.cache.ScenarioAPS.render`).
         space: the search space (its cells in the order of ``cache.cell_ids``).
         kpi: KPI constants; objective: ``coverage``, ``sinr`` or ``weighted``.
     """
