@@ -338,12 +338,29 @@ def _read(path: Path) -> dict[str, Any]:
     if not isinstance(archive, dict) or archive.get("format") != CACHE_FORMAT:
         raise APSCacheError(f"{path}: not an rflscm APS cache (no `{CACHE_FORMAT}` header).")
     payload = archive.get("payload")
+    if isinstance(payload, dict) and _oversized(payload):
+        raise APSCacheError(
+            f"{path}: refused: a tensor in the APS cache claims more elements than the file stores (a crafted "
+            "stride); rflscm APS caches never do (delete it and render the APS again)."
+        )
     if not isinstance(payload, dict) or archive.get("sha256") != content_hash(payload):
         raise APSCacheError(
             f"{path}: the APS cache's content does not match the SHA-256 written when it was saved (damaged or "
             "edited); delete it and render the APS again."
         )
     return payload
+
+
+def _oversized(value: object) -> bool:
+    """True when a tensor in ``value`` (dicts and lists of them) is larger than its storage (a stride-0 or
+    overlapping view that hashing or copying would blow up to its full size)."""
+    if isinstance(value, torch.Tensor):
+        return value.numel() * value.element_size() > value.untyped_storage().nbytes()
+    if isinstance(value, dict):
+        return any(_oversized(v) for v in value.values())
+    if isinstance(value, list):
+        return any(_oversized(v) for v in value)
+    return False
 
 
 def load_or_render(

@@ -173,3 +173,14 @@ def test_predict_rsrp_of_a_source_matches_the_model_method(fitted) -> None:
     np.testing.assert_array_equal(
         predict_rsrp(model, scenario, 2, "csi", pairs), model.predict_rsrp(scenario, 2, "csi", pairs)
     )
+
+
+def test_a_tensor_larger_than_its_stored_data_is_refused_before_hashing(fitted, tmp_path: Path) -> None:
+    scenario, model, _, _ = fitted
+    payload = ScenarioAPS.render(model, scenario)._payload()
+    payload["aps"][0] = torch.zeros(1).expand(10**6, 10**4)  # 40 GB if hashed or copied; 4 bytes in the file
+    torch.save({"format": CACHE_FORMAT, "sha256": "x", "payload": payload}, tmp_path / "stride0.pt")
+    assert (tmp_path / "stride0.pt").stat().st_size < 10**6
+    with pytest.raises(APSCacheError, match="claims more elements than the file stores") as exc:
+        ScenarioAPS.load(tmp_path / "stride0.pt", model, scenario)
+    _one_line(exc)
