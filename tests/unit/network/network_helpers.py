@@ -11,8 +11,8 @@ import yaml
 
 from rflscm.data import load_scenario, read_table, write_table
 from rflscm.data.examples import tiny_scenario
+from rflscm.eval.cache import ScenarioAPS
 from rflscm.geometry import AngleGrid
-from rflscm.network.candidates import ApsCache
 
 GRID = AngleGrid()  # 91 × 72: −12° elevation and 30° azimuth are bin centres
 
@@ -44,15 +44,15 @@ def pencil_scenario(root: Path) -> Path:
     return root
 
 
-def single_bin_cache(scenario, el_deg: float, az_ccw_east_deg: float, power: float) -> ApsCache:
+def single_bin_cache(scenario, el_deg: float, az_ccw_east_deg: float, power: float) -> ScenarioAPS:
     """An APS cache where every (cell, grid) pair has one path of gain ``power`` at one direction."""
     el, az = GRID.bin_angles()
     n = int(np.argmin(np.abs(np.rad2deg(el) - el_deg) + np.abs(np.rad2deg(az) - az_ccw_east_deg)))
     assert abs(np.rad2deg(el[n]) - el_deg) < 1e-6 and abs(np.rad2deg(az[n]) - az_ccw_east_deg) < 1e-6
     cells, grids = scenario.cell_ids(), scenario.grid_ids()
     aps = [torch.full((len(grids), 1), power) for _ in cells]
-    return ApsCache(cells, grids, [np.array([n]) for _ in cells], aps, np.ones((len(cells), len(grids)), bool),
-                    GRID, "synthetic")  # fmt: skip
+    known = np.ones((len(cells), len(grids)), bool)
+    return ScenarioAPS(cells, grids, [np.array([n]) for _ in cells], aps, known, GRID, "synthetic")
 
 
 def load(root: Path):
