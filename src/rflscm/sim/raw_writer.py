@@ -41,7 +41,7 @@ def write_raw(scenario: Scenario, out: Path, origin: Origin | None = None, sampl
 
     Args:
         origin: where the frame's (0, 0, 0) lies (default: the scenario's, else :data:`DEFAULT_ORIGIN`).
-        max_grids: keep only this many grids (the first by grid id) for a small file.
+        max_grids: keep only this many grids (evenly spread over the sorted grid ids) for a small file.
     """
     if samples_per_beam < 1 or fading_db < 0 or grid_size_m <= 0:
         raise ConfigError("raw samples need samples_per_beam >= 1, fading_db >= 0 and grid_size_m > 0.")
@@ -51,7 +51,9 @@ def write_raw(scenario: Scenario, out: Path, origin: Origin | None = None, sampl
     m = scenario.measurements
     m = m[m["rsrp_dbm"].notna().to_numpy()]
     if max_grids is not None:
-        m = m[m["grid_id"].isin(np.sort(scenario.grid_ids())[:max_grids]).to_numpy()]
+        ids = np.sort(scenario.grid_ids())
+        chosen = ids[np.unique(np.linspace(0, len(ids) - 1, min(max_grids, len(ids))).astype(int))]
+        m = m[m["grid_id"].isin(chosen).to_numpy()]
     m = m.sort_values(["round", "grid_id", "cell_id", "beam_type", "beam_id"], kind="stable")
     cells = _cells(scenario, origin)
     samples = _samples(scenario, m, cells, origin, samples_per_beam, fading_db, grid_size_m, rng)

@@ -26,6 +26,9 @@ from rflscm.errors import DataError
 SCENARIO_CELL_COLUMNS = ("cell_id", "site_id", "x", "y", "z", "azimuth_deg", "mech_tilt_deg", "elec_tilt_deg",
                          "freq_hz", "tx_power_dbm", "array_nh", "array_nv", "spacing_h_m", "spacing_v_m",
                          "ssb_codebook", "csi_codebook", "element")  # fmt: skip
+DEFAULT_THRESHOLD_DBM = -120.0
+"""rsrp_threshold_dbm without one given: this, or the weakest kept bin rounded down when that is lower (a low
+threshold claims little about missing beams; a high one would claim they were all weaker than it)."""
 BINS_FILE = "import_bins"
 """Side table of every kept bin: key, ``samples`` and ``std_db`` (the spread of its samples [dB])."""
 CELL_MAP_FILE = "import_cells"
@@ -93,7 +96,8 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
                          int(bins["samples"][below].sum()), int(below.sum()))  # fmt: skip
         bins = bins[~below].reset_index(drop=True)
     elif len(bins):
-        res.threshold_dbm, res.threshold_chosen = max(math.floor(bins["rsrp_dbm"].min()), RSRP_MIN_DBM), True
+        weakest = max(math.floor(bins["rsrp_dbm"].min()), RSRP_MIN_DBM)
+        res.threshold_dbm, res.threshold_chosen = float(min(DEFAULT_THRESHOLD_DBM, weakest)), True
     if len(bins) == 0:
         raise DataError(f"import: no bin kept ({res.dropped.dropped} samples dropped); see the reasons above.")
     grids, grid_of_bin = grids_of(bins, spec)

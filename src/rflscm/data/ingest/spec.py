@@ -90,8 +90,8 @@ class ImportSpec:
     ambiguity_ratio: float = 2.0
     """…unless a second such cell lies within the limit and less than this many times as far (ambiguous)."""
     rsrp_threshold_dbm: float | None = None
-    """Reporting threshold; bins averaging below it are dropped (counted).  Default: the weakest kept bin,
-    rounded down to a whole dB."""
+    """Reporting threshold; bins averaging below it are dropped (counted).  Default: −120 dBm, or the weakest
+    kept bin rounded down to a whole dB when that is lower (then nothing is dropped for it)."""
     reporting: dict[str, Any] = field(default_factory=dict)
     """The reporting rule per beam type, as in scenario.yaml ``reporting:`` (checked against the data)."""
     round_times: dict[int, tuple[str, str]] = field(default_factory=dict)
@@ -117,7 +117,9 @@ class ImportSpec:
         known = set(SAMPLE_COLUMNS) | set(CELL_LIST_COLUMNS)
         unknown = sorted(set(self.columns) - known)
         if unknown:
-            raise ConfigError(f"import: `columns` has unknown rflscm name(s) {unknown}; valid: {', '.join(sorted(known))}.")
+            raise ConfigError(
+                f"import: `columns` has unknown rflscm name(s) {unknown}; valid: {', '.join(sorted(known))}."
+            )
 
 
 def _paths(value: Any, base: Path) -> Any:
