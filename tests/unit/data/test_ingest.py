@@ -83,7 +83,9 @@ def _bin_input(values: dict[tuple[int, int], list[float]]) -> pd.DataFrame:
 
 
 def test_binning_linear_mean_count_spread_min_samples_and_outliers() -> None:
-    df = _bin_input({(0, 0): [-80.0, -90.0, -85.0], (0, 1): [-70.0, -71.0], (1, 0): [-80.0, -81.0, -80.0, -81.0, -80.0, -60.0]})
+    df = _bin_input(
+        {(0, 0): [-80.0, -90.0, -85.0], (0, 1): [-70.0, -71.0], (1, 0): [-80.0, -81.0, -80.0, -81.0, -80.0, -60.0]}
+    )
     tally = Tally()
     bins = bin_samples(df, _spec(min_samples=3), tally).set_index(["ix", "beam_id"])
     mean = 10 * np.log10(np.mean(10 ** (np.array([-80.0, -90.0, -85.0]) / 10)))
