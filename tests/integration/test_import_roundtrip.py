@@ -39,7 +39,9 @@ def test_simulate_raw_then_import_gives_the_scenario_back(tmp_path: Path) -> Non
     run = rflscm("import", str(raw / "import.yaml"), "--out", str(imported), "--format", "csv")
     assert run.returncode == 0, run.stderr
     assert "kept" in run.stdout and "samples kept and dropped" in run.stdout
-    assert rflscm("check", str(imported)).returncode == 0
+    check = rflscm("check", str(imported))
+    assert check.returncode == 0, check.stderr
+    assert "needs a point cloud" in check.stdout and "--set prior.enabled=false" in check.stdout  # none imported
 
     truth, got = load_scenario(sim), load_scenario(imported)
     raw_samples = pd.read_csv(raw / "samples.csv")

@@ -111,26 +111,28 @@ def test_top_n_keeps_the_strongest_beams_of_each_report() -> None:
     assert list(tally.bins.values()) == [3]
 
 
-def _write_raw(tmp: Path, samples: pd.DataFrame) -> Path:
-    cells = pd.DataFrame({"Cell": ["A1", "A2"], "Latitude": [48.14, 48.14], "Longitude": [11.57, 11.57],
-                          "Height_AGL_m": [25.0, 25.0], "Azimuth": [0.0, 180.0], "M_Tilt": [2.0, 2.0], "E_Tilt": [4.0, 4.0],
-                          "nr_arfcn": [633334, 633334], "PCI": [11, 12], "ssb_codebook": "ssb4", "csi_codebook": "csi8"})  # fmt: skip
+def _write_raw(tmp: Path, samples: pd.DataFrame, antenna: str = "tr38901") -> Path:
+    # the headers of the planning-tool export; the codebooks come from `cell_defaults`
+    cells = pd.DataFrame({"Cell": ["A1", "A2"], "PCI": [11, 12], "EARFCN": [1300, 1300], "Latitude": [48.14, 48.14],
+                          "Longitude": [11.57, 11.57], "Height_AGL_m": [25.0, 25.0], "Azimuth": [0.0, 180.0],
+                          "M_Tilt": [2.0, 2.0], "E_Tilt": [4.0, 4.0], "Antenna": antenna})  # fmt: skip
     cells.to_csv(tmp / "cells.csv", index=False)
     samples.to_csv(tmp / "samples.csv", index=False)
     spec = tmp / "import.yaml"
-    spec.write_text(f"samples: samples.csv\ncells: cells.csv\ncodebooks: {BOOKS}\n")
+    spec.write_text(f"samples: samples.csv\ncells: cells.csv\ncodebooks: {BOOKS}\n"
+                    "cell_defaults: {ssb_codebook: ssb4, csi_codebook: csi8}\n")  # fmt: skip
     return spec
 
 
 def _raw_samples(n: int = 4) -> pd.DataFrame:
     xyz = np.array([[15.0, 25.0, 1.5]] * n) + np.linspace(0, 3, n)[:, None] * [1, 1, 0]
     lat, lon, _ = enu_to_geodetic(xyz, ORIGIN)
-    return pd.DataFrame({"timestamp": [f"2024-05-01T08:00:{i:02d}" for i in range(n)], "Latitude": lat,
-                         "Longitude": lon, "PCI": 11, "ARFCN": 633334, "ssb_index": 2, "rsrp": -100.0 - np.arange(n)})  # fmt: skip
+    return pd.DataFrame({"timestamp": [f"2024-05-01T08:00:{i:02d}" for i in range(n)], "lat": lat, "lon": lon,
+                         "PCI": 11, "freq": 1815.0, "ssb_index": 2, "rsrp_dbm": -100.0 - np.arange(n)})  # fmt: skip
 
 
 def test_import_of_planning_tool_columns_makes_a_checked_scenario(tmp_path: Path) -> None:
-    spec = load_spec(_write_raw(tmp_path, _raw_samples()), {"columns": {"nr_arfcn": "ARFCN"}, "beam_type": "ssb",
+    spec = load_spec(_write_raw(tmp_path, _raw_samples()), {"columns": {"freq_mhz": "freq"}, "beam_type": "ssb",
                                                                   "origin": {"lat": 48.14, "lon": 11.57}})  # fmt: skip
     res = import_raw(spec, tmp_path / "sc")
     sc = load_scenario(tmp_path / "sc")
@@ -140,17 +142,20 @@ def test_import_of_planning_tool_columns_makes_a_checked_scenario(tmp_path: Path
     assert m["rsrp_dbm"].iloc[0] == pytest.approx(10 * np.log10(np.mean(10 ** ((-100.0 - np.arange(4)) / 10))))
     assert sc.grids[["x", "y"]].to_numpy().tolist() == [[15.0, 25.0]]
     np.testing.assert_allclose(sc.cells[1][["x", "y", "z"]].to_numpy(), [[0, 0, 25.0]] * 2, atol=1e-6)
-    assert sc.meta.rsrp_threshold_dbm == -120.0
+    assert sc.meta.rsrp_threshold_dbm == -120.0 and sc.cells[1]["freq_hz"].tolist() == [1815e6, 1815e6]
+    assert sc.cells[1]["elec_tilt_deg"].tolist() == [4.0, 4.0] and sc.cells[1]["azimuth_deg"].tolist() == [0.0, 180.0]
 
 
 def test_import_refusals_name_file_row_and_value(tmp_path: Path) -> None:
-    over = {"columns": {"nr_arfcn": "ARFCN"}, "beam_type": "ssb"}
-    bad = _raw_samples().assign(rsrp=[-100.0, 0.02, -100.0, -100.0])
+    over = {"columns": {"freq_mhz": "freq"}, "beam_type": "ssb"}
+    bad = _raw_samples().assign(rsrp_dbm=[-100.0, 0.02, -100.0, -100.0])
     with pytest.raises(DataError, match=r"samples.csv row 2 \(line 3\): `rsrp_dbm` = 0.02 is outside"):
         import_raw(load_spec(_write_raw(tmp_path, bad), dict(over)), tmp_path / "a")
     beyond = _raw_samples().assign(ssb_index=[2, 2, 9, 2])
     with pytest.raises(DataError, match=r"samples.csv row 3: `beam_id` = 9 is beyond the ssb codebook of cell 0"):
         import_raw(load_spec(_write_raw(tmp_path, beyond), dict(over)), tmp_path / "b")
+    with pytest.raises(DataError, match=r"cells.csv row 1 \(line 2\): `element` = 'AAU5613' names no pattern file"):
+        import_raw(load_spec(_write_raw(tmp_path, _raw_samples(), antenna="AAU5613"), dict(over)), tmp_path / "d")
     report = _raw_samples().assign(timestamp="2024-05-01T08:00:00", ssb_index=[0, 1, 2, 3])
     rule = {**over, "reporting": {"ssb": {"rule": "top_n", "top_n": 3}}, "min_samples": 1}
     with pytest.raises(DataError, match=r"row 1: `time` = '2024-05-01T08:00:00' holds a ssb report .* 4 beams, more "
@@ -159,9 +164,37 @@ def test_import_refusals_name_file_row_and_value(tmp_path: Path) -> None:
 
 
 def test_weak_bins_set_the_threshold_or_are_dropped_and_counted(tmp_path: Path) -> None:
-    weak = _raw_samples().assign(rsrp=-130.0)
-    over = {"columns": {"nr_arfcn": "ARFCN"}, "beam_type": "ssb"}
+    weak = _raw_samples().assign(rsrp_dbm=-130.0)
+    over = {"columns": {"freq_mhz": "freq"}, "beam_type": "ssb"}
     res = import_raw(load_spec(_write_raw(tmp_path, weak), dict(over)), tmp_path / "a")
     assert res.threshold_dbm == -130.0 and load_scenario(tmp_path / "a").meta.rsrp_threshold_dbm == -130.0
     with pytest.raises(DataError, match="no bin kept"):
         import_raw(load_spec(_write_raw(tmp_path, weak), {**over, "rsrp_threshold_dbm": -120.0}), tmp_path / "b")
+
+
+def test_rounds_from_time_ranges_and_outside_counted(tmp_path: Path) -> None:
+    samples = pd.concat([_raw_samples(), _raw_samples().assign(timestamp="2024-05-02T09:00:00", rsrp_dbm=-90.0),
+                         _raw_samples().assign(timestamp="2024-06-01T00:00:00")], ignore_index=True)  # fmt: skip
+    times = {1: ("2024-05-01", "2024-05-02"), 2: ("2024-05-02", "2024-05-03")}
+    over = {"columns": {"freq_mhz": "freq"}, "beam_type": "ssb", "round_times": times}
+    res = import_raw(load_spec(_write_raw(tmp_path, samples), over), tmp_path / "sc")
+    m = load_scenario(tmp_path / "sc").measurements.set_index("round")["rsrp_dbm"]
+    assert res.rounds == [1, 2] and m.loc[2] == pytest.approx(-90.0) and m.loc[1] < -100.0
+    assert list(res.dropped.samples.values()) == [4] and "outside every round" in next(iter(res.dropped.samples))
+
+
+def test_cli_refusal_is_one_line_and_exit_2(tmp_path: Path, monkeypatch, capsys) -> None:
+    import sys
+
+    from rflscm.cli import main
+
+    spec = _write_raw(tmp_path, _raw_samples())  # `freq` is not mapped: ambiguous, so the carrier is missing
+    monkeypatch.setattr(
+        sys, "argv", ["rflscm", "import", str(spec), "--out", str(tmp_path / "sc"), "--beam-type", "ssb"]
+    )
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.count("\n") == 1
+    assert "samples.csv: gives pci but no carrier; add freq_hz, freq_mhz, nr_arfcn or earfcn" in err
+    assert not (tmp_path / "sc").exists()

@@ -109,6 +109,8 @@ def cells_frame(df: pd.DataFrame, origin: Origin | None, ids: dict[str, int]) ->
     for col in PASS_THROUGH:
         if col in df.columns:
             out[col] = df[col].to_numpy()
+    if "element" in df.columns:
+        _check_elements(df, ref, Path(str(df.attrs.get("folder", "."))))
     out["pci"] = int_column(df, ref, "pci")
     out["carrier_hz"] = carrier_hz(df, ref)
     out["freq_hz"] = out["carrier_hz"]
@@ -116,6 +118,16 @@ def cells_frame(df: pd.DataFrame, origin: Origin | None, ids: dict[str, int]) ->
     dup = out["cell_id"].duplicated().to_numpy()
     raise_rows(ref, dup, "cell_id", names, "is listed twice in one round; list each cell once per round")
     return out
+
+
+def _check_elements(df: pd.DataFrame, ref: TableRef, folder: Path) -> None:
+    """An ``element`` must be ``tr38901``, empty or a pattern file next to the cell list (an antenna *model name*
+    is not a pattern: map the column away or give the file)."""
+    names = df["element"].astype("string").fillna("").str.strip()
+    ok = names.str.lower().isin(["", "tr38901"]) | names.map(lambda n: (folder / n).is_file() if n else True)
+    raise_rows(ref, ~ok.to_numpy(dtype=bool), "element", df["element"],
+               f"names no pattern file next to the cell list ({folder}); give a Planet/MSI file there, `tr38901`, or "
+               "leave the column out (an antenna model name is not a pattern)")  # fmt: skip
 
 
 def _cell_number(name: str, ids: dict[str, int]) -> int:
