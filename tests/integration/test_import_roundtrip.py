@@ -41,7 +41,8 @@ def test_simulate_raw_then_import_gives_the_scenario_back(tmp_path: Path) -> Non
     assert "kept" in run.stdout and "samples kept and dropped" in run.stdout
     check = rflscm("check", str(imported))
     assert check.returncode == 0, check.stderr
-    assert "needs a point cloud" in check.stdout and "--set prior.enabled=false" in check.stdout  # none imported
+    text = " ".join(check.stdout.split())  # Rich wraps lines
+    assert "needs a point cloud" in text and "--set prior.enabled=false" in text  # none was imported
 
     truth, got = load_scenario(sim), load_scenario(imported)
     raw_samples = pd.read_csv(raw / "samples.csv")
