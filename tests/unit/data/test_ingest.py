@@ -198,3 +198,25 @@ def test_cli_refusal_is_one_line_and_exit_2(tmp_path: Path, monkeypatch, capsys)
     assert exit_info.value.code == 2 and err.count("\n") == 1
     assert "samples.csv: gives pci but no carrier; add freq_hz, freq_mhz, nr_arfcn or earfcn" in err
     assert not (tmp_path / "sc").exists()
+
+
+def test_one_cell_file_per_round_and_a_round_column_give_the_same_scenario(tmp_path: Path) -> None:
+    spec = _write_raw(tmp_path, _raw_samples())
+    cells = pd.read_csv(tmp_path / "cells.csv")
+    cells.to_csv(tmp_path / "r1.csv", index=False)
+    cells.assign(Azimuth=[10.0, 190.0]).to_csv(tmp_path / "r2.csv", index=False)
+    pd.concat([cells.assign(round=1), cells.assign(round=2, Azimuth=[10.0, 190.0])]).to_csv(
+        tmp_path / "all.csv", index=False
+    )
+    samples = pd.concat([_raw_samples().assign(round=1), _raw_samples().assign(round=2)], ignore_index=True)
+    samples.to_csv(tmp_path / "samples.csv", index=False)
+    over = {"columns": {"freq_mhz": "freq"}, "beam_type": "ssb"}
+    import_raw(load_spec(spec, {**over, "cells": [str(tmp_path / "r1.csv"), str(tmp_path / "r2.csv")]}), tmp_path / "a")
+    import_raw(load_spec(spec, {**over, "cells": [str(tmp_path / "all.csv")]}), tmp_path / "b")
+    a, b = load_scenario(tmp_path / "a"), load_scenario(tmp_path / "b")
+    assert a.cells[2]["azimuth_deg"].tolist() == b.cells[2]["azimuth_deg"].tolist() == [10.0, 190.0]
+    assert a.measurements.equals(b.measurements) and a.rounds() == [1, 2]
+    bad = pd.concat([cells.assign(round=1), cells.assign(round=2, PCI=[11, "x"])])
+    bad.to_csv(tmp_path / "bad.csv", index=False)
+    with pytest.raises(DataError, match=r"bad.csv row 4 \(line 5\): `pci` = 'x' is not a number"):
+        import_raw(load_spec(spec, {**over, "cells": [str(tmp_path / "bad.csv")]}), tmp_path / "c")

@@ -52,8 +52,8 @@ def carrier_hz(df: pd.DataFrame, ref: TableRef) -> np.ndarray:
 
 
 def read_cell_list(spec: ImportSpec, origin_of: Origin | None = None) -> tuple[dict[int, pd.DataFrame], list[Path]]:
-    """The cell list as raw tables per round (key 0: one table for every round), canonical column names, and the
-    files read."""
+    """The cell list as raw tables per round (key 0: one table, with a ``round`` column or for every round),
+    canonical column names, and the files read."""
     tables: dict[int, pd.DataFrame] = {}
     for rnd, name in spec.cells.items():
         df = canonical(read_table(name), spec, CELL_LIST_COLUMNS)
@@ -62,16 +62,7 @@ def read_cell_list(spec: ImportSpec, origin_of: Origin | None = None) -> tuple[d
                 df[key] = value
         df.attrs["file"] = Path(name).name
         df.attrs["folder"] = str(Path(name).parent)
-        if rnd == 0 and "round" in df.columns:
-            ref = TableRef(Path(name).name, csv=Path(name).suffix.lower() == ".csv")
-            rounds = int_column(df, ref, "round")
-            for r in np.unique(rounds):
-                part = df[rounds == r].drop(columns="round")
-                part.attrs.update(df.attrs)
-                part.attrs["rows"] = np.flatnonzero(rounds == r)
-                tables[int(r)] = part
-        else:
-            tables[int(rnd)] = df
+        tables[int(rnd)] = df
     return tables, [Path(n) for n in spec.cells.values()]
 
 
@@ -85,7 +76,8 @@ def cell_origin(tables: dict[int, pd.DataFrame]) -> Origin | None:
 
 
 def cells_frame(df: pd.DataFrame, origin: Origin | None, ids: dict[str, int]) -> pd.DataFrame:
-    """One round's cell list → the scenario cells table plus ``pci`` and ``carrier_hz`` columns."""
+    """A cell-list table → the scenario cells table plus ``pci``, ``carrier_hz``, ``cell_name`` (and ``round``
+    when the table has one) columns; rows keep the file's order, so messages name the file's rows."""
     ref = TableRef(df.attrs.get("file", "cells"), csv=str(df.attrs.get("file", "")).lower().endswith(".csv"))
     require_columns(df, ref, ["cell_id", "height_m", "azimuth_deg", "pci"], "cell_id, lat/lon or x/y, height_m, "
                     "azimuth_deg, pci, a carrier, ssb_codebook, csi_codebook")  # fmt: skip
@@ -115,7 +107,12 @@ def cells_frame(df: pd.DataFrame, origin: Origin | None, ids: dict[str, int]) ->
     out["carrier_hz"] = carrier_hz(df, ref)
     out["freq_hz"] = out["carrier_hz"]
     out["cell_name"] = names
-    dup = out["cell_id"].duplicated().to_numpy()
+    key = ["cell_id"]
+    if "round" in df.columns:  # one table for every round: split by the caller
+        out["round"] = int_column(df, ref, "round")
+        raise_rows(ref, out["round"].to_numpy() < 1, "round", df["round"], "must be a round number >= 1")
+        key = ["round", "cell_id"]
+    dup = out.duplicated(key).to_numpy()
     raise_rows(ref, dup, "cell_id", names, "is listed twice in one round; list each cell once per round")
     return out
 

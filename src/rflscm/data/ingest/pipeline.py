@@ -65,6 +65,11 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
     ids: dict[str, int] = {}
     cells = {r: cells_frame(df, origin, ids) for r, df in sorted(tables.items())}
     folders = {r: str(df.attrs.get("folder", ".")) for r, df in tables.items()}
+    if 0 in cells and "round" in cells[0].columns:  # one table with a round column
+        whole = cells.pop(0)
+        for rnd, part in whole.groupby("round", sort=True):
+            cells[int(rnd)] = part.drop(columns="round").reset_index(drop=True)
+            folders[int(rnd)] = folders[0]
     samples = read_samples(spec, origin, res.dropped)
     res.samples_read = len(samples) + res.dropped.dropped
     if 0 in cells:
