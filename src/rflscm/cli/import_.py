@@ -76,19 +76,19 @@ def import_(
     ),
     codebooks: Path | None = typer.Option(None, "--codebooks", help="YAML file with the `codebooks:` mapping."),
     col: list[str] = typer.Option([], "--col", help="Column name mapping RFLSCM_NAME=YOUR_NAME (repeatable)."),
-    origin: str | None = typer.Option(None, "--origin", help="Origin LAT,LON [deg] (default: centroid of the cells)."),
-    grid_size: float | None = typer.Option(None, "--grid-size", help="Grid side [m] (default 10)."),
+    origin: str | None = typer.Option(None, "--origin", help="Origin LAT,LON in degrees (default: centroid of the cells)."),
+    grid_size: float | None = typer.Option(None, "--grid-size", help="Grid side in metres (default 10)."),
     min_samples: int | None = typer.Option(None, "--min-samples", help="Samples a bin needs to be kept (default 3)."),
     outlier_k: float | None = typer.Option(
-        None, "--outlier-k", help="Drop samples > k·1.4826·MAD [dB] from their bin's median (default 3; 0: off)."
+        None, "--outlier-k", help="Drop samples > k·1.4826·MAD dB from their bin's median (default 3; 0: off)."
     ),
     max_distance: float | None = typer.Option(
-        None, "--max-distance", help="Farthest (PCI, carrier) match [m] (default 10000)."
+        None, "--max-distance", help="Farthest (PCI, carrier) match in metres (default 10000)."
     ),
     threshold: float | None = typer.Option(
         None,
         "--threshold",
-        help="rsrp_threshold_dbm [dBm]; bins averaging below are dropped (default: −120 or the weakest bin).",
+        help="rsrp_threshold_dbm in dBm; bins averaging below are dropped (default: −120 or the weakest bin).",
     ),
     beam_type: BeamType | None = typer.Option(
         None, "--beam-type", help="Beam type of every sample (no beam_type column)."

@@ -109,7 +109,7 @@ def simulate(
         None, "--raw-out", help="Also write raw samples.csv, cells.csv and import.yaml here (for `rflscm import`)."
     ),
     raw_samples: int = typer.Option(5, "--raw-samples", min=1, help="Raw samples per reported beam and grid."),
-    raw_fading: float = typer.Option(2.0, "--raw-fading", min=0.0, help="Per-sample log-normal fading σ [dB]."),
+    raw_fading: float = typer.Option(2.0, "--raw-fading", min=0.0, help="Per-sample log-normal fading σ in dB."),
     raw_grids: int | None = typer.Option(None, "--raw-grids", min=1, help="Raw samples of at most this many grids."),
 ) -> None:
     """Trace a scene once per (site, carrier) and write a complete scenario with truth/ (SPEC §6)."""
