@@ -76,7 +76,9 @@ def import_(
     ),
     codebooks: Path | None = typer.Option(None, "--codebooks", help="YAML file with the `codebooks:` mapping."),
     col: list[str] = typer.Option([], "--col", help="Column name mapping RFLSCM_NAME=YOUR_NAME (repeatable)."),
-    origin: str | None = typer.Option(None, "--origin", help="Origin LAT,LON in degrees (default: centroid of the cells)."),
+    origin: str | None = typer.Option(
+        None, "--origin", help="Origin LAT,LON in degrees (default: centroid of the cells)."
+    ),
     grid_size: float | None = typer.Option(None, "--grid-size", help="Grid side in metres (default 10)."),
     min_samples: int | None = typer.Option(None, "--min-samples", help="Samples a bin needs to be kept (default 3)."),
     outlier_k: float | None = typer.Option(
