@@ -12,7 +12,7 @@ from rflscm.data import load_scenario
 from rflscm.data.geo import Origin, enu_to_geodetic
 from rflscm.data.ingest import earfcn_to_hz, hz_to_nr_arfcn, import_raw, load_spec, nr_arfcn_to_hz
 from rflscm.data.ingest.binning import bin_samples, keep_top_n
-from rflscm.data.ingest.resolve import AMBIGUOUS, NO_CELL, TOO_FAR, resolve_cells
+from rflscm.data.ingest.resolve import AMBIGUOUS, FAR_FROM_ID, NO_CELL, TOO_FAR, UNKNOWN_ID, resolve_cells
 from rflscm.data.ingest.samples import Tally
 from rflscm.data.ingest.spec import ImportSpec
 from rflscm.errors import DataError
@@ -220,3 +220,12 @@ def test_one_cell_file_per_round_and_a_round_column_give_the_same_scenario(tmp_p
     bad.to_csv(tmp_path / "bad.csv", index=False)
     with pytest.raises(DataError, match=r"bad.csv row 4 \(line 5\): `pci` = 'x' is not a number"):
         import_raw(load_spec(spec, {**over, "cells": [str(tmp_path / "bad.csv")]}), tmp_path / "c")
+
+
+def test_cell_id_samples_unknown_or_far_from_their_cell_are_counted() -> None:
+    samples = _samples([(10.0, 0.0, -1, np.nan), (0.0, 50_000.0, -1, np.nan), (0.0, 0.0, -1, np.nan)])
+    samples["cell_name"] = ["A", "A", "Z"]
+    tally = Tally()
+    out = resolve_cells(samples, _cells(), {"A": 1}, _spec(), tally)
+    assert out["cell_id"].tolist() == [1] and out["x"].tolist() == [10.0]
+    assert tally.samples == {UNKNOWN_ID: 1, FAR_FROM_ID: 1}

@@ -4,7 +4,8 @@ A sample with a PCI on a carrier is given to the nearest cell (2D distance, the 
 round) that has that PCI on that carrier (carriers match to 100 kHz), provided it lies within
 ``max_distance_m``.  When a second such cell lies within the limit and less than ``ambiguity_ratio`` times
 as far as the nearest, the sample is *ambiguous* (PCI reuse too close to tell).  Samples with no such cell,
-too far or ambiguous are dropped and counted per reason; so are ``cell_id`` values the list does not have.
+too far or ambiguous are dropped and counted per reason; so are ``cell_id`` values the list does not have
+and samples farther than ``max_distance_m`` from the cell they name (a bad GPS fix).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ NO_CELL = "(PCI, carrier) matches no cell of the list"
 TOO_FAR = "(PCI, carrier): nearest such cell beyond max_distance_m"
 AMBIGUOUS = "(PCI, carrier): ambiguous (two such cells at similar distance)"
 UNKNOWN_ID = "cell_id not in the cell list"
+FAR_FROM_ID = "cell_id: farther than max_distance_m from that cell (a bad GPS fix?)"
 
 
 def resolve_cells(samples: pd.DataFrame, cells: dict[int, pd.DataFrame], ids: dict[str, int], spec: ImportSpec,
@@ -37,10 +39,24 @@ def resolve_cells(samples: pd.DataFrame, cells: dict[int, pd.DataFrame], ids: di
     names = samples["cell_name"].to_numpy()[by_name]
     cell_id[by_name] = pd.Series(names, dtype=object).map(ids).fillna(-1).to_numpy(np.int64)
     tally.drop(UNKNOWN_ID, int((cell_id[by_name] < 0).sum()))
+    if by_name.any():
+        cell_id[by_name] = _near_enough(samples[by_name], cell_id[by_name], cells, spec, tally)
     if (~by_name).any():
         cell_id[~by_name] = _by_pci(samples[~by_name], cells, spec, tally)
     out = samples.assign(cell_id=cell_id)
     return out[cell_id >= 0].reset_index(drop=True)
+
+
+def _near_enough(samples: pd.DataFrame, cell_id: np.ndarray, cells: dict[int, pd.DataFrame], spec: ImportSpec,
+                 tally: Tally) -> np.ndarray:  # fmt: skip
+    """``cell_id`` with −1 where the sample lies farther than ``max_distance_m`` from its (named) cell."""
+    table = pd.concat([c[["cell_id", "x", "y"]].assign(round=r) for r, c in cells.items()], ignore_index=True)
+    at = pd.MultiIndex.from_arrays([samples["round"].to_numpy(), cell_id])
+    pos = table.set_index(["round", "cell_id"]).reindex(at)
+    d = np.hypot(samples["x"].to_numpy() - pos["x"].to_numpy(), samples["y"].to_numpy() - pos["y"].to_numpy())
+    far = (cell_id >= 0) & (d > spec.max_distance_m)  # NaN (unknown cell) compares False
+    tally.drop(FAR_FROM_ID, int(far.sum()))
+    return np.where(far, -1, cell_id)
 
 
 def _by_pci(samples: pd.DataFrame, cells: dict[int, pd.DataFrame], spec: ImportSpec, tally: Tally) -> np.ndarray:
