@@ -58,6 +58,18 @@ def parse_reporting(items: list[str]) -> dict[str, Any]:
     return out
 
 
+def _column_file(path: Path | None) -> dict[str, str]:
+    """``--columns FILE``: a YAML mapping rflscm name → your column name."""
+    if path is None:
+        return {}
+    from rflscm.config import load_yaml
+
+    data = load_yaml(path)
+    if not all(isinstance(v, str) for v in data.values()):
+        raise ConfigError(f"{path}: map each rflscm column name to one column name of yours, e.g. `lat: Latitude`.")
+    return {str(k): v for k, v in data.items()}
+
+
 def parse_origin(text: str) -> dict[str, float]:
     try:
         lat, lon = (float(v) for v in text.split(","))
@@ -76,6 +88,9 @@ def import_(
     ),
     codebooks: Path | None = typer.Option(None, "--codebooks", help="YAML file with the `codebooks:` mapping."),
     col: list[str] = typer.Option([], "--col", help="Column name mapping RFLSCM_NAME=YOUR_NAME (repeatable)."),
+    columns: Path | None = typer.Option(
+        None, "--columns", help="YAML file mapping rflscm column names to yours, e.g. `lat: Latitude` (--col wins)."
+    ),
     origin: str | None = typer.Option(
         None, "--origin", help="Origin LAT,LON in degrees (default: centroid of the cells)."
     ),
@@ -109,12 +124,13 @@ def import_(
     from rflscm.cli.simulate import _prepare_out
     from rflscm.data import load_scenario
     from rflscm.data.ingest import import_raw, load_spec
+    from rflscm.data.ingest.spec import CELL_LIST_COLUMNS, SAMPLE_COLUMNS
 
     overrides: dict[str, Any] = {
         "samples": [str(p) for p in samples] or None,
         "cells": [str(p) for p in cells] or None,
         "codebooks": None if codebooks is None else str(codebooks),
-        "columns": parse_pairs(col, "--col"),
+        "columns": {**_column_file(columns), **parse_pairs(col, "--col")},
         "origin": None if origin is None else parse_origin(origin),
         "grid_size_m": grid_size, "min_samples": min_samples, "outlier_k": outlier_k,
         "max_distance_m": max_distance, "rsrp_threshold_dbm": threshold,
@@ -122,6 +138,11 @@ def import_(
         "reporting": parse_reporting(reporting) or None, "name": name,
         "point_cloud": None if point_cloud is None else str(point_cloud),
     }  # fmt: skip
+    known = set(SAMPLE_COLUMNS) | set(CELL_LIST_COLUMNS)
+    if unknown := sorted(set(overrides["columns"]) - known):
+        raise ConfigError(
+            f"--col/--columns: unknown rflscm column name(s) {unknown}; valid: {', '.join(sorted(known))}."
+        )
     settings = load_spec(spec, overrides)
     _prepare_out(out, force)
     out.parent.mkdir(parents=True, exist_ok=True)
