@@ -216,3 +216,90 @@ def load_config(cls: type[T], path: str | Path) -> T:
 def save_config(obj: Any, path: str | Path) -> None:
     """Write a config dataclass as YAML."""
     Path(path).write_text(yaml.safe_dump(to_dict(obj), sort_keys=False))
+
+
+# --- overrides: a preset, then a user's YAML, then `--set section.key=value` --------------------------------------
+
+
+def merge_config(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``over`` laid on top, mapping by mapping (a key of ``over`` replaces only that key)."""
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge_config(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def parse_set(item: str, option: str = "--set") -> tuple[list[str], Any]:
+    """``"train.steps=500"`` → ``(["train", "steps"], 500)``: the value is read as a YAML scalar or flow value
+    (``true``, ``null``, ``1e-3``, ``[1, 2]``, ``{a: 1}``); a missing ``=`` or an empty key is a :class:`ConfigError`."""
+    key, sep, text = item.partition("=")
+    path = [p.strip() for p in key.split(".")]
+    if not sep or not all(path):
+        raise ConfigError(f"{option} {item!r}: write SECTION.KEY=VALUE, e.g. {option} train.steps=500.")
+    try:
+        value = parse_yaml(text) if text.strip() else ""
+    except (yaml.YAMLError, ConfigError):
+        value = text
+    return path, value
+
+
+def _scalar_for(tp: Any, value: Any) -> Any:
+    """A YAML string that the field's type reads as a number (YAML 1.1 takes ``1e-3`` for text)."""
+    if not isinstance(value, str):
+        return value
+    options = typing.get_args(tp) if typing.get_origin(tp) in (typing.Union, types.UnionType) else (tp,)
+    for option in options:
+        try:
+            if option is float:
+                return float(value)
+            if option is int:
+                return int(value)
+        except ValueError:
+            continue
+    return value
+
+
+def apply_sets(
+    cls: type, data: dict[str, Any], items: list[str] | tuple[str, ...], option: str = "--set"
+) -> dict[str, Any]:
+    """``data`` (a mapping for dataclass ``cls``) with each ``SECTION.KEY=VALUE`` of ``items`` set in it.
+
+    Every key on the path must be a field of the dataclass at that level (a mapping-typed field takes any
+    key below it); the value is checked against the field's type.  Errors name the item and list the valid
+    keys.
+    """
+    out = merge_config({}, data)
+    for item in items:
+        path, value = parse_set(item, option)
+        tp: Any = cls
+        node = out
+        for depth, key in enumerate(path):
+            where = ".".join(path[: depth + 1])
+            if _is_dataclass_type(tp):
+                hints = typing.get_type_hints(tp)
+                fields = sorted(f.name for f in dataclasses.fields(tp) if f.init)
+                if key not in fields:
+                    section = f"`{'.'.join(path[:depth])}`" if depth else "the top level"
+                    raise ConfigError(
+                        f"{option} {item}: unknown key `{key}` in {section}; valid keys: {', '.join(fields)}."
+                    )
+                tp = hints[key]
+            elif typing.get_origin(tp) is dict or (isinstance(node, dict) and tp is Any):
+                tp = (typing.get_args(tp) or (Any, Any))[1]
+            else:
+                raise ConfigError(f"{option} {item}: `{'.'.join(path[:depth])}` is a value, not a section.")
+            if depth == len(path) - 1:
+                value = _scalar_for(tp, value)
+                try:
+                    _coerce(tp, value, where)
+                except ConfigError as exc:
+                    raise ConfigError(f"{option} {item}: {exc}") from None
+                node[key] = value
+            else:
+                child = node.get(key)
+                node[key] = child = dict(child) if isinstance(child, dict) else {}
+                node = child
+    return out

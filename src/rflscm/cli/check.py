@@ -75,6 +75,10 @@ def _print_point_cloud(sc: Scenario, console: Console) -> None:
     pc = sc.point_cloud
     if pc is None:
         console.print("  point cloud: none")
+        console.print(
+            "  [yellow]warning:[/yellow] the default RF-LSCM (`rflscm train --model rflscm`) needs a point cloud "
+            "for its prior; add `point_cloud:` to scenario.yaml, or train with `--set prior.enabled=false`."
+        )
         return
     classes = ", ".join(
         f"{ASPRS_CLASSES.get(c, f'class {c}')} {100 * n / pc.num_points:.0f} %" for c, n in pc.class_counts().items()

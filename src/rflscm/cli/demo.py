@@ -22,6 +22,7 @@ from rflscm.cli.common import (
     resolve_device,
     seed_everything,
 )
+from rflscm.cli.overrides import PresetOption, SetOption, model_config
 
 DEMO_MINUTES = 3.0
 """RF-LSCM's default training budget in the demo: with the rest (about a minute) it stays within 5 minutes on 2 cores."""
@@ -72,7 +73,13 @@ def demo(
     scenario: Path | None = typer.Option(
         None, "--scenario", help="Scenario folder (default: the shipped munich scenario)."
     ),
-    config: str = typer.Option("quick", "--config", help="RF-LSCM preset or YAML file."),
+    config: str = typer.Option(
+        "quick",
+        "--config",
+        help="RF-LSCM preset (quick, full) or a YAML file of the settings that differ from --preset.",
+    ),
+    preset: str | None = PresetOption,
+    sets: list[str] = SetOption,
     minutes: float = typer.Option(
         DEMO_MINUTES, "--minutes", help="RF-LSCM's training budget in minutes (its schedule follows the budget)."
     ),
@@ -92,6 +99,7 @@ def demo(
 
     console = Console()
     budget_s = budget_seconds(minutes)
+    rflscm_cfg = model_config("rflscm", config, preset, sets)  # a wrong key stops the demo before any work
     dev = resolve_device(device)
     scen = load_scenario(scenario or default_scenario_path())
     output_folder(out, "--out")
@@ -110,10 +118,10 @@ def demo(
                   f"residual floor {wnomp_cfg.residual_floor} (all candidates: {out / 'wnomp_selection.csv'})")  # fmt: skip
     from rflscm.config import to_dict
 
-    presets: dict[str, str | dict[str, Any]] = {"wnomp": to_dict(wnomp_cfg), "rflscm": config}
-    for name, preset in presets.items():
+    configs: dict[str, str | dict[str, Any]] = {"wnomp": to_dict(wnomp_cfg), "rflscm": rflscm_cfg}
+    for name, model_cfg in configs.items():
         seed_everything(seed)
-        model = MODEL_REGISTRY[name].build(preset, AngleGrid(), dev)
+        model = MODEL_REGISTRY[name].build(model_cfg, AngleGrid(), dev)
         console.print(f"training [bold]{name}[/bold]…")
         t0 = time.perf_counter()
         budget = budget_s if name == "rflscm" else None

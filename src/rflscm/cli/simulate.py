@@ -105,6 +105,12 @@ def simulate(
         "--from-trace",
         help="Re-measure the paths of this simulated scenario instead of tracing (only measurement keys may change).",
     ),
+    raw_out: Path | None = typer.Option(
+        None, "--raw-out", help="Also write raw samples.csv, cells.csv and import.yaml here (for `rflscm import`)."
+    ),
+    raw_samples: int = typer.Option(5, "--raw-samples", min=1, help="Raw samples per reported beam and grid."),
+    raw_fading: float = typer.Option(2.0, "--raw-fading", min=0.0, help="Per-sample log-normal fading σ in dB."),
+    raw_grids: int | None = typer.Option(None, "--raw-grids", min=1, help="Raw samples of at most this many grids."),
 ) -> None:
     """Trace a scene once per (site, carrier) and write a complete scenario with truth/ (SPEC §6)."""
     from rflscm.sim import SimulationConfig, build_scenario, make_backend
@@ -120,6 +126,7 @@ def simulate(
                 f"{'them' if len(layout) > 1 else 'it'} or simulate anew without --from-trace."
             )
         _remeasure(from_trace, out, config, measurements, seed, force)
+        _write_raw(out, raw_out, raw_samples, raw_fading, raw_grids, seed)
         return
     cfg = load_config(SimulationConfig, config) if config is not None else SimulationConfig()
     overrides: dict[str, Any] = {"num_sites": sites, "max_grids": grids, "seed": seed, "measurements": measurements,
@@ -145,6 +152,26 @@ def simulate(
         f"{100 * stats['fraction_missing']:.1f} % beams missing; "
         f"tracing {stats['trace_seconds']:.1f} s ({stats['seconds_per_1000_rx_per_carrier']:.2f} s per 1000 "
         f"receivers per carrier). Check it with `rflscm check {out}`."
+    )
+    _write_raw(out, raw_out, raw_samples, raw_fading, raw_grids, cfg.seed)
+
+
+def _write_raw(scenario: Path, raw_out: Path | None, samples: int, fading_db: float, grids: int | None,
+               seed: int | None) -> None:  # fmt: skip
+    """``--raw-out``: the written scenario as raw samples and a cell list (rflscm.sim.raw_writer)."""
+    if raw_out is None:
+        return
+    from rflscm.cli.common import output_folder
+    from rflscm.data import load_scenario
+    from rflscm.sim.raw_writer import write_raw
+
+    sc = load_scenario(scenario)
+    info = write_raw(sc, output_folder(raw_out, "--raw-out"), samples_per_beam=samples, fading_db=fading_db,
+                     max_grids=grids, grid_size_m=float(sc.meta.simulation.get("config", {}).get("grid_size_m", 10.0)),
+                     seed=seed or 0)  # fmt: skip
+    Console(stderr=True).print(
+        f"[green]wrote[/green] raw {raw_out}: {info['samples']:,} samples of {info['grids']} grids, "
+        f"{info['cells']} cell rows. Import with `rflscm import {raw_out / 'import.yaml'} --out DIR`."
     )
 
 

@@ -19,6 +19,7 @@ from rflscm.cli.common import (
     resolve_device,
     seed_everything,
 )
+from rflscm.cli.overrides import PresetOption, SetOption, model_config
 from rflscm.errors import ConfigError
 
 
@@ -37,7 +38,11 @@ def protocol_options(
 def train(
     scenario: Path = typer.Argument(..., help="Scenario folder (or its scenario.yaml)."),
     model: str = typer.Option("rflscm", "--model", help="Model: rflscm, nerf2 or wnomp."),
-    config: str = typer.Option("quick", "--config", help="Preset (quick, full) or a YAML file."),
+    config: str = typer.Option(
+        "quick", "--config", help="Preset (quick, full) or a YAML file of the settings that differ from --preset."
+    ),
+    preset: str | None = PresetOption,
+    sets: list[str] = SetOption,
     out: Path = typer.Option(Path("runs/model.ckpt"), "--out", help="Checkpoint file to write."),
     protocol: str = typer.Option("adjust", "--protocol", help="adjust, unseen or multifreq: which data to train on."),
     holdout: float = typer.Option(0.1, "--holdout", help="unseen: fraction of grids held out."),
@@ -78,9 +83,11 @@ def train(
     dev = resolve_device(device)
     scen = load_scenario(scenario)
     proto = make_protocol(protocol, **protocol_options(protocol, holdout, train_percent, other_carriers, split_seed))
-    fitted = MODEL_REGISTRY[model].build(config, AngleGrid(), dev)
+    fitted = MODEL_REGISTRY[model].build(model_config(model, config, preset, sets), AngleGrid(), dev)
     fitted.run_info["seed"] = seed
     fitted.run_info["config"] = config
+    if sets or preset is not None:
+        fitted.run_info["config_overrides"] = {"preset": preset, "set": list(sets)}
     console.print(f"training [bold]{model}[/bold] ({config}) on {scen.meta.name!r} with protocol {protocol} on {dev}")
     if budget_s is not None and not isinstance(fitted, Trainable):
         console.print(f"note: --minutes does not apply to {model} (it is not trained step by step); ignored.")

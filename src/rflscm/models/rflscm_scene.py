@@ -162,8 +162,9 @@ def make_prior(cfg: RFLSCMConfig, scenario: Scenario, lo: np.ndarray, hi: np.nda
     cloud = scenario.point_cloud
     if cloud is None or len(cloud.xyz) == 0:
         raise ConfigError(
-            f"scenario {scenario.meta.name!r} has no point cloud but `model.prior.enabled` is true; "
-            "add a point cloud or set `model.prior.enabled: false`."
+            f"scenario {scenario.meta.name!r} has no point cloud but the model's point-cloud prior is on "
+            "(`prior.enabled: true`); add `point_cloud:` to scenario.yaml, or train without the prior: "
+            "`--set prior.enabled=false` (or `prior: {enabled: false}` in a --config YAML)."
         )
     density, grid_lo, grid_hi = density_grid(cloud.xyz, lo, hi, cfg.prior.voxel_m, cfg.render.step_m)
     occupied = density[density > 0]
