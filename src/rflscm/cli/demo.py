@@ -12,6 +12,7 @@ from rich.table import Table
 
 from rflscm.cli import app
 from rflscm.cli.common import (
+    Device,
     DeviceOption,
     SeedOption,
     budget_note,
@@ -68,16 +69,16 @@ def demo_table(results: dict[str, dict], title: str) -> Table:
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("rflscm-demo"), "--out", help="Folder for checkpoints, metrics JSON and reports."),
+    out: Path = typer.Option(Path("rflscm-demo"), "--out", help="Folder for checkpoints, metrics JSON, the comparison table and reports."),
     scenario: Path | None = typer.Option(
         None, "--scenario", help="Scenario folder (default: the shipped munich scenario)."
     ),
     config: str = typer.Option("quick", "--config", help="RF-LSCM preset or YAML file."),
     minutes: float = typer.Option(
-        DEMO_MINUTES, "--minutes", help="RF-LSCM's training budget in minutes (its schedule follows the budget)."
+        DEMO_MINUTES, "--minutes", help="RF-LSCM's training budget (min; its schedule follows the budget)."
     ),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
-    device: str = DeviceOption,
+    device: Device = DeviceOption,
     seed: int = SeedOption,
 ) -> None:
     """Train WNOMP (settings chosen on held-aside round-1 beams) and RF-LSCM on the shipped scenario, print the

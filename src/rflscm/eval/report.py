@@ -11,7 +11,6 @@ import pandas as pd
 
 from rflscm.eval import plots
 from rflscm.eval.evaluate import BeamResult, Evaluation
-from rflscm.geometry import engineering_to_internal
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
@@ -121,14 +120,14 @@ def _aps_figure(evaluation: Evaluation, scenario: Scenario, model: Any, out: Pat
     pairs = evaluation.aps_pairs.iloc[picks]
     labels = [f"cell {c}, grid {g}" for c, g in zip(pairs["cell_id"], pairs["grid_id"])]
     cells = scenario.cells[1].set_index("cell_id")
-    _, boresight = engineering_to_internal(cells.loc[pairs["cell_id"], "azimuth_deg"].to_numpy(), 0.0)
+    boresight = cells.loc[pairs["cell_id"], "azimuth_deg"].to_numpy()  # clockwise from north, as the plot
     return plots.aps_heatmaps(
         out / "aps.png",
         model.angle_grid,
         labels,
         evaluation.aps_true[picks],
         evaluation.aps_est[picks],
-        boresight_az_deg=list(np.degrees(boresight)),
+        boresight_az_deg=[float(b) for b in boresight],
     )
 
 

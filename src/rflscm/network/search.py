@@ -55,10 +55,12 @@ class NetworkEvaluator:
         cache: the model's APS (:func:`~rflscm.network.candidates.cache_aps`).
         space: the search space (its cells in the order of ``cache.cell_ids``).
         kpi: KPI constants; objective: ``coverage``, ``sinr`` or ``weighted``.
+        grid_mask: ``[num_grids]`` grids the objective scores (None: all); the others are held out.
     """
 
     def __init__(self, scenario: Any, base_round: int, cache: ApsCache, space: SearchSpace, kpi: KPIConfig,
-                 objective: str = "coverage", sinr_weight: float = 0.1) -> None:  # fmt: skip
+                 objective: str = "coverage", sinr_weight: float = 0.1,
+                 grid_mask: np.ndarray | None = None) -> None:  # fmt: skip
         objective_value({"coverage": torch.zeros(1), "num_samples": torch.ones(1), "margin": torch.zeros(1),
                          "mean_sinr_clipped_db": torch.zeros(1)}, objective)  # fmt: skip  # validates the name
         self.cache, self.space, self.kpi = cache, space, kpi
@@ -69,8 +71,11 @@ class NetworkEvaluator:
         for g, (_, rows) in enumerate(self.groups):
             self.group_of[rows] = g
         self.noise_mw = [10.0 ** (kpi.noise_per_re_dbm(f) / 10.0) for f, _ in self.groups]
-        self.known = torch.as_tensor(cache.known)
-        self.all_known = bool(cache.known.all())
+        known = cache.known if grid_mask is None else cache.known & np.asarray(grid_mask, dtype=bool)[None, :]
+        self.known_np = known
+        """Pairs the objective scores: the model's known pairs on the grids of ``grid_mask`` (the rest held out)."""
+        self.known = torch.as_tensor(known)
+        self.all_known = bool(known.all())
         dirs = cache.angle_grid.directions(dtype=torch.float32)
         self.sensing = [CellSensing(scenario, int(c), base_round, dirs[torch.as_tensor(cache.bins[i])], space.cells[i])
                         for i, c in enumerate(cache.cell_ids)]  # fmt: skip
@@ -137,7 +142,7 @@ class NetworkEvaluator:
     def kpis(self) -> dict[str, Any]:
         """Network KPIs (pooled and per carrier) of the current configuration."""
         return network_kpis(self.power.double().numpy(), self.freqs, self.kpi,
-                            None if self.all_known else self.cache.known)  # fmt: skip
+                            None if self.all_known else self.known_np)  # fmt: skip
 
 
 def _expand(samples: dict[str, torch.Tensor], n: int) -> dict[str, torch.Tensor]:
