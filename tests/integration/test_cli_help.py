@@ -41,10 +41,8 @@ def _numeric(param: object) -> bool:
 
 
 def _has_unit(text: str) -> bool:
-    for group in re.findall(r"\(([^()]*)\)", text):
-        if set(re.split(r"[\s,;:]+", group.strip())) & UNITS:
-            return True
-    return False
+    groups = re.findall(r"\(([^()]*)\)", text)
+    return any(set(re.split(r"[\s,;:]+", group.strip())) & UNITS for group in groups)
 
 
 def _params(name: str | None) -> list:

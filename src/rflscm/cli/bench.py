@@ -6,7 +6,7 @@ import json
 import platform
 import subprocess
 from datetime import UTC, datetime
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -53,8 +53,7 @@ def _machine() -> dict[str, Any]:
     }
 
 
-
-class Size(str, Enum):
+class Size(StrEnum):
     quick = "quick"
     full = "full"
 

@@ -6,7 +6,7 @@ import json
 import math
 import os
 import random
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +15,8 @@ import typer
 
 from rflscm.errors import ConfigError
 
-class Device(str, Enum):
+
+class Device(StrEnum):
     """``--device`` choices."""
 
     auto = "auto"

@@ -69,7 +69,9 @@ def demo_table(results: dict[str, dict], title: str) -> Table:
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("rflscm-demo"), "--out", help="Folder for checkpoints, metrics JSON, the comparison table and reports."),
+    out: Path = typer.Option(
+        Path("rflscm-demo"), "--out", help="Folder for checkpoints, metrics JSON, the comparison table and reports."
+    ),
     scenario: Path | None = typer.Option(
         None, "--scenario", help="Scenario folder (default: the shipped munich scenario)."
     ),

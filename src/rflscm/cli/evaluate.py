@@ -10,7 +10,6 @@ from rich.markup import escape
 from rich.table import Table
 
 from rflscm.cli import app
-from rflscm.cli.train import Protocol
 from rflscm.cli.common import (
     Device,
     DeviceOption,
@@ -21,6 +20,7 @@ from rflscm.cli.common import (
     resolve_device,
     seed_everything,
 )
+from rflscm.cli.train import Protocol
 from rflscm.errors import ConfigError
 
 
@@ -32,7 +32,9 @@ def evaluate(
         None, "--protocol", help="adjust, unseen or multifreq (default: the one the checkpoint was trained for)."
     ),
     json_out: Path | None = typer.Option(None, "--json", help="Write the metrics as JSON to this file."),
-    report: Path | None = typer.Option(None, "--report", help="Write report.md and PNG figures (maps, error CDFs) into this folder."),
+    report: Path | None = typer.Option(
+        None, "--report", help="Write report.md and PNG figures (maps, error CDFs) into this folder."
+    ),
     oracle: bool = typer.Option(
         True, "--oracle/--no-oracle", help="Compute the oracle floor where ground truth exists."
     ),

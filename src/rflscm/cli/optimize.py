@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import sys
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 
 import typer
@@ -21,13 +21,13 @@ from rflscm.cli.common import Device, DeviceOption, SeedOption, resolve_device, 
 from rflscm.errors import ConfigError
 
 
-class Objective(str, Enum):
+class Objective(StrEnum):
     coverage = "coverage"
     sinr = "sinr"
     weighted = "weighted"
 
 
-class Method(str, Enum):
+class Method(StrEnum):
     cd = "cd"
     de = "de"
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -21,8 +21,7 @@ if TYPE_CHECKING:
     from rflscm.models.base import LSCMModel
 
 
-
-class Pairs(str, Enum):
+class Pairs(StrEnum):
     measured = "measured"
     all = "all"
 
@@ -129,8 +128,9 @@ def predict(
         ..., help="The scenario the model was trained on; its rounds are the antenna configurations."
     ),
     round: int = typer.Option(
-        2, "--round", help="Round to predict (integer; its antenna configuration); add a round to scenario.yaml for "
-        "a what-if.",
+        2,
+        "--round",
+        help="Round to predict (integer; its antenna configuration); add a round to scenario.yaml for a what-if.",
     ),
     out: Path = typer.Option(Path("prediction.parquet"), "--out", help="Predicted RSRP table (.parquet or .csv)."),
     pairs_choice: Pairs = typer.Option(
@@ -140,10 +140,14 @@ def predict(
     aps_grids: str | None = typer.Option(None, "--aps-grids", help="Comma-separated grid ids whose APS to export."),
     aps_out: Path = typer.Option(Path("aps.parquet"), "--aps-out", help="Where the exported APS goes."),
     attenuation_map: Path | None = typer.Option(
-        None, "--attenuation-map", help="PNG map of the learned attenuation −log|δ| over the scene, seen from above (rflscm and nerf2 only)."
+        None,
+        "--attenuation-map",
+        help="PNG map of the learned attenuation −log|δ| over the scene, seen from above (rflscm and nerf2 only).",
     ),
     kpi: bool = typer.Option(
-        False, "--kpi", help="Also print network KPIs of the round (coverage and overlap in %, SS-SINR in dB) on the predicted pairs."
+        False,
+        "--kpi",
+        help="Also print network KPIs of the round (coverage and overlap in %, SS-SINR in dB) on the predicted pairs.",
     ),
     kpi_json: Path | None = typer.Option(
         None, "--kpi-json", help="Write the network KPIs as JSON here (implies --kpi)."

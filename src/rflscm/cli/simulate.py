@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import shutil
 import tempfile
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -72,13 +72,12 @@ def _prepare_out(out: Path, force: bool) -> None:
         )
 
 
-
-class Backend(str, Enum):
+class Backend(StrEnum):
     procedural = "procedural"
     sionna = "sionna"
 
 
-class Regime(str, Enum):
+class Regime(StrEnum):
     ideal = "ideal"
     field = "field"
 
@@ -96,7 +95,9 @@ def simulate(
     ),
     sites: int | None = typer.Option(None, "--sites", min=1, help="Sites (count; default 7, 3 sectors each)."),
     carriers: str | None = typer.Option(
-        None, "--carriers", help="Carrier frequencies (Hz), comma separated; the first is the primary (default 3.5e9,2.1e9)."
+        None,
+        "--carriers",
+        help="Carrier frequencies (Hz), comma separated; the first is the primary (default 3.5e9,2.1e9).",
     ),
     grids: int | None = typer.Option(None, "--grids", min=1, help="Most grids of 10 m × 10 m (count; default 800)."),
     config: Path | None = typer.Option(None, "--config", help="SimulationConfig YAML; options given here override it."),

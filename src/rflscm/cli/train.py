@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 
 import typer
@@ -35,14 +35,13 @@ def protocol_options(
     return {}
 
 
-
-class ModelName(str, Enum):
+class ModelName(StrEnum):
     rflscm = "rflscm"
     nerf2 = "nerf2"
     wnomp = "wnomp"
 
 
-class Protocol(str, Enum):
+class Protocol(StrEnum):
     adjust = "adjust"
     unseen = "unseen"
     multifreq = "multifreq"

@@ -31,7 +31,9 @@ no truth (a gain that exists only on the searched grids is overfitting the model
 KPI_KEYS = ("coverage", "mean_sinr_db", "p5_sinr_db", "overlap", "mean_rsrp_dbm", "no_signal")
 
 
-def objective_gain(before: dict[str, float], after: dict[str, float], objective: str, sinr_weight: float = 0.1) -> float:
+def objective_gain(
+    before: dict[str, float], after: dict[str, float], objective: str, sinr_weight: float = 0.1
+) -> float:
     """The gain of the KPI an objective maximises: coverage [fraction], mean SS-SINR [dB] or their weighted sum."""
     d_cov = after["coverage"] - before["coverage"]
     d_sinr = after["mean_sinr_db"] - before["mean_sinr_db"]

@@ -139,7 +139,7 @@ def write_report(result: Any, scenario: Any, out_dir: Path, kpi: KPIConfig, roun
 def _changes_md(changes: Any) -> list[str]:
     if len(changes) == 0:
         return ["No cell changed: the present configuration is the best found."]
-    lines = ["| cell | site | carrier [GHz] | SSB codebook | elec. tilt [°] | mech. tilt [°] | azimuth [°] |",
+    lines = ["| cell | site | carrier (GHz) | SSB codebook | elec. tilt (°) | mech. tilt (°) | azimuth (°, clockwise from north) |",
              "| ---: | ---: | ---: | --- | --- | --- | --- |"]  # fmt: skip
     for r in changes.itertuples(index=False):
         lines.append(
@@ -157,7 +157,7 @@ def _maps(result: Any, scenario: Any, out_dir: Path, kpi: KPIConfig) -> list[str
     cells = result.cells_before
     cell_ids = cells["cell_id"].to_numpy()
     freqs = cells["freq_hz"].to_numpy()
-    xy = scenario.grids[["x", "y"]].to_numpy()
+    xy = scenario.grids.set_index("grid_id").loc[scenario.grid_ids(), ["x", "y"]].to_numpy()
     changed = cells["cell_id"].isin(result.changes["cell_id"]).to_numpy()
     after_az = result.cells_after["azimuth_deg"].to_numpy()
     before = grid_maps(result.power_before, cell_ids, freqs, kpi, result.known)

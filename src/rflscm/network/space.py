@@ -111,7 +111,9 @@ class SearchSpace:
         delta = new["mech_tilt_deg"] - old["mech_tilt_deg"] + new["elec_tilt_deg"] - old["elec_tilt_deg"]
         return abs(delta) <= self.max_total_tilt_step + 1e-9
 
-    def follow(self, pos: int, index: tuple[int, ...], other: int, other_index: tuple[int, ...]) -> tuple[int, ...] | None:
+    def follow(
+        self, pos: int, index: tuple[int, ...], other: int, other_index: tuple[int, ...]
+    ) -> tuple[int, ...] | None:
         """``other``'s index with its shared variables moved by the change ``index`` makes to cell ``pos``
         (None when ``other`` has no such option)."""
         a, b = self.cells[pos], self.cells[other]
@@ -301,7 +303,11 @@ def _range(value: Any, where: str) -> dict[str, float]:
     return {"min": lo, "max": hi, "step": step}
 
 
-_FLAGS = {"mech_tilt_deg": "--tilt-range", "elec_tilt_deg": "--elec-tilt-range", "azimuth_offset_deg": "--azimuth-range"}
+_FLAGS = {
+    "mech_tilt_deg": "--tilt-range",
+    "elec_tilt_deg": "--elec-tilt-range",
+    "azimuth_offset_deg": "--azimuth-range",
+}
 
 
 def check_physical(key: str, lo: float, hi: float, where: str) -> None:
