@@ -179,6 +179,8 @@ def predict(
             f"--round {round}: scenario {scen.meta.name!r} has rounds {', '.join(map(str, scen.rounds()))}."
         )
     model = load_model(checkpoint, scen, device=dev)
+    if attenuation_map is not None and not hasattr(model, "all_stages"):
+        raise ConfigError(f"{model.name} has no attenuation field; --attenuation-map needs an rflscm or nerf2 model.")
     selected = prediction_pairs(scen, model, pairs)
     cached = APSCache(model)  # SSB and CSI-RS of a pair share its APS
     with console.status(f"predicting {len(selected)} (cell, grid) pairs with {model.name}…"):
@@ -198,8 +200,7 @@ def predict(
         n = _export_aps(model, scen, cells, grids, aps_out)
         console.print(f"wrote {aps_out} ({n} non-zero bins)")
     if attenuation_map is not None:
-        draw = getattr(model, "plot_attenuation_map", None)
-        if draw is None:
-            raise ConfigError(f"{model.name} has no attenuation field; --attenuation-map needs rflscm or nerf2.")
-        draw(attenuation_map)
+        from rflscm.eval.report import write_attenuation_map
+
+        write_attenuation_map(model, scen, attenuation_map, round)
         console.print(f"wrote {attenuation_map}")

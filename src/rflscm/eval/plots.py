@@ -327,6 +327,36 @@ def aps_heatmaps(
     return _save(fig, path)
 
 
+def attenuation_map(
+    path: Path, x_m: np.ndarray, y_m: np.ndarray, db_per_m: np.ndarray, title: str,
+    sites_xy: np.ndarray | None = None, azimuth_deg: np.ndarray | None = None,
+) -> Path:  # fmt: skip
+    """A top-down map of a learned attenuation field.
+
+    Args:
+        x_m, y_m: ``[nx]``, ``[ny]`` cell-centre coordinates, east and north [m].
+        db_per_m: ``[ny, nx]`` attenuation (the strongest over height) [dB/m].
+        sites_xy, azimuth_deg: cells' sites [m] and azimuths (clockwise from north) [deg], drawn when given.
+    """
+    fig, ax = plt.subplots(figsize=(8.5, 7.2), constrained_layout=True)
+    dx = (x_m[1] - x_m[0]) / 2 if len(x_m) > 1 else 0.5
+    dy = (y_m[1] - y_m[0]) / 2 if len(y_m) > 1 else 0.5
+    extent = (x_m[0] - dx, x_m[-1] + dx, y_m[0] - dy, y_m[-1] + dy)
+    finite = np.isfinite(db_per_m).any()
+    low, top = (float(np.nanpercentile(db_per_m, q)) for q in (0.5, 99.5)) if finite else (0.0, 1.0)
+    image = ax.imshow(db_per_m, origin="lower", extent=extent, cmap="inferno", vmin=low, vmax=max(top, low + 1e-9),
+                      interpolation="nearest")  # fmt: skip
+    fig.colorbar(image, ax=ax, label="learned attenuation −log|δ|, strongest over height (dB/m)", shrink=0.9)
+    if sites_xy is not None and azimuth_deg is not None and len(sites_xy):
+        span = max(extent[1] - extent[0], extent[3] - extent[2])
+        _sites(ax, sites_xy, azimuth_deg, np.zeros(len(sites_xy), dtype=bool), arrow_m=0.05 * span)
+    ax.set_xlabel("x, east (m)")
+    ax.set_ylabel("y, north (m)")
+    ax.set_aspect("equal")
+    ax.set_title(title)
+    return _save(fig, path)
+
+
 def _nan(value: float | None) -> float:
     return np.nan if value is None else float(value)
 

@@ -259,3 +259,53 @@ def _network_section(evaluation: Evaluation, scenario: Scenario, out: Path, titl
                        difference=("predicted − measured", 0, 1))  # fmt: skip
         lines += [f"![network maps {mm.freq_hz / 1e9:g} GHz]({name})", ""]
     return lines
+
+
+DB_PER_NEPER = 20.0 / np.log(10.0)
+
+
+def learned_attenuation(model: Any, cells_per_side: int = 160, heights: int = 24) -> tuple[np.ndarray, ...]:
+    """The attenuation a radiance-field model (RF-LSCM, NeRF²) learned, seen from above.
+
+    Samples the δ field of the model's last rendering stage on a ``cells_per_side`` × ``cells_per_side`` ×
+    ``heights`` lattice over the scene box and returns ``(x_m [nx], y_m [ny], db_per_m [ny, nx])``: the largest
+    one-way loss −log|δ| over height at the reference carrier, per metre (the medium's own conversion of δ's
+    loss channel).
+
+    Raises:
+        ConfigError: the model has no attenuation field (WNOMP), or has not been trained.
+    """
+    import torch
+
+    from rflscm.errors import ConfigError
+
+    stages = getattr(model, "all_stages", None)
+    scene = getattr(model, "scene", None)
+    if stages is None or scene is None or not stages():
+        raise ConfigError(f"{model.name} has no attenuation field; --attenuation-map needs an rflscm or nerf2 model.")
+    stage = stages()[-1]
+    frame = scene.frame
+    lo, hi = np.asarray(frame.box_lo, dtype=np.float64), np.asarray(frame.box_hi, dtype=np.float64)
+    xs, ys, zs = (lo[k] + (np.arange(n) + 0.5) * (hi[k] - lo[k]) / n
+                  for k, n in ((0, cells_per_side), (1, cells_per_side), (2, heights)))  # fmt: skip
+    grid = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), axis=-1).reshape(-1, 3)  # [nx·ny·nz, 3]
+    device = next(stage.parameters()).device
+    step_m = stage.medium.voxel_m
+    out = []
+    with torch.no_grad():
+        for chunk in np.array_split(grid, max(1, len(grid) // 65536)):
+            points = torch.as_tensor(chunk, dtype=torch.float32, device=device)
+            raw = stage.fields.delta(stage.fields.encode(points))
+            out.append((stage.medium.loss_db(raw) / step_m).double().cpu().numpy())
+    loss = np.concatenate(out).reshape(len(xs), len(ys), len(zs))
+    return xs, ys, loss.max(axis=2).T
+
+
+def write_attenuation_map(model: Any, scenario: Scenario, path: str | Path, round: int = 1) -> Path:
+    """PNG of :func:`learned_attenuation` with the scenario's sites and cell azimuths (round ``round``)."""
+    xs, ys, db_per_m = learned_attenuation(model)
+    cells = scenario.cells[round] if round in scenario.cells else scenario.cells[1]
+    return plots.attenuation_map(
+        Path(path), xs, ys, db_per_m, f"{model.name}: learned attenuation over {scenario.meta.name}",
+        cells[["x", "y"]].to_numpy(), cells["azimuth_deg"].to_numpy(),
+    )  # fmt: skip

@@ -237,7 +237,9 @@ def panel_groups(cells: pd.DataFrame) -> tuple[tuple[int, ...], ...]:
     """Positions of cells that share an antenna panel: the ``panel_id`` column where the cells table has
     one (empty = a panel of its own), else cells of one site with the same azimuth (to 0.1°)."""
     if "panel_id" in cells.columns:
-        keys = [None if pd.isna(v) or str(v).strip() == "" else ("panel", str(v)) for v in cells["panel_id"]]
+        keys: list[tuple[object, ...] | None] = [
+            None if pd.isna(v) or str(v).strip() == "" else ("panel", str(v)) for v in cells["panel_id"]
+        ]
     else:
         keys = [("site", int(s), round(float(a) % 360.0, 1)) for s, a in zip(cells["site_id"], cells["azimuth_deg"])]
     groups: dict[Any, list[int]] = {}
