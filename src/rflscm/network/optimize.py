@@ -153,7 +153,7 @@ def run_optimize(
     time_budget_s: float = 60.0,
     sinr_weight: float = 0.1,
     on_step: Any = None,
-    holdout_fraction: float = HOLDOUT_FRACTION,
+    holdout_fraction: float | None = None,
 ) -> OptimizeResult:
     """Search ``space`` on the cached APS and report KPIs before and after (and on truth).
 
@@ -163,7 +163,8 @@ def run_optimize(
         method: ``cd`` (coordinate descent with restarts) or ``de`` (scipy differential evolution).
         on_step: called after every cell visit (cd) or generation (de), for progress bars.
         holdout_fraction: share of the grids (drawn with ``seed``) the search does not score; the
-            predicted KPIs on them check the recommendation (:func:`verdict`).
+            predicted KPIs on them check the recommendation (:func:`verdict`).  None: :data:`HOLDOUT_FRACTION`
+            without truth, 0 with truth (the true gain checks it, so the search may use every grid).
 
     Predicted and true KPIs cover the same pairs: the model's known pairs (every pair, or WNOMP's
     measured round-1 pairs); the true KPIs on every pair come beside them for WNOMP.
@@ -173,6 +174,8 @@ def run_optimize(
     kpi = kpi or KPIConfig()
     truth_verifier = _verifier(scenario, verify)
     t0 = time.perf_counter()
+    if holdout_fraction is None:
+        holdout_fraction = 0.0 if truth_verifier is not None else HOLDOUT_FRACTION
     num_grids = len(cache.grid_ids)
     held = np.zeros(num_grids, dtype=bool)
     n_held = int(round(holdout_fraction * num_grids))

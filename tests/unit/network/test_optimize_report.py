@@ -116,3 +116,20 @@ def test_the_what_if_round_names_files_relatively_and_moves_with_its_folder(tmp_
     again = load_scenario(moved / "opt" / "scenario")
     assert sorted(again.cells) == [1, 2, rnd] and again.fingerprint() == load_scenario(moved / "scenario").fingerprint()
     assert float(again.cells[rnd].set_index("cell_id").loc[11, "mech_tilt_deg"]) == 8.0
+
+
+def test_without_truth_the_search_holds_grids_out_and_checks_on_them(tmp_path: Path) -> None:
+    from network_helpers import single_bin_cache
+
+    from rflscm.network.optimize import run_optimize
+    from rflscm.network.space import build_space
+
+    scen = load(pencil_scenario(tmp_path / "pencil"))
+    cache = single_bin_cache(scen, -12.0, 30.0, 1e-15)
+    space = build_space({}, scen.cells[1], scen.meta.codebooks)
+    result = run_optimize(scen, cache, space, objective="sinr", verify=False, restarts=0, holdout_fraction=0.34)
+    assert result.held_out_grids == 1 and result.truth is None
+    s = result.summary()
+    assert s["verdict"]["basis"] == "held-out predicted"
+    assert s["verdict"]["gain"] == pytest.approx(s["held_out_gain"]["mean_sinr_db"])
+    assert s["kpi_pair_count"] == len(scen.cell_ids()) * len(scen.grid_ids())  # predicted KPIs: every pair
