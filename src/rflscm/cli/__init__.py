@@ -88,8 +88,11 @@ def main() -> None:
         print("Aborted.", file=sys.stderr)
         sys.exit(1)
     except Exception as exc:  # click usage errors carry their own exit code
-        if isinstance(exc, _click_exceptions()):
-            exc.show()  # type: ignore[attr-defined]  # a ClickException
+        if isinstance(exc, _click_exceptions()):  # one line, like our own errors (a wrong choice, a missing argument)
+            message = " ".join(exc.format_message().replace("Value error, ", "").split())  # type: ignore[attr-defined]
+            ctx = getattr(exc, "ctx", None)
+            hint = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
+            print(f"Error: {message}{hint}", file=sys.stderr)
             sys.exit(exc.exit_code)  # type: ignore[attr-defined]
         raise
 
