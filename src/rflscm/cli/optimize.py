@@ -171,7 +171,8 @@ def _print(console: Console, result, folder: Path, rnd: int, report: Path) -> No
         columns += ["true before", "true after", "true gain"]
     if result.held_out is not None:
         columns += ["held-out pred. gain"]
-    for col in columns:
+    table.add_column(columns[0], justify="left", no_wrap=True)
+    for col in columns[1:]:
         table.add_column(col, justify="right")
     for key, label, scale, unit in KPI_ROWS:
         row = [f"{label} ({unit})"]
