@@ -124,7 +124,8 @@ def _serving(ax: plt.Axes, xy: np.ndarray, serving: np.ndarray, cell_ids: np.nda
         mine = serving == cell
         if mine.sum() < 2:
             continue
-        cx, cy = xy[mine].mean(0)
+        own = xy[mine]
+        cx, cy = own[np.argmin(np.linalg.norm(own - own.mean(0), axis=1))]  # inside its area, near the centre
         ax.text(cx, cy, str(cell), ha="center", va="center", fontsize=7, fontweight="bold", zorder=7,
                 bbox={"boxstyle": "round,pad=0.15", "fc": colors[k], "ec": "black", "lw": 0.4, "alpha": 0.9})  # fmt: skip
 
