@@ -107,7 +107,8 @@ def demo(
     seed: int = SeedOption,
 ) -> None:
     """Train WNOMP (settings chosen on held-aside round-1 beams) and RF-LSCM on the shipped scenario, print the
-    antenna-adjustment MAE table beside both floors and the trivial baseline, and write reports."""
+    antenna-adjustment MAE table beside both floors and the trivial baseline, save it (comparison.md, .csv, .json)
+    and write reports."""
     from rflscm.data import load_scenario
     from rflscm.eval import run_evaluation
     from rflscm.eval.protocols import AdjustProtocol, fit_with_protocol

@@ -119,7 +119,7 @@ def write_report(result: Any, scenario: Any, out_dir: Path, kpi: KPIConfig, roun
     lines += _changes_md(result.changes)
     lines += ["", f"Written as round {round_written} of `{scenario_dir / 'scenario.yaml'}` (it names the original "
               f"scenario's files by relative paths); `rflscm predict CKPT {scenario_dir} --round {round_written} "
-              "--pairs measured --kpi` reproduces the predicted KPIs.", "", "## Maps (predicted)", ""]  # fmt: skip
+              f"--pairs {'measured' if result.known is not None else 'all'} --kpi` reproduces the predicted KPIs.", "", "## Maps (predicted)", ""]  # fmt: skip
     lines += [f"![{m}]({m})" for m in maps]
     lines += [
         "",
