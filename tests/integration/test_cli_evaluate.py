@@ -75,7 +75,10 @@ def test_user_mistakes_exit_2_with_one_line(tiny, tmp_path) -> None:
     cases = [
         ((str(ckpt), str(other.root)), "trained on another scenario"),
         ((str(tmp_path / "missing.ckpt"), str(tiny.root)), "checkpoint file not found"),
-        ((str(ckpt), str(tiny.root), "--protocol", "crossval"), "choose one of: adjust, unseen, multifreq"),
+        (
+            (str(ckpt), str(tiny.root), "--protocol", "crossval"),
+            "'crossval' is not one of 'adjust', 'unseen', 'multifreq'",
+        ),
     ]
     for args, message in cases:
         run = rflscm("evaluate", *args)

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 import pytest
 
 from rflscm.data import load_scenario
@@ -24,6 +26,10 @@ GRID = AngleGrid(num_el=31, num_az=36, el_min_deg=-90.0, el_step_deg=6.0)
 def rflscm(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "rflscm.cli", "--threads", "1", *args], capture_output=True,
                           text=True, timeout=600)  # fmt: skip
+
+
+def summary_changes(out: Path) -> list[dict]:
+    return pd.read_csv(out / "changes.csv").to_dict("records")
 
 
 def _checkpoint(scenario, path: Path) -> Path:
@@ -55,12 +61,27 @@ def test_optimize_writes_a_round_that_checks_and_predicts_the_same_kpis(simulate
     assert run.returncode == 0, run.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["kpi_pairs"] == "measured round-1 pairs only"  # WNOMP
-    assert "measured pairs only" in run.stderr
+    assert "measured round-1 pairs only" in " ".join(run.stderr.split())
     assert summary["changed_cells"] <= 3
     assert summary["search"]["objective_after"] >= summary["search"]["objective_before"]
     assert set(summary["truth"]) >= {"before", "after", "note"} and "noiseless" in summary["truth"]["note"]
+    # predicted and true on the same pairs; the truth on every pair beside them for scale
+    assert "same pairs" in summary["truth"]["note"] and "every (cell, grid) pair" in summary["truth_all_pairs"]["note"]
+    mask = np.zeros((len(scenario.cell_ids()), len(scenario.grid_ids())), bool)
+    m1 = scenario.measurements[scenario.measurements["round"] == 1]
+    mask[np.searchsorted(scenario.cell_ids(), m1["cell_id"]), np.searchsorted(scenario.grid_ids(), m1["grid_id"])] = 1
+    assert summary["kpi_pair_count"] == mask.sum()
+    assert "held_out" not in summary and summary["verdict"]["basis"] == "true"  # with truth, no grid is held out
     report = (out / "report.md").read_text()
-    assert "| coverage ratio [%] |" in report and "true gain" in report and (out / "maps_3.5GHz.png").is_file()
+    assert "| coverage ratio (%) |" in report and "true gain" in report and (out / "maps_3.5GHz.png").is_file()
+    assert "cover the same" in report and ("color:red" in report) == summary["verdict"]["flagged"]
+    # no change beyond the documented limits
+    for row in summary_changes(out):
+        assert abs(row["mech_tilt_deg_after"] - row["mech_tilt_deg_before"]) <= 4
+        assert abs(row["elec_tilt_deg_after"] - row["elec_tilt_deg_before"]) <= 4
+        d_az = abs(row["azimuth_deg_after"] - row["azimuth_deg_before"]) % 360
+        assert min(d_az, 360 - d_az) <= 10 and 0 <= row["mech_tilt_deg_after"] <= 10
+    assert str(scenario.root) not in (out / "scenario" / "scenario.yaml").read_text()  # relative paths
     rnd = summary["round"]["number"]
     assert rnd == 3
     check = rflscm("check", str(out / "scenario"))
@@ -80,6 +101,8 @@ def test_optimize_writes_a_round_that_checks_and_predicts_the_same_kpis(simulate
     ("args", "message"),
     [
         (["--tilt-range", "10:2"], "range reversed"),
+        (["--tilt-range", "0:40"], "--tilt-range 0:40: the mechanical tilt must stay within the physical limits"),
+        (["--azimuth-range", "-90:90:10"], "physical limits -60…60 degrees"),
         (["--freeze", "424242"], "unknown cell 424242"),
         (["--codebooks", "nope"], "'nope' is not an SSB codebook"),
         (
@@ -151,3 +174,58 @@ def test_aps_cache_is_written_reused_and_refused_when_foreign_or_hostile(simulat
     run = rflscm("optimize", str(ckpt), str(scenario.root), "--out", str(tmp_path / "o4"), *evil)
     assert run.returncode == 2 and "refused" in run.stderr and len(run.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "pwned").exists()
+
+
+def test_a_wnomp_recommendation_with_a_negative_true_gain_is_flagged(simulated, tmp_path, monkeypatch) -> None:
+    """Force the search onto the single-cell change that hurts the true mean SS-SINR most (found on the truth itself) and
+    check that the result, the report and the CLI's verdict flag it."""
+    import rflscm.network.optimize as opt
+    from rflscm.eval.cache import ScenarioAPS
+    from rflscm.models import load_model
+    from rflscm.network.kpi import KPIConfig, network_kpis
+    from rflscm.network.report import write_report
+    from rflscm.network.search import SearchResult
+    from rflscm.network.space import VARIABLES, build_space, cells_table
+    from rflscm.network.verify import TruthVerifier
+
+    scenario, ckpt = simulated
+    model = load_model(ckpt, scenario, device="cpu")
+    cache = ScenarioAPS.render(model, scenario)
+    assert not cache.known.all()  # WNOMP: measured round-1 pairs only
+    kpi = KPIConfig()
+    space = build_space({}, scenario.cells[1], scenario.meta.codebooks)
+    base = [c.current for c in space.cells]
+    truth = TruthVerifier(scenario)
+    freqs = scenario.cells[1]["freq_hz"].to_numpy()
+
+    def true_sinr(config):
+        power = truth.best_power(cells_table(scenario.cells[1], space, config))
+        return network_kpis(power, freqs, kpi, cache.known)["mean_sinr_db"]
+
+    worst, worst_gain = None, 0.0
+    before = true_sinr(base)
+    for pos in space.free_cells():
+        opts = space.cells[pos]
+        for var in ("mech_tilt_deg", "azimuth_deg"):
+            k = VARIABLES.index(var)
+            for i in (0, opts.sizes()[k] - 1):
+                config = list(base)
+                config[pos] = (*opts.current[:k], i, *opts.current[k + 1 :])
+                config = space.tie(config)
+                gain = true_sinr(config) - before
+                if gain < worst_gain:
+                    worst, worst_gain = config, gain
+    assert worst is not None, "no single-cell change lowers the true mean SS-SINR in this scenario"
+
+    def forced(ev, **_):
+        base_obj = ev.score()
+        ev.set_config(worst)
+        return SearchResult(worst, ev.score(), base_obj, ev.evaluations, 0.0, "forced")
+
+    monkeypatch.setattr(opt, "coordinate_descent", forced)
+    result = opt.run_optimize(scenario, cache, space, objective="sinr", kpi=kpi, verify=True)
+    summary = result.summary()
+    assert summary["true_gain"]["mean_sinr_db"] == pytest.approx(worst_gain, abs=1e-9)
+    assert summary["verdict"]["flagged"] and summary["verdict"]["basis"] == "true"
+    report = write_report(result, scenario, tmp_path / "o", kpi, 3, tmp_path / "o" / "scenario").read_text()
+    assert "color:red" in report and "do not apply: the true mean SS-SINR gain is" in report

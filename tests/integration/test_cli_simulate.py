@@ -67,7 +67,7 @@ def test_simulate_then_check(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--backend", "raytracer9000"], "valid backends: procedural, sionna"),
+        (["--backend", "raytracer9000"], "'raytracer9000' is not one of 'procedural', 'sionna'"),
         (["--scene", "atlantis"], "valid: city"),
         (["--carriers", "3500,2100"], "looks like MHz"),
         (["--carriers", "3.5,2.1"], "looks like GHz"),

@@ -32,6 +32,24 @@ app = typer.Typer(
 )
 
 
+def _plain_flags() -> None:
+    """Typer ≥ 0.2x writes a ``<bool>`` type beside every flag (``--help <bool>``, ``--kpi <bool>``) though a flag
+    takes no value; show no type for flags, as click does."""
+    from typer.core import TyperOption
+
+    shown = TyperOption.display_type_rich
+
+    def display_type_rich(self: TyperOption, ctx: object) -> str | None:
+        if getattr(self, "is_flag", False) or getattr(self, "is_bool_flag", False):
+            return None
+        return shown(self, ctx)  # type: ignore[arg-type]
+
+    TyperOption.display_type_rich = display_type_rich  # type: ignore[method-assign]
+
+
+_plain_flags()
+
+
 def _version(value: bool) -> None:
     if value:
         typer.echo(f"rflscm {__version__}")
@@ -70,8 +88,11 @@ def main() -> None:
         print("Aborted.", file=sys.stderr)
         sys.exit(1)
     except Exception as exc:  # click usage errors carry their own exit code
-        if isinstance(exc, _click_exceptions()):
-            exc.show()  # type: ignore[attr-defined]  # a ClickException
+        if isinstance(exc, _click_exceptions()):  # one line, like our own errors (a wrong choice, a missing argument)
+            message = " ".join(exc.format_message().replace("Value error, ", "").split())  # type: ignore[attr-defined]
+            ctx = getattr(exc, "ctx", None)
+            hint = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
+            print(f"Error: {message}{hint}", file=sys.stderr)
             sys.exit(exc.exit_code)  # type: ignore[attr-defined]
         raise
 

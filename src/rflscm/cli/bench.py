@@ -6,6 +6,7 @@ import json
 import platform
 import subprocess
 from datetime import UTC, datetime
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +18,7 @@ from rich.table import Table
 from rflscm import __version__
 from rflscm.bench import BENCHMARKS, BenchContext, load_all
 from rflscm.cli import app
-from rflscm.cli.common import DeviceOption, SeedOption, resolve_device, seed_everything
+from rflscm.cli.common import Device, DeviceOption, SeedOption, resolve_device, seed_everything
 from rflscm.errors import ConfigError
 
 
@@ -52,11 +53,16 @@ def _machine() -> dict[str, Any]:
     }
 
 
+class Size(StrEnum):
+    quick = "quick"
+    full = "full"
+
+
 @app.command()
 def bench(
     name: str = typer.Argument(..., help="Benchmark name; `rflscm bench list` shows them."),
-    size: str = typer.Option("quick", "--size", help="quick (2 CPU cores, minutes) or full (GPU)."),
-    seeds: int = typer.Option(1, "--seeds", min=1, help="Number of seeds where the benchmark repeats runs."),
+    size_choice: Size = typer.Option(Size.quick, "--size", help="quick (2 CPU cores, minutes) or full (GPU)."),
+    seeds: int = typer.Option(1, "--seeds", min=1, help="Seeds the benchmark repeats its runs over (count)."),
     out: Path = typer.Option(Path("bench-out"), "--out", help="Output folder for JSON and plots."),
     scenario: Path | None = typer.Option(None, "--scenario", help="Scenario folder (default: the shipped one)."),
     config: str | None = typer.Option(
@@ -66,12 +72,14 @@ def bench(
         None,
         "--baseline",
         metavar="REF",
-        help="b9: git commit whose code is the old model, or a folder holding its src (default: c7460d6).",
+        help="b9: git revision whose code is the old model, or a folder holding its src (default: the revision "
+        "recorded in BENCHMARKS.md).",
     ),
-    device: str = DeviceOption,
+    device: Device = DeviceOption,
     seed: int = SeedOption,
 ) -> None:
     """Run a benchmark (speed, memory or accuracy) and record its results as JSON."""
+    size = size_choice.value
     load_all()
     console = Console()
     if name == "list":

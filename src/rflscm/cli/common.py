@@ -6,6 +6,7 @@ import json
 import math
 import os
 import random
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -14,12 +15,21 @@ import typer
 
 from rflscm.errors import ConfigError
 
-DeviceOption = typer.Option("auto", "--device", help="Compute device: auto (CUDA if present), cpu or cuda.")
-SeedOption = typer.Option(0, "--seed", help="Random seed (runs are repeatable for a given seed).")
+
+class Device(StrEnum):
+    """``--device`` choices."""
+
+    auto = "auto"
+    cpu = "cpu"
+    cuda = "cuda"
+
+
+DeviceOption = typer.Option(Device.auto, "--device", help="Compute device: auto (CUDA if present), cpu or cuda.")
+SeedOption = typer.Option(0, "--seed", help="Random seed (integer; runs are repeatable for a given seed).")
 THREADS_ENV = "RFLSCM_THREADS"
 ThreadsOption = typer.Option(
     None, "--threads", metavar="N", show_default=False,
-    help=f"CPU threads torch uses inside one operation (default: ${THREADS_ENV} if set, else torch's own "
+    help=f"CPU threads torch uses inside one operation (count; default: ${THREADS_ENV} if set, else torch's own "
     "default). On a busy machine 1 can be many times faster than more.",
 )  # fmt: skip
 
@@ -68,9 +78,9 @@ def json_text(value: object) -> str:
     return json.dumps(clean(value), indent=2, allow_nan=False)
 
 
-def resolve_device(name: str) -> torch.device:
+def resolve_device(name: str | Device) -> torch.device:
     """``auto`` → CUDA when available, else CPU; ``cuda`` without a GPU is a clear error."""
-    name = name.lower()
+    name = str(getattr(name, "value", name)).lower()
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name.startswith("cuda"):

@@ -12,6 +12,7 @@ from rich.table import Table
 
 from rflscm.cli import app
 from rflscm.cli.common import (
+    Device,
     DeviceOption,
     SeedOption,
     budget_note,
@@ -28,10 +29,10 @@ DEMO_MINUTES = 3.0
 """RF-LSCM's default training budget in the demo: with the rest (about a minute) it stays within 5 minutes on 2 cores."""
 
 ROWS = [
-    ("SSB MAE, all cells [dB]", ("ssb", "all")),
-    ("SSB MAE, changed cells [dB]", ("ssb", "changed")),
-    ("CSI-RS MAE, all cells [dB]", ("csi", "all")),
-    ("CSI-RS MAE, changed cells [dB]", ("csi", "changed")),
+    ("SSB MAE, all cells (dB)", ("ssb", "all")),
+    ("SSB MAE, changed cells (dB)", ("ssb", "changed")),
+    ("CSI-RS MAE, all cells (dB)", ("csi", "all")),
+    ("CSI-RS MAE, changed cells (dB)", ("csi", "changed")),
 ]
 
 
@@ -39,37 +40,62 @@ def _fmt(value: float | None) -> str:
     return "—" if value is None else f"{value:.2f}"
 
 
-def demo_table(results: dict[str, dict], title: str) -> Table:
-    """Rows: the four MAEs and the models' mean signed errors; columns: each model, then the model floor (oracle:
-    true APS through the nominal A′), the noise floor (noiseless RSRP through the real antenna) and trivial."""
-    table = Table(title=title)
-    table.add_column("metric")
-    for name in results:
-        table.add_column(name, justify="right")
-    table.add_column("model floor", justify="right")
-    table.add_column("noise floor", justify="right")
-    table.add_column("trivial", justify="right")
+def demo_rows(results: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
+    """The comparison as plain text: columns (metric, each model, model floor, noise floor, trivial) and rows (the
+    four MAEs, the models' mean signed errors, training time)."""
+    columns = ["metric", *results, "model floor", "noise floor", "trivial"]
     first = next(iter(results.values()))
+    rows = []
     for label, (bt, subset) in ROWS:
         cells = [_fmt(r["mae_db"][bt][subset]) for r in results.values()]
         floors = (first["oracle_mae_db"][bt][subset], first.get("noise_floor_mae_db", {}).get(bt, {}).get(subset))
-        table.add_row(label, *cells, *(_fmt(f) for f in floors), _fmt(first["trivial_mae_db"][bt][subset]))
+        rows.append([label, *cells, *(_fmt(f) for f in floors), _fmt(first["trivial_mae_db"][bt][subset])])
     for bt, name in (("ssb", "SSB"), ("csi", "CSI-RS")):
         bias = [_fmt(r.get("bias_db", {}).get(bt, {}).get("all")) for r in results.values()]
-        table.add_row(f"{name} mean signed error [dB]", *bias, "", "", "")
-    table.add_row(
-        "training time [s]",
-        *[f"{(r['model']['fit'] or {}).get('train_time_s', float('nan')):.0f}" for r in results.values()],
-        "",
-        "",
-        "",
-    )
+        rows.append([f"{name} mean signed error (dB)", *bias, "", "", ""])
+    times = [f"{(r['model']['fit'] or {}).get('train_time_s', float('nan')):.0f}" for r in results.values()]
+    rows.append(["training time (s)", *times, "", "", ""])
+    return columns, rows
+
+
+def demo_table(results: dict[str, dict], title: str) -> Table:
+    """Rows: the four MAEs and the models' mean signed errors; columns: each model, then the model floor (oracle:
+    true APS through the nominal A′), the noise floor (noiseless RSRP through the real antenna) and trivial."""
+    columns, rows = demo_rows(results)
+    table = Table(title=title)
+    table.add_column(columns[0])
+    for name in columns[1:]:
+        table.add_column(name, justify="right")
+    for row in rows:
+        table.add_row(*row)
     return table
+
+
+def save_comparison(results: dict[str, dict], title: str, out: Path) -> list[Path]:
+    """Write the comparison table as ``comparison.md``, ``comparison.csv`` and ``comparison.json`` into ``out``."""
+    import csv
+
+    columns, rows = demo_rows(results)
+    md = [f"# {title}", "", "| " + " | ".join(columns) + " |", "| --- |" + " ---: |" * (len(columns) - 1)]
+    md += ["| " + " | ".join(cell or "" for cell in row) + " |" for row in rows]
+    md += ["", "Model floor: the oracle (true APS through the nominal antenna model); noise floor: the noiseless "
+           "RSRP through the real antenna against the measurements; trivial: each pair's mean round-1 RSRP. "
+           "— marks a value that does not apply."]  # fmt: skip
+    paths = [out / "comparison.md", out / "comparison.csv", out / "comparison.json"]
+    paths[0].write_text("\n".join(md) + "\n")
+    with paths[1].open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(columns)
+        writer.writerows(rows)
+    paths[2].write_text(json_text({"title": title, "columns": columns, "rows": rows}))
+    return paths
 
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("rflscm-demo"), "--out", help="Folder for checkpoints, metrics JSON and reports."),
+    out: Path = typer.Option(
+        Path("rflscm-demo"), "--out", help="Folder for checkpoints, metrics JSON, the comparison table and reports."
+    ),
     scenario: Path | None = typer.Option(
         None, "--scenario", help="Scenario folder (default: the shipped munich scenario)."
     ),
@@ -81,14 +107,15 @@ def demo(
     preset: str | None = PresetOption,
     sets: list[str] = SetOption,
     minutes: float = typer.Option(
-        DEMO_MINUTES, "--minutes", help="RF-LSCM's training budget in minutes (its schedule follows the budget)."
+        DEMO_MINUTES, "--minutes", help="RF-LSCM's training budget (min; its schedule follows the budget)."
     ),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
-    device: str = DeviceOption,
+    device: Device = DeviceOption,
     seed: int = SeedOption,
 ) -> None:
     """Train WNOMP (settings chosen on held-aside round-1 beams) and RF-LSCM on the shipped scenario, print the
-    antenna-adjustment MAE table beside both floors and the trivial baseline, and write reports."""
+    antenna-adjustment MAE table beside both floors and the trivial baseline, save it (comparison.md, .csv, .json)
+    and write reports."""
     from rflscm.data import load_scenario
     from rflscm.eval import run_evaluation
     from rflscm.eval.protocols import AdjustProtocol, fit_with_protocol
@@ -138,5 +165,8 @@ def demo(
         (out / f"{name}.json").write_text(json_text(metrics))
         write_report(evaluation, scen, model, out / f"report-{name}")
         results[name] = metrics
-    console.print(demo_table(results, f"Antenna adjustment on {scen.meta.name}: round-2 RSRP predicted from round 1"))
+    title = f"Antenna adjustment on {scen.meta.name}: round-2 RSRP predicted from round 1"
+    console.print(demo_table(results, title))
+    saved = save_comparison(results, title, out)
+    console.print(f"comparison table: {', '.join(str(p) for p in saved)}")
     console.print(f"reports: {out / 'report-rflscm' / 'report.md'}, {out / 'report-wnomp' / 'report.md'}")

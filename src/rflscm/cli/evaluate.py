@@ -1,4 +1,4 @@
-"""``rflscm evaluate CHECKPOINT SCENARIO``: metrics of SPEC §5 as a table, JSON and a report."""
+"""``rflscm evaluate CHECKPOINT SCENARIO``: accuracy metrics as a table, JSON and a report."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from rich.table import Table
 
 from rflscm.cli import app
 from rflscm.cli.common import (
+    Device,
     DeviceOption,
     SeedOption,
     json_text,
@@ -19,6 +20,7 @@ from rflscm.cli.common import (
     resolve_device,
     seed_everything,
 )
+from rflscm.cli.train import Protocol
 from rflscm.errors import ConfigError
 
 
@@ -26,19 +28,22 @@ from rflscm.errors import ConfigError
 def evaluate(
     checkpoint: Path = typer.Argument(..., help="Model checkpoint written by `rflscm train`."),
     scenario: Path = typer.Argument(..., help="The scenario folder the model was trained on."),
-    protocol: str | None = typer.Option(
-        None, "--protocol", help="adjust | unseen | multifreq; default: the one the checkpoint was trained for."
+    protocol_choice: Protocol | None = typer.Option(
+        None, "--protocol", help="adjust, unseen or multifreq (default: the one the checkpoint was trained for)."
     ),
     json_out: Path | None = typer.Option(None, "--json", help="Write the metrics as JSON to this file."),
-    report: Path | None = typer.Option(None, "--report", help="Write report.md and PNG figures into this folder."),
+    report: Path | None = typer.Option(
+        None, "--report", help="Write report.md and PNG figures (maps, error CDFs) into this folder."
+    ),
     oracle: bool = typer.Option(
         True, "--oracle/--no-oracle", help="Compute the oracle floor where ground truth exists."
     ),
-    device: str = DeviceOption,
+    device: Device = DeviceOption,
     seed: int = SeedOption,
 ) -> None:
     """Compare a trained model's predictions with measurements: MAE per beam type, changed cells, per cell,
     beside the oracle floor and the trivial baseline; APS recovery where ground truth exists."""
+    protocol = None if protocol_choice is None else protocol_choice.value
     from rflscm.data import load_scenario
     from rflscm.eval import PROTOCOLS, resolve_protocol, run_evaluation
     from rflscm.eval.report import metric_rows, write_report

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from enum import StrEnum
 from pathlib import Path
 
 import typer
@@ -16,14 +17,25 @@ from rich.progress import (
 )
 
 from rflscm.cli import app
-from rflscm.cli.common import DeviceOption, SeedOption, resolve_device, seed_everything
+from rflscm.cli.common import Device, DeviceOption, SeedOption, resolve_device, seed_everything
 from rflscm.errors import ConfigError
+
+
+class Objective(StrEnum):
+    coverage = "coverage"
+    sinr = "sinr"
+    weighted = "weighted"
+
+
+class Method(StrEnum):
+    cd = "cd"
+    de = "de"
 
 
 def search_spec(search: Path | None, tilt: str | None, elec: str | None, azimuth: str | None, codebooks: str | None,
                 freeze: str | None, max_changed: int | None) -> dict:  # fmt: skip
     """The search spec: the YAML file's, with CLI flags laid over its ``defaults``."""
-    from rflscm.network.space import load_spec, parse_range
+    from rflscm.network.space import check_physical, load_spec, parse_range
 
     spec = load_spec(search)
     defaults = dict(spec.get("defaults") or {})
@@ -31,6 +43,7 @@ def search_spec(search: Path | None, tilt: str | None, elec: str | None, azimuth
                             ("--azimuth-range", "azimuth_offset_deg", azimuth)):  # fmt: skip
         if text is not None:
             defaults[key] = parse_range(text, flag)
+            check_physical(key, defaults[key]["min"], defaults[key]["max"], flag)
     if codebooks is not None:
         defaults["ssb_codebooks"] = [c.strip() for c in codebooks.split(",") if c.strip()]
     spec["defaults"] = defaults
@@ -47,33 +60,55 @@ def search_spec(search: Path | None, tilt: str | None, elec: str | None, azimuth
 @app.command()
 def optimize(
     checkpoint: Path = typer.Argument(..., help="Model checkpoint written by `rflscm train`."),
-    scenario: Path = typer.Argument(..., help="The scenario the model was trained on."),
-    objective: str = typer.Option("coverage", "--objective", help="coverage, sinr or weighted."),
-    out: Path = typer.Option(Path("optimize-out"), "--out", help="Output folder: new round, changes, report."),
-    search: Path | None = typer.Option(None, "--search", help="YAML search spec (defaults, per-cell ranges, frozen)."),
-    tilt_range: str | None = typer.Option(None, "--tilt-range", help="Mechanical tilt MIN:MAX[:STEP] [deg] (0:15:1)."),
-    elec_range: str | None = typer.Option(None, "--elec-tilt-range", help="Electrical tilt MIN:MAX[:STEP] (0:15:1)."),
-    azimuth_range: str | None = typer.Option(
-        None, "--azimuth-range", help="Azimuth offsets MIN:MAX[:STEP] (-30:30:5)."
+    scenario: Path = typer.Argument(..., help="The scenario folder the model was trained on."),
+    objective: Objective = typer.Option(
+        Objective.coverage, "--objective",
+        help="What to maximise: coverage ratio (%), mean SS-SINR (dB) or weighted (1 dB of SINR = 1 % coverage).",
     ),
-    codebooks: str | None = typer.Option(None, "--codebooks", help="Comma-separated SSB codebooks (default: all)."),
-    freeze: str | None = typer.Option(None, "--freeze", help="Comma-separated cell ids that must not change."),
-    max_changed: int | None = typer.Option(None, "--max-changed", help="Most cells the recommendation may change."),
-    base_round: int = typer.Option(1, "--round", help="Configuration the search starts from."),
-    method: str = typer.Option("cd", "--method", help="cd (coordinate descent + restarts) or de (scipy DE)."),
-    restarts: int = typer.Option(2, "--restarts", min=0, help="cd: restarts from perturbed best configurations."),
-    time_budget: float = typer.Option(60.0, "--time-budget", help="de: seconds of search."),
-    threshold: float = typer.Option(-105.0, "--threshold", help="Coverage threshold on best-server RSRP [dBm]."),
-    noise_figure: float = typer.Option(7.0, "--noise-figure", help="UE noise figure [dB] for SS-SINR."),
+    out: Path = typer.Option(Path("optimize-out"), "--out", help="Output folder: new round, changes, report."),
+    search: Path | None = typer.Option(
+        None, "--search", help="YAML search spec: ranges (deg), per-cell overrides, frozen cells, step limits."
+    ),
+    tilt_range: str | None = typer.Option(
+        None, "--tilt-range", metavar="MIN:MAX[:STEP]",
+        help="Mechanical down-tilt range (deg), within -10:20 (default 0:15:1, at most ±4 per step).",
+    ),
+    elec_range: str | None = typer.Option(
+        None, "--elec-tilt-range", metavar="MIN:MAX[:STEP]",
+        help="Electrical down-tilt range (deg), within -5:20 (default 0:15:1, at most ±4 per step).",
+    ),
+    azimuth_range: str | None = typer.Option(
+        None, "--azimuth-range", metavar="MIN:MAX[:STEP]",
+        help="Azimuth offsets around the present azimuth (deg, clockwise), within -60:60 (default -30:30:5, "
+        "at most ±10 per step).",
+    ),
+    codebooks: str | None = typer.Option(
+        None, "--codebooks", metavar="NAMES", help="Comma-separated SSB codebooks of scenario.yaml (default: all)."
+    ),
+    freeze: str | None = typer.Option(
+        None, "--freeze", metavar="IDS", help="Comma-separated cell ids that must not change."
+    ),
+    max_changed: int | None = typer.Option(
+        None, "--max-changed", min=1, metavar="N",
+        help="Most cells the recommendation may change (cells; default 8).",
+    ),
+    base_round: int = typer.Option(1, "--round", help="Round the search starts from (integer; its antenna configuration)."),
+    method: Method = typer.Option(
+        Method.cd, "--method", help="cd: coordinate descent with restarts; de: scipy's differential evolution."
+    ),
+    restarts: int = typer.Option(2, "--restarts", min=0, help="cd: restarts from perturbed best configurations (count)."),
+    time_budget: float = typer.Option(60.0, "--time-budget", help="de: search time (s)."),
+    threshold: float = typer.Option(-105.0, "--threshold", help="Coverage threshold on best-server SSB RSRP (dBm)."),
+    noise_figure: float = typer.Option(7.0, "--noise-figure", help="UE noise figure for SS-SINR (dB)."),
     verify: bool | None = typer.Option(
         None,
         "--verify/--no-verify",
-        help="True KPIs from truth/ (default: if present).",
+        help="True KPIs from truth/ (default: if the scenario has it).",
     ),
-    aps_cache: Path | None = typer.Option(None, "--aps-cache", help="Reuse/write the rendered APS here (.pt)."),
-    device: str = DeviceOption,
+    aps_cache: Path | None = typer.Option(None, "--aps-cache", help="Reuse or write the rendered APS here (.pt file)."),
+    device: Device = DeviceOption,
     seed: int = SeedOption,
-) -> None:
+) -> None:  # fmt: skip
     """Search antenna settings that maximise a coverage/SINR objective; write them as a new round."""
     from rflscm.data import load_scenario
     from rflscm.models import load_model
@@ -96,7 +131,8 @@ def optimize(
         from rflscm.sim.truth import truth_folder
 
         truth_folder(scen)  # fail before the expensive part
-    model = load_model(checkpoint, scen, device=resolve_device(device))
+    model = load_model(checkpoint, scen, device=resolve_device(device.value))
+    objective_name, method_name = objective.value, method.value
     columns = (
         TextColumn("{task.description}"),
         BarColumn(),
@@ -111,10 +147,10 @@ def optimize(
             aps_cache,
             on_cell=lambda done, _: bar.update(task, completed=done),
         )
-        passes = (restarts + 1) * 8 * len(space.free_cells()) if method == "cd" else None
-        task = bar.add_task(f"searching ({method}, {objective})", total=passes)
-        result = run_optimize(scen, cache, space, base_round, objective, method, kpi, verify, seed, restarts,
-                              time_budget, on_step=lambda: bar.advance(task))  # fmt: skip
+        passes = (restarts + 1) * 8 * len(space.free_cells()) if method_name == "cd" else None
+        task = bar.add_task(f"searching ({method_name}, {objective_name})", total=passes)
+        result = run_optimize(scen, cache, space, base_round, objective_name, method_name, kpi, verify, seed,
+                              restarts, time_budget, on_step=lambda: bar.advance(task))  # fmt: skip
     result.timings["aps_cache_s"] = cache_s
     folder, rnd = write_round(scen, result.cells_after, out)
     report = write_report(result, scen, out, kpi, rnd, folder, command="rflscm " + " ".join(sys.argv[1:]))
@@ -122,32 +158,35 @@ def optimize(
 
 
 def _print(console: Console, result, folder: Path, rnd: int, report: Path) -> None:
+    from rich.markup import escape
     from rich.table import Table
 
+    from rflscm.network.report import KPI_ROWS
+
     s = result.summary()
-    if result.known is not None:
-        console.print(
-            f"[yellow]note:[/yellow] {result.model} has APS for measured pairs only; predicted KPIs use those."
-        )
-    table = Table(title=f"{result.model}: {len(result.changes)} cells changed")
-    for col in (
-        "KPI",
-        "pred. before",
-        "pred. after",
-        *(("true before", "true after") if result.truth else ()),
-    ):
+    pairs = f"{s['kpi_pairs']}, {s['kpi_pair_count']} (cell, grid) pairs"
+    table = Table(title=f"{result.model}: {len(result.changes)} cells changed; KPIs on {pairs}, predicted and true")
+    columns = ["KPI", "pred. before", "pred. after", "pred. gain"]
+    if result.truth is not None:
+        columns += ["true before", "true after", "true gain"]
+    if result.held_out is not None:
+        columns += ["held-out pred. gain"]
+    table.add_column(columns[0], justify="left", no_wrap=True)
+    for col in columns[1:]:
         table.add_column(col, justify="right")
-    for key in ("coverage", "mean_sinr_db", "p5_sinr_db", "overlap", "mean_rsrp_dbm"):
-        row = [
-            key,
-            f"{s['predicted']['before'][key]:.4g}",
-            f"{s['predicted']['after'][key]:.4g}",
-        ]
-        if result.truth:
-            row += [
-                f"{s['truth']['before'][key]:.4g}",
-                f"{s['truth']['after'][key]:.4g}",
-            ]
+    for key, label, scale, unit in KPI_ROWS:
+        row = [f"{label} ({unit})"]
+        for kpis in (s["predicted"], s.get("truth")):
+            if kpis is not None:
+                b, a = kpis["before"][key] * scale, kpis["after"][key] * scale
+                row += [f"{b:.2f}", f"{a:.2f}", f"{a - b:+.2f}"]
+        if result.held_out is not None:
+            row.append(f"{s['held_out_gain'][key] * scale:+.2f}")
         table.add_row(*row)
     console.print(table)
+    v = s["verdict"]
+    if v["flagged"]:
+        console.print(f"[bold red]warning: {escape(v['text'])}.[/bold red]")
+    elif v["basis"] is not None:
+        console.print(f"check passed: {escape(v['text'])}.")
     console.print(f"wrote round {rnd} to {folder / 'scenario.yaml'}, report {report}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -11,12 +12,18 @@ import typer
 from rich.console import Console
 
 from rflscm.cli import app
-from rflscm.cli.common import DeviceOption, SeedOption, output_file, resolve_device, seed_everything
+from rflscm.cli.common import Device, DeviceOption, SeedOption, output_file, resolve_device, seed_everything
 from rflscm.errors import ConfigError
+from rflscm.geometry.angles import internal_to_engineering
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
     from rflscm.models.base import LSCMModel
+
+
+class Pairs(StrEnum):
+    measured = "measured"
+    all = "all"
 
 
 def _id_list(text: str | None, option: str) -> np.ndarray | None:
@@ -74,13 +81,14 @@ def _export_aps(model: LSCMModel, scenario: Scenario, cells: np.ndarray, grids: 
     aps = model.checked_aps(cell_ids, grid_ids, xyz).detach().cpu().double().numpy()
     pair, bins = np.nonzero(aps > 0)
     el, az = model.angle_grid.bin_angles()
+    azimuth_deg, _ = internal_to_engineering(el, az)
     table = pd.DataFrame(
         {
             "cell_id": cell_ids[pair],
             "grid_id": grid_ids[pair],
             "bin": bins.astype(np.int32),
             "elevation_deg": np.rad2deg(el[bins]),
-            "azimuth_ccw_east_deg": np.rad2deg(az[bins]),
+            "azimuth_deg": azimuth_deg[bins],  # clockwise from north, as the cells tables
             "power_lin": aps[pair, bins],
         }
     )
@@ -106,8 +114,11 @@ def _print_kpis(scen, model, selected: pd.DataFrame, ssb: pd.DataFrame, threshol
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(kpis, indent=2))
-    console.print(f"network KPIs ({kpis['pairs']}): coverage {kpis['coverage']:.4f}, mean SS-SINR "
-                  f"{kpis['mean_sinr_db']:.2f} dB, 5th pct {kpis['p5_sinr_db']:.2f} dB, overlap {kpis['overlap']:.4f}")  # fmt: skip
+    console.print(f"network KPIs on {kpis['pairs']}: coverage {100 * kpis['coverage']:.2f} %, mean SS-SINR "
+                  f"{kpis['mean_sinr_db']:.2f} dB, 5th percentile SS-SINR {kpis['p5_sinr_db']:.2f} dB, overlap "
+                  f"{100 * kpis['overlap']:.2f} %, mean best-server RSRP {kpis['mean_rsrp_dbm']:.2f} dBm "
+                  f"(--pairs {'measured' if not known.all() else 'all'}; `rflscm optimize` reports the same KPIs "
+                  "on the same pairs)")  # fmt: skip
 
 
 @app.command()
@@ -117,27 +128,36 @@ def predict(
         ..., help="The scenario the model was trained on; its rounds are the antenna configurations."
     ),
     round: int = typer.Option(
-        2, "--round", help="Antenna configuration (round) to predict; add a round to scenario.yaml for a what-if."
+        2,
+        "--round",
+        help="Round to predict (integer; its antenna configuration); add a round to scenario.yaml for a what-if.",
     ),
     out: Path = typer.Option(Path("prediction.parquet"), "--out", help="Predicted RSRP table (.parquet or .csv)."),
-    pairs: str = typer.Option("measured", "--pairs", help="measured: pairs with measurements; all: every cell × grid."),
+    pairs_choice: Pairs = typer.Option(
+        Pairs.measured, "--pairs", help="measured: pairs with measurements; all: every cell × grid."
+    ),
     aps_cells: str | None = typer.Option(None, "--aps-cells", help="Comma-separated cell ids whose APS to export."),
     aps_grids: str | None = typer.Option(None, "--aps-grids", help="Comma-separated grid ids whose APS to export."),
     aps_out: Path = typer.Option(Path("aps.parquet"), "--aps-out", help="Where the exported APS goes."),
     attenuation_map: Path | None = typer.Option(
-        None, "--attenuation-map", help="PNG of −log|δ| seen from above (field models)."
+        None,
+        "--attenuation-map",
+        help="PNG map of the learned attenuation −log|δ| over the scene, seen from above (rflscm and nerf2 only).",
     ),
     kpi: bool = typer.Option(
-        False, "--kpi", help="Also print network KPIs (best server, SS-SINR, coverage) of the round."
+        False,
+        "--kpi",
+        help="Also print network KPIs of the round (coverage and overlap in %, SS-SINR in dB) on the predicted pairs.",
     ),
     kpi_json: Path | None = typer.Option(
         None, "--kpi-json", help="Write the network KPIs as JSON here (implies --kpi)."
     ),
-    threshold: float = typer.Option(-105.0, "--threshold", help="--kpi: coverage threshold [dBm]."),
-    device: str = DeviceOption,
+    threshold: float = typer.Option(-105.0, "--threshold", help="--kpi: coverage threshold on best-server RSRP (dBm)."),
+    device: Device = DeviceOption,
     seed: int = SeedOption,
 ) -> None:
     """Predict RSRP of every beam for a round's antenna configuration (also for grids without measurements)."""
+    pairs = pairs_choice.value
     from rflscm.data import load_scenario, write_table
     from rflscm.eval.cache import APSCache
     from rflscm.models import load_model
@@ -159,6 +179,8 @@ def predict(
             f"--round {round}: scenario {scen.meta.name!r} has rounds {', '.join(map(str, scen.rounds()))}."
         )
     model = load_model(checkpoint, scen, device=dev)
+    if attenuation_map is not None and not hasattr(model, "all_stages"):
+        raise ConfigError(f"{model.name} has no attenuation field; --attenuation-map needs an rflscm or nerf2 model.")
     selected = prediction_pairs(scen, model, pairs)
     cached = APSCache(model)  # SSB and CSI-RS of a pair share its APS
     with console.status(f"predicting {len(selected)} (cell, grid) pairs with {model.name}…"):
@@ -178,8 +200,7 @@ def predict(
         n = _export_aps(model, scen, cells, grids, aps_out)
         console.print(f"wrote {aps_out} ({n} non-zero bins)")
     if attenuation_map is not None:
-        draw = getattr(model, "plot_attenuation_map", None)
-        if draw is None:
-            raise ConfigError(f"{model.name} has no attenuation field; --attenuation-map needs rflscm or nerf2.")
-        draw(attenuation_map)
+        from rflscm.eval.report import write_attenuation_map
+
+        write_attenuation_map(model, scen, attenuation_map, round)
         console.print(f"wrote {attenuation_map}")

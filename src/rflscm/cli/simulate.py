@@ -1,10 +1,11 @@
-"""``rflscm simulate``: make a scenario with ground truth from a ray tracer (SPEC §6)."""
+"""``rflscm simulate``: make a scenario with ground truth from a ray tracer."""
 
 from __future__ import annotations
 
 import dataclasses
 import shutil
 import tempfile
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +13,7 @@ import typer
 from rich.console import Console
 
 from rflscm.cli import app
-from rflscm.cli.common import DeviceOption, resolve_device, seed_everything
+from rflscm.cli.common import Device, DeviceOption, resolve_device, seed_everything
 from rflscm.config import load_config
 from rflscm.data import SCENARIO_FILE
 from rflscm.errors import ConfigError
@@ -71,28 +72,42 @@ def _prepare_out(out: Path, force: bool) -> None:
         )
 
 
+class Backend(StrEnum):
+    procedural = "procedural"
+    sionna = "sionna"
+
+
+class Regime(StrEnum):
+    ideal = "ideal"
+    field = "field"
+
+
 @app.command()
 def simulate(
     out: Path = typer.Option(..., "--out", help="Scenario folder to write (must be new or empty; see --force)."),
-    backend: str = typer.Option("procedural", "--backend", help="Ray tracer: procedural (built in) or sionna."),
+    backend_choice: Backend = typer.Option(
+        Backend.procedural, "--backend", help="Ray tracer: procedural (built in) or sionna."
+    ),
     scene: str | None = typer.Option(
         None,
         "--scene",
         help="Scene: procedural city|small|ground|free_space; sionna munich|etoile|… (default: city / munich).",
     ),
-    sites: int | None = typer.Option(None, "--sites", min=1, help="Number of sites (default 7; 3 sectors each)."),
+    sites: int | None = typer.Option(None, "--sites", min=1, help="Sites (count; default 7, 3 sectors each)."),
     carriers: str | None = typer.Option(
-        None, "--carriers", help="Carriers in Hz, comma separated; the first is the primary (default 3.5e9,2.1e9)."
+        None,
+        "--carriers",
+        help="Carrier frequencies (Hz), comma separated; the first is the primary (default 3.5e9,2.1e9).",
     ),
-    grids: int | None = typer.Option(None, "--grids", min=1, help="Maximum number of 10 m grids (default 800)."),
+    grids: int | None = typer.Option(None, "--grids", min=1, help="Most grids of 10 m × 10 m (count; default 800)."),
     config: Path | None = typer.Option(None, "--config", help="SimulationConfig YAML; options given here override it."),
     force: bool = typer.Option(False, "--force", help="Replace --out if it is an existing scenario folder."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar while tracing."),
-    device: str = DeviceOption,
+    device: Device = DeviceOption,
     seed: int | None = typer.Option(
-        None, "--seed", help="Random seed (default: the config's, else 0); the same seed gives the same scenario."
+        None, "--seed", help="Random seed (integer; default: the config's, else 0); the same seed, the same scenario."
     ),
-    measurements: str | None = typer.Option(
+    regime: Regime | None = typer.Option(
         None,
         "--measurements",
         help="Measurement regime: ideal (noise on the "
@@ -112,7 +127,8 @@ def simulate(
     raw_fading: float = typer.Option(2.0, "--raw-fading", min=0.0, help="Per-sample log-normal fading σ in dB."),
     raw_grids: int | None = typer.Option(None, "--raw-grids", min=1, help="Raw samples of at most this many grids."),
 ) -> None:
-    """Trace a scene once per (site, carrier) and write a complete scenario with truth/ (SPEC §6)."""
+    """Trace a scene once per (site, carrier) and write a complete scenario with ground truth (truth/)."""
+    backend, measurements = backend_choice.value, None if regime is None else regime.value
     from rflscm.sim import SimulationConfig, build_scenario, make_backend
 
     if measurements not in (None, "ideal", "field"):

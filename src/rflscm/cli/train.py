@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from enum import StrEnum
 from pathlib import Path
 
 import typer
@@ -10,6 +11,7 @@ from rich.console import Console
 
 from rflscm.cli import app
 from rflscm.cli.common import (
+    Device,
     DeviceOption,
     SeedOption,
     budget_note,
@@ -34,37 +36,52 @@ def protocol_options(
     return {}
 
 
+class ModelName(StrEnum):
+    rflscm = "rflscm"
+    nerf2 = "nerf2"
+    wnomp = "wnomp"
+
+
+class Protocol(StrEnum):
+    adjust = "adjust"
+    unseen = "unseen"
+    multifreq = "multifreq"
+
+
 @app.command()
 def train(
     scenario: Path = typer.Argument(..., help="Scenario folder (or its scenario.yaml)."),
-    model: str = typer.Option("rflscm", "--model", help="Model: rflscm, nerf2 or wnomp."),
+    model_choice: ModelName = typer.Option(ModelName.rflscm, "--model", help="Model: rflscm, nerf2 or wnomp."),
     config: str = typer.Option(
         "quick", "--config", help="Preset (quick, full) or a YAML file of the settings that differ from --preset."
     ),
     preset: str | None = PresetOption,
     sets: list[str] = SetOption,
     out: Path = typer.Option(Path("runs/model.ckpt"), "--out", help="Checkpoint file to write."),
-    protocol: str = typer.Option("adjust", "--protocol", help="adjust, unseen or multifreq: which data to train on."),
-    holdout: float = typer.Option(0.1, "--holdout", help="unseen: fraction of grids held out."),
+    protocol_choice: Protocol = typer.Option(
+        Protocol.adjust, "--protocol", help="Which data to train on: adjust, unseen or multifreq."
+    ),
+    holdout: float = typer.Option(0.1, "--holdout", help="unseen: share of the grids held out (fraction, 0…1)."),
     train_percent: float = typer.Option(
-        10.0, "--train-percent", help="multifreq: %% of the low carrier's grids to train on."
+        10.0, "--train-percent", help="multifreq: share of the low carrier's grids to train on (%)."
     ),
     other_carriers: bool = typer.Option(
         True, "--other-carriers/--no-other-carriers", help="multifreq: also train on the other carriers."
     ),
-    split_seed: int = typer.Option(0, "--split-seed", help="Seed of the protocol's grid split."),
+    split_seed: int = typer.Option(0, "--split-seed", help="Seed of the protocol's grid split (integer)."),
     resume: bool = typer.Option(False, "--resume", help="Continue exactly from --out (iterative models)."),
     minutes: float | None = typer.Option(
         None,
         "--minutes",
-        help="Train for this many minutes of wall time (iterative models): learning-rate decay, HiTAM warm-up and "
+        help="Training budget of wall time (min; iterative models): learning-rate decay, HiTAM warm-up and "
         "ramp follow the elapsed fraction of the budget, `train.steps` is the nominal schedule's length.",
     ),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
-    device: str = DeviceOption,
+    device: Device = DeviceOption,
     seed: int = SeedOption,
 ) -> None:
     """Fit a model on round-1 measurements and save a checkpoint (config, weights, data fingerprint)."""
+    model, protocol = model_choice.value, protocol_choice.value
     from rflscm.data import load_scenario
     from rflscm.eval.protocols import fit_with_protocol, make_protocol
     from rflscm.geometry import AngleGrid

@@ -17,6 +17,7 @@ import numpy as np
 from matplotlib.patches import Patch
 
 from rflscm.geometry import AngleGrid
+from rflscm.geometry.angles import internal_to_engineering
 
 DPI = 110
 COVERAGE_CMAP = "viridis"
@@ -88,18 +89,134 @@ def coverage_maps(
     for ax, values, name in ((axes[0], measured_dbm, "measured"), (axes[1], predicted_dbm, "predicted")):
         mappable = _map(ax, grid_xy, values, vmin, vmax, COVERAGE_CMAP)
         ax.set_title(f"{name} best-beam RSRP")
-        fig.colorbar(mappable, ax=ax, label="RSRP [dBm]", shrink=0.9)
+        fig.colorbar(mappable, ax=ax, label="RSRP (dBm)", shrink=0.9)
     diff = predicted_dbm - measured_dbm
     lim = max(1.0, float(np.nanpercentile(np.abs(diff), 98))) if np.isfinite(diff).any() else 10.0
     mappable = _map(axes[2], grid_xy, diff, -lim, lim, ERROR_CMAP)
     axes[2].set_title("predicted − measured")
-    fig.colorbar(mappable, ax=axes[2], label="error [dB]", shrink=0.9)
+    fig.colorbar(mappable, ax=axes[2], label="error (dB)", shrink=0.9)
     for ax in axes:
         _sites(ax, cells_xy, azimuth_deg, changed, arrow_m=0.07 * span)
-        ax.set_xlabel("x (east) [m]")
-        ax.set_ylabel("y (north) [m]")
+        ax.set_xlabel("x, east (m)")
+        ax.set_ylabel("y, north (m)")
         ax.set_aspect("equal")
-    fig.suptitle(f"{title}  (▲ sites, arrows = cell azimuths, red = changed)")
+    fig.suptitle(f"{title}  (▲ sites, arrows = cell azimuths clockwise from north, red = changed)")
+    return _save(fig, path)
+
+
+def _cell_colors(n: int) -> np.ndarray:
+    """``n`` distinct qualitative colours (tab20, tab20b, tab20c interleaved so that neighbours in cell-id order
+    differ in hue and lightness), RGBA ``[n, 4]``."""
+    base = [plt.get_cmap(name)(np.arange(20)) for name in ("tab20", "tab20b", "tab20c")]
+    palette = np.concatenate([b[order] for b in base for order in (np.r_[0:20:2, 1:20:2],)])
+    return palette[np.arange(n) % len(palette)]
+
+
+def _serving(ax: plt.Axes, xy: np.ndarray, serving: np.ndarray, cell_ids: np.ndarray) -> None:
+    """Serving-cell map: one qualitative colour per cell and the cell id written at the centre of its area."""
+    from matplotlib.colors import ListedColormap
+
+    colors = _cell_colors(len(cell_ids))
+    codes = np.where(serving >= 0, np.searchsorted(cell_ids, serving), -1).astype(np.float64)
+    codes[serving < 0] = np.nan
+    _map(ax, xy, codes, -0.5, len(cell_ids) - 0.5, ListedColormap(colors))  # type: ignore[arg-type]
+    for k, cell in enumerate(cell_ids):
+        mine = serving == cell
+        if mine.sum() < 2:
+            continue
+        own = xy[mine]
+        cx, cy = own[np.argmin(np.linalg.norm(own - own.mean(0), axis=1))]  # inside its area, near the centre
+        ax.text(cx, cy, str(cell), ha="center", va="center", fontsize=7, fontweight="bold", zorder=7,
+                bbox={"boxstyle": "round,pad=0.15", "fc": colors[k], "ec": "black", "lw": 0.4, "alpha": 0.9})  # fmt: skip
+
+
+def kpi_maps(
+    path: Path,
+    grid_xy: np.ndarray,
+    rows: list[tuple[str, dict[str, np.ndarray]]],
+    cell_ids: np.ndarray,
+    cells_xy: np.ndarray,
+    azimuth_deg: np.ndarray,
+    changed: np.ndarray,
+    title: str,
+    difference: tuple[str, int, int] | None = None,
+) -> Path:
+    """Best-server RSRP, serving cell and SS-SINR maps of one carrier, one row per configuration (or source),
+    with an optional difference row.
+
+    Args:
+        grid_xy: ``[num_grids, 2]`` grid centres, x east / y north [m].
+        rows: ``(label, maps)``; ``maps`` holds ``rsrp_dbm``, ``serving`` (cell id, −1 = none), ``sinr_db``
+            ``[num_grids]`` (NaN where the grid has no value).
+        cell_ids: ``[num_cells]`` sorted ids of the carrier's cells (serving-cell colours and labels).
+        cells_xy, azimuth_deg, changed: every cell's site [m], azimuth (clockwise from north) [deg] and changed flag.
+        difference: ``(label, a, b)``: a last row with row b − row a (RSRP and SINR [dB]) and where the
+            serving cell differs.
+    """
+    n_rows = len(rows) + (difference is not None)
+    fig, axes = plt.subplots(n_rows, 3, figsize=(17, 5.0 * n_rows), constrained_layout=True, squeeze=False)
+    span = np.ptp(np.vstack([grid_xy, cells_xy]), axis=0).max() if len(grid_xy) else 100.0
+    for r, (label, m) in enumerate(rows):
+        mappable = _map(axes[r, 0], grid_xy, m["rsrp_dbm"], -130.0, -60.0, COVERAGE_CMAP)
+        fig.colorbar(mappable, ax=axes[r, 0], label="best-server SSB RSRP (dBm)", shrink=0.85)
+        axes[r, 0].set_title(f"{label}: best-server RSRP")
+        _serving(axes[r, 1], grid_xy, m["serving"], cell_ids)
+        axes[r, 1].set_title(f"{label}: serving cell (id at the centre of its area)")
+        mappable = _map(axes[r, 2], grid_xy, m["sinr_db"], -10.0, 30.0, "RdYlGn")
+        fig.colorbar(mappable, ax=axes[r, 2], label="SS-SINR (dB)", shrink=0.85)
+        axes[r, 2].set_title(f"{label}: SS-SINR")
+    if difference is not None:
+        label, a, b = difference
+        ma, mb = rows[a][1], rows[b][1]
+        r = n_rows - 1
+        for col, key, name in ((0, "rsrp_dbm", "best-server RSRP"), (2, "sinr_db", "SS-SINR")):
+            diff = mb[key] - ma[key]
+            lim = max(1.0, float(np.nanpercentile(np.abs(diff), 98))) if np.isfinite(diff).any() else 10.0
+            mappable = _map(axes[r, col], grid_xy, diff, -lim, lim, ERROR_CMAP)
+            fig.colorbar(mappable, ax=axes[r, col], label=f"{name} difference (dB)", shrink=0.85)
+            axes[r, col].set_title(f"{label}: {name}")
+        moved = np.where((ma["serving"] >= 0) & (mb["serving"] >= 0), (ma["serving"] != mb["serving"]).astype(float),
+                         np.nan)  # fmt: skip
+        mappable = _map(axes[r, 1], grid_xy, moved, 0.0, 1.0, "Greys")
+        axes[r, 1].set_title(f"{label}: serving cell changed (black) — {np.nansum(moved):.0f} grids")
+    for ax in axes.ravel():
+        _sites(ax, cells_xy, azimuth_deg, changed, arrow_m=0.07 * span)
+        ax.set_xlabel("x, east (m)")
+        ax.set_ylabel("y, north (m)")
+        ax.set_aspect("equal")
+    fig.suptitle(f"{title}\n▲ sites; arrows: cell azimuths, clockwise from north (red: changed)")
+    return _save(fig, path)
+
+
+def error_cdfs(path: Path, errors: dict[str, dict[str, np.ndarray]], title: str) -> Path:
+    """Empirical CDFs of the absolute error |predicted − measured| [dB], one panel per beam type, with the
+    median and 90th percentile of each predictor in the legend.
+
+    Args:
+        errors: beam type → predictor (``model``, ``oracle``, ``trivial``) → flat signed errors [dB].
+    """
+    fig, axes = plt.subplots(1, len(errors), figsize=(6.5 * len(errors), 4.3), constrained_layout=True, squeeze=False)
+    styles = {"model": ("tab:blue", "-"), "oracle": ("black", "--"), "trivial": ("tab:gray", ":")}
+    for ax, (beam_type, by_name) in zip(axes[0], errors.items()):
+        top = 1.0
+        for name, err in by_name.items():
+            err = np.sort(np.abs(err[np.isfinite(err)]))
+            if not len(err):
+                continue
+            color, ls = styles.get(name, ("tab:orange", "-"))
+            frac = np.arange(1, len(err) + 1) / len(err)
+            p50, p90 = np.percentile(err, [50, 90])
+            ax.step(err, frac, where="post", color=color, ls=ls, lw=1.8,
+                    label=f"{name}: median {p50:.2f} dB, 90 % {p90:.2f} dB (n={len(err)})")  # fmt: skip
+            top = max(top, float(p90) * 1.6)
+        ax.set_xlim(0.0, min(top, 40.0))
+        ax.set_ylim(0.0, 1.0)
+        ax.grid(alpha=0.3)
+        ax.set_xlabel("absolute RSRP error |predicted − measured| (dB)")
+        ax.set_ylabel("fraction of reported beams")
+        ax.set_title(f"{beam_type.upper()} beams: error CDF")
+        ax.legend(loc="lower right", fontsize=8)
+    fig.suptitle(title)
     return _save(fig, path)
 
 
@@ -178,11 +295,14 @@ def aps_heatmaps(
 
     Each non-zero bin within ``floor_db`` of the row's peak is a square marker (strongest on top),
     so that sparse spectra stay visible; both panels of a row share one colour scale.
-    ``boresight_az_deg`` (counter-clockwise from east) draws each row's cell boresight as a dashed line.
+    Azimuths are drawn clockwise from north like the cells tables (the angle grid's counter-clockwise-from-east
+    bins are converted here); ``boresight_az_deg`` (clockwise from north) draws each row's cell boresight.
     """
     rows = len(labels)
     fig, axes = plt.subplots(rows, 2, figsize=(12, 3.2 * rows + 0.7), constrained_layout=True, squeeze=False)
-    el, az = (np.degrees(a) for a in angle_grid.bin_angles())
+    el_rad, az_rad = angle_grid.bin_angles()
+    az, _ = internal_to_engineering(np.asarray(el_rad), np.asarray(az_rad))  # → clockwise from north
+    el = np.degrees(np.asarray(el_rad))
     for r in range(rows):
         vmax = 10 * np.log10(max(float(np.max(true[r])), float(np.max(est[r])), 1e-300))
         for c, (aps, name) in enumerate(((true[r], "true"), (est[r], "estimated"))):
@@ -201,10 +321,40 @@ def aps_heatmaps(
             ax.set_yticks(np.arange(-90, 91, 30))
             ax.grid(alpha=0.3)
             ax.set_title(f"{name} APS, {labels[r]} ({len(show)} bins shown)", fontsize=10)
-            ax.set_xlabel("azimuth [deg, counter-clockwise from east]")
-            ax.set_ylabel("elevation [deg]")
-        fig.colorbar(sc, ax=axes[r, :].tolist(), label="path gain [dB]", shrink=0.9)
+            ax.set_xlabel("azimuth, clockwise from north (deg)")
+            ax.set_ylabel("elevation (deg)")
+        fig.colorbar(sc, ax=axes[r, :].tolist(), label="path gain (dB)", shrink=0.9)
     fig.suptitle(f"angular power spectra (bins within {floor_db:g} dB of each row's peak)")
+    return _save(fig, path)
+
+
+def attenuation_map(
+    path: Path, x_m: np.ndarray, y_m: np.ndarray, db_per_m: np.ndarray, title: str,
+    sites_xy: np.ndarray | None = None, azimuth_deg: np.ndarray | None = None,
+) -> Path:  # fmt: skip
+    """A top-down map of a learned attenuation field.
+
+    Args:
+        x_m, y_m: ``[nx]``, ``[ny]`` cell-centre coordinates, east and north [m].
+        db_per_m: ``[ny, nx]`` attenuation (the strongest over height) [dB/m].
+        sites_xy, azimuth_deg: cells' sites [m] and azimuths (clockwise from north) [deg], drawn when given.
+    """
+    fig, ax = plt.subplots(figsize=(8.5, 7.2), constrained_layout=True)
+    dx = (x_m[1] - x_m[0]) / 2 if len(x_m) > 1 else 0.5
+    dy = (y_m[1] - y_m[0]) / 2 if len(y_m) > 1 else 0.5
+    extent = (x_m[0] - dx, x_m[-1] + dx, y_m[0] - dy, y_m[-1] + dy)
+    finite = np.isfinite(db_per_m).any()
+    low, top = (float(np.nanpercentile(db_per_m, q)) for q in (0.5, 99.5)) if finite else (0.0, 1.0)
+    image = ax.imshow(db_per_m, origin="lower", extent=extent, cmap="inferno", vmin=low, vmax=max(top, low + 1e-9),
+                      interpolation="nearest")  # fmt: skip
+    fig.colorbar(image, ax=ax, label="learned attenuation −log|δ|, strongest over height (dB/m)", shrink=0.9)
+    if sites_xy is not None and azimuth_deg is not None and len(sites_xy):
+        span = max(extent[1] - extent[0], extent[3] - extent[2])
+        _sites(ax, sites_xy, azimuth_deg, np.zeros(len(sites_xy), dtype=bool), arrow_m=0.05 * span)
+    ax.set_xlabel("x, east (m)")
+    ax.set_ylabel("y, north (m)")
+    ax.set_aspect("equal")
+    ax.set_title(title)
     return _save(fig, path)
 
 

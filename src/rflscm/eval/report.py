@@ -1,4 +1,5 @@
-"""The evaluation report: ``report.md`` with the metric table and PNG figures (SPEC §1.4, §5)."""
+"""The evaluation report: ``report.md`` with the metric table and PNG figures: coverage, network maps (best server,
+serving cell, SS-SINR, their differences), error CDFs per beam type, per-cell MAE and APS heat maps."""
 
 from __future__ import annotations
 
@@ -11,7 +12,6 @@ import pandas as pd
 
 from rflscm.eval import plots
 from rflscm.eval.evaluate import BeamResult, Evaluation
-from rflscm.geometry import engineering_to_internal
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
@@ -48,11 +48,11 @@ def metric_rows(metrics: dict[str, Any]) -> list[tuple[str, str, str, str]]:
             ))  # fmt: skip
     aps = metrics["aps"]
     if aps["pairs"]:
-        rows.append((f"APS NMSE [dB] (mean / median over {aps['pairs']} pairs)",
-                     f"{_fmt(aps['nmse_db'])} / {_fmt(aps['nmse_db_median'])}", "0 (reference)", "–"))  # fmt: skip
-        rows.append(
-            (f"APS angle error, top {aps['top_k']} bins [deg]", _fmt(aps["angle_error_deg"]), "0 (reference)", "–")
-        )
+        rows.append((f"APS NMSE against the true APS [dB] (mean / median over {aps['pairs']} pairs; an all-zero "
+                     "APS scores 0 dB, lower is better)",
+                     f"{_fmt(aps['nmse_db'])} / {_fmt(aps['nmse_db_median'])}", "– (is the reference)", "–"))  # fmt: skip
+        rows.append((f"APS angle error against the true APS, top {aps['top_k']} bins [deg]",
+                     _fmt(aps["angle_error_deg"]), "– (is the reference)", "–"))  # fmt: skip
     return rows
 
 
@@ -122,14 +122,14 @@ def _aps_figure(evaluation: Evaluation, scenario: Scenario, model: APSSource, ou
     pairs = evaluation.aps_pairs.iloc[picks]
     labels = [f"cell {c}, grid {g}" for c, g in zip(pairs["cell_id"], pairs["grid_id"])]
     cells = scenario.cells[1].set_index("cell_id")
-    _, boresight = engineering_to_internal(cells.loc[pairs["cell_id"], "azimuth_deg"].to_numpy(), 0.0)
+    boresight = cells.loc[pairs["cell_id"], "azimuth_deg"].to_numpy()  # clockwise from north, as the plot
     return plots.aps_heatmaps(
         out / "aps.png",
         model.angle_grid,
         labels,
         evaluation.aps_true[picks],
         evaluation.aps_est[picks],
-        boresight_az_deg=list(np.degrees(boresight)),
+        boresight_az_deg=[float(b) for b in boresight],
     )
 
 
@@ -145,11 +145,16 @@ def write_report(evaluation: Evaluation, scenario: Scenario, model: APSSource, o
         sections += [f"> Note: {m['unsupported']}", ""]
     coverage, caption = _coverage_figure(evaluation, scenario, out, title)
     sections += ["## Coverage", "", caption, ""] + ([f"![coverage maps]({coverage.name})", ""] if coverage else [])
-    hist = plots.error_histograms(out / "errors.png", _signed_errors(evaluation), f"{title}: RSRP errors")
-    sections += ["## Errors", "", "Signed error of every scored reported beam (model, oracle floor, trivial baseline).",
-                 "", f"![error histograms]({hist.name})", ""]  # fmt: skip
+    sections += _network_section(evaluation, scenario, out, title)
+    errors = _signed_errors(evaluation)
+    cdf = plots.error_cdfs(out / "error_cdf.png", errors, f"{title}: RSRP error CDFs")
+    hist = plots.error_histograms(out / "errors.png", errors, f"{title}: RSRP errors")
+    sections += ["## Errors", "", "Absolute error of every scored reported beam, per beam type, as a CDF (model, "
+                 "oracle floor, trivial baseline; the oracle is absent without ground truth), then the signed errors.",
+                 "", f"![error CDFs]({cdf.name})", "", f"![error histograms]({hist.name})", ""]  # fmt: skip
     bars = plots.per_cell_bars(out / "per_cell.png", m["per_cell"], f"{title}: MAE per cell")
-    sections += ["## Per cell", "", f"![per-cell MAE]({bars.name})", "", _per_cell_table(m["per_cell"]), ""]
+    sections += ["## Per cell", "", f"![per-cell MAE]({bars.name})", "",
+                 _per_cell_table(m["per_cell"], _pair_counts(evaluation)), ""]  # fmt: skip
     aps = _aps_figure(evaluation, scenario, model, out)
     if aps is not None:
         sections += ["## Angular power spectra", "", "True (binned ray-tracer paths) vs estimated APS for three test "
@@ -172,12 +177,136 @@ def _summary_lines(m: dict[str, Any]) -> str:
     ])  # fmt: skip
 
 
-def _per_cell_table(per_cell: dict[str, Any]) -> str:
-    lines = ["| cell | changed | SSB model | SSB oracle | SSB trivial | CSI model | CSI oracle | CSI trivial |",
-             "|---|:---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+FEW_PAIRS = 5
+"""A per-cell MAE over fewer (cell, grid) pairs than this is marked as resting on few pairs."""
+
+
+def _pair_counts(evaluation: Evaluation) -> dict[str, dict[str, int]]:
+    """Scored (cell, grid) pairs per cell and beam type (what each per-cell MAE rests on)."""
+    out: dict[str, dict[str, int]] = {}
+    for beam_type, res in evaluation.beams.items():
+        cells = res.pairs["cell_id"].to_numpy()[res.rows()]
+        for cell, n in zip(*np.unique(cells, return_counts=True)):
+            out.setdefault(str(int(cell)), {})[beam_type] = int(n)
+    return out
+
+
+def _per_cell_table(per_cell: dict[str, Any], pairs: dict[str, dict[str, int]] | None = None) -> str:
+    pairs = pairs or {}
+    lines = ["MAE per cell (dB) and the number of scored (cell, grid) pairs it rests on; ⚠ marks fewer than "
+             f"{FEW_PAIRS} pairs, too few to judge the cell.", "",
+             "| cell | changed | SSB pairs | SSB model | SSB oracle | SSB trivial | CSI pairs | CSI model | CSI oracle | "
+             "CSI trivial |", "|---|:---:|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
     for cell, e in per_cell.items():
+        n = pairs.get(cell, {})
+        count = {
+            bt: f"{n.get(bt, 0)} ⚠" if 0 < n.get(bt, 0) < FEW_PAIRS else str(n.get(bt, 0)) for bt in ("ssb", "csi")
+        }
         lines.append(
-            f"| {cell} | {'yes' if e['changed'] else ''} | {_fmt(e['ssb'])} | {_fmt(e['oracle']['ssb'])} | "
-            f"{_fmt(e['trivial']['ssb'])} | {_fmt(e['csi'])} | {_fmt(e['oracle']['csi'])} | {_fmt(e['trivial']['csi'])} |"
+            f"| {cell} | {'yes' if e['changed'] else ''} | {count['ssb']} | {_fmt(e['ssb'])} | "
+            f"{_fmt(e['oracle']['ssb'])} | {_fmt(e['trivial']['ssb'])} | {count['csi']} | {_fmt(e['csi'])} | "
+            f"{_fmt(e['oracle']['csi'])} | {_fmt(e['trivial']['csi'])} |"
         )
     return "\n".join(lines)
+
+
+def _layers(m: Any) -> dict[str, np.ndarray]:
+    v = m.valid
+    return {"rsrp_dbm": np.where(v, m.best_rsrp_dbm, np.nan), "serving": np.where(v, m.serving_cell, -1),
+            "sinr_db": np.where(v, m.sinr_db, np.nan)}  # fmt: skip
+
+
+def _network_section(evaluation: Evaluation, scenario: Scenario, out: Path, title: str) -> list[str]:
+    """Best-server RSRP, serving cell and SS-SINR maps, measured and predicted on the same scored SSB pairs, and
+    their differences, one PNG per carrier; with the network KPIs (rflscm.network.kpi) of both."""
+    from rflscm.network.kpi import KPIConfig, best_beam_power_from_rsrp, grid_maps, network_kpis
+
+    res = evaluation.beams["ssb"]
+    rows = res.scored
+    if not rows.any():
+        return []
+    pairs = res.pairs.iloc[np.flatnonzero(rows)]
+    cell_ids, grid_ids = scenario.cell_ids(), scenario.grid_ids()
+    pc, pg = pairs["cell_id"].to_numpy(), pairs["grid_id"].to_numpy()
+    measured, known = best_beam_power_from_rsrp(res.measured[rows], pc, pg, cell_ids, grid_ids)
+    predicted, _ = best_beam_power_from_rsrp(res.model[rows], pc, pg, cell_ids, grid_ids)
+    freqs = np.array([scenario.freq_hz(int(c)) for c in cell_ids])
+    kpi = KPIConfig()
+    cells = scenario.cells[evaluation.test_round].set_index("cell_id").loc[cell_ids]
+    changed = np.isin(cell_ids, evaluation.metrics["counts"]["changed_cells"])
+    xy = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y"]].to_numpy()
+    lines = ["## Network maps", "",
+             f"Best-server SSB RSRP, serving cell and SS-SINR per grid in round {evaluation.test_round}, measured "
+             "(strongest reported beam of each pair) and predicted (strongest of every beam) over the same "
+             f"{int(known.sum())} scored (cell, grid) pairs, and predicted − measured. SS-SINR counts the cells "
+             "measured at a grid as its interferers (rflscm.network.kpi).", "",
+             "| KPI | measured | predicted | predicted − measured |", "| --- | ---: | ---: | ---: |"]  # fmt: skip
+    km, kp = network_kpis(measured, freqs, kpi, known), network_kpis(predicted, freqs, kpi, known)
+    for key, label, scale in (("coverage", f"coverage, RSRP ≥ {kpi.threshold_dbm:g} dBm (%)", 100.0),
+                              ("mean_sinr_db", "mean SS-SINR (dB)", 1.0), ("overlap", "overlap (%)", 100.0),
+                              ("mean_rsrp_dbm", "mean best-server RSRP (dBm)", 1.0)):  # fmt: skip
+        lines.append(
+            f"| {label} | {km[key] * scale:.2f} | {kp[key] * scale:.2f} | {(kp[key] - km[key]) * scale:+.2f} |"
+        )
+    lines.append("")
+    for mm, mp in zip(
+        grid_maps(measured, cell_ids, freqs, kpi, known), grid_maps(predicted, cell_ids, freqs, kpi, known)
+    ):
+        on = freqs == mm.freq_hz
+        name = f"network_{mm.freq_hz / 1e9:g}GHz.png"
+        plots.kpi_maps(out / name, xy, [("measured", _layers(mm)), ("predicted", _layers(mp))], cell_ids[on],
+                       cells[["x", "y"]].to_numpy()[on], cells["azimuth_deg"].to_numpy()[on], changed[on],
+                       f"{title}: {mm.freq_hz / 1e9:g} GHz, round {evaluation.test_round}",
+                       difference=("predicted − measured", 0, 1))  # fmt: skip
+        lines += [f"![network maps {mm.freq_hz / 1e9:g} GHz]({name})", ""]
+    return lines
+
+
+DB_PER_NEPER = 20.0 / np.log(10.0)
+
+
+def learned_attenuation(model: Any, cells_per_side: int = 160, heights: int = 24) -> tuple[np.ndarray, ...]:
+    """The attenuation a radiance-field model (RF-LSCM, NeRF²) learned, seen from above.
+
+    Samples the δ field of the model's last rendering stage on a ``cells_per_side`` × ``cells_per_side`` ×
+    ``heights`` lattice over the scene box and returns ``(x_m [nx], y_m [ny], db_per_m [ny, nx])``: the largest
+    one-way loss −log|δ| over height at the reference carrier, per metre (the medium's own conversion of δ's
+    loss channel).
+
+    Raises:
+        ConfigError: the model has no attenuation field (WNOMP), or has not been trained.
+    """
+    import torch
+
+    from rflscm.errors import ConfigError
+
+    stages = getattr(model, "all_stages", None)
+    scene = getattr(model, "scene", None)
+    if stages is None or scene is None or not stages():
+        raise ConfigError(f"{model.name} has no attenuation field; --attenuation-map needs an rflscm or nerf2 model.")
+    stage = stages()[-1]
+    frame = scene.frame
+    lo, hi = np.asarray(frame.box_lo, dtype=np.float64), np.asarray(frame.box_hi, dtype=np.float64)
+    xs, ys, zs = (lo[k] + (np.arange(n) + 0.5) * (hi[k] - lo[k]) / n
+                  for k, n in ((0, cells_per_side), (1, cells_per_side), (2, heights)))  # fmt: skip
+    grid = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), axis=-1).reshape(-1, 3)  # [nx·ny·nz, 3]
+    device = next(stage.parameters()).device
+    step_m = stage.medium.voxel_m
+    out = []
+    with torch.no_grad():
+        for chunk in np.array_split(grid, max(1, len(grid) // 65536)):
+            points = torch.as_tensor(chunk, dtype=torch.float32, device=device)
+            raw = stage.fields.delta(stage.fields.encode(points))
+            out.append((stage.medium.loss_db(raw) / step_m).double().cpu().numpy())
+    loss = np.concatenate(out).reshape(len(xs), len(ys), len(zs))
+    return xs, ys, loss.max(axis=2).T
+
+
+def write_attenuation_map(model: Any, scenario: Scenario, path: str | Path, round: int = 1) -> Path:
+    """PNG of :func:`learned_attenuation` with the scenario's sites and cell azimuths (round ``round``)."""
+    xs, ys, db_per_m = learned_attenuation(model)
+    cells = scenario.cells[round] if round in scenario.cells else scenario.cells[1]
+    return plots.attenuation_map(
+        Path(path), xs, ys, db_per_m, f"{model.name}: learned attenuation over {scenario.meta.name}",
+        cells[["x", "y"]].to_numpy(), cells["azimuth_deg"].to_numpy(),
+    )  # fmt: skip

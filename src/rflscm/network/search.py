@@ -30,7 +30,7 @@ from rflscm.network.kpi import (
     carrier_samples,
     network_kpis,
 )
-from rflscm.network.space import VARIABLES, SearchSpace
+from rflscm.network.space import SHARED_VARIABLES, VARIABLES, SearchSpace
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
@@ -58,10 +58,12 @@ class NetworkEvaluator:
         cache: the model's APS (:meth:`~rflscm.eval.cache.ScenarioAPS.render`).
         space: the search space (its cells in the order of ``cache.cell_ids``).
         kpi: KPI constants; objective: ``coverage``, ``sinr`` or ``weighted``.
+        grid_mask: ``[num_grids]`` grids the objective scores (None: all); the others are held out.
     """
 
     def __init__(self, scenario: Scenario, base_round: int, cache: ApsCache, space: SearchSpace, kpi: KPIConfig,
-                 objective: str = "coverage", sinr_weight: float = 0.1) -> None:  # fmt: skip
+                 objective: str = "coverage", sinr_weight: float = 0.1,
+                 grid_mask: np.ndarray | None = None) -> None:  # fmt: skip
         objective_value({"coverage": torch.zeros(1), "num_samples": torch.ones(1), "margin": torch.zeros(1),
                          "mean_sinr_clipped_db": torch.zeros(1)}, objective)  # fmt: skip  # validates the name
         self.cache, self.space, self.kpi = cache, space, kpi
@@ -72,8 +74,11 @@ class NetworkEvaluator:
         for g, (_, rows) in enumerate(self.groups):
             self.group_of[rows] = g
         self.noise_mw = [10.0 ** (kpi.noise_per_re_dbm(f) / 10.0) for f, _ in self.groups]
-        self.known = torch.as_tensor(cache.known)
-        self.all_known = bool(cache.known.all())
+        known = cache.known if grid_mask is None else cache.known & np.asarray(grid_mask, dtype=bool)[None, :]
+        self.known_np = known
+        """Pairs the objective scores: the model's known pairs on the grids of ``grid_mask`` (the rest held out)."""
+        self.known = torch.as_tensor(known)
+        self.all_known = bool(known.all())
         dirs = cache.angle_grid.directions(dtype=torch.float32)
         self.sensing = [CellSensing(scenario, int(c), base_round, dirs[torch.as_tensor(cache.bins[i])], space.cells[i])
                         for i, c in enumerate(cache.cell_ids)]  # fmt: skip
@@ -101,13 +106,23 @@ class NetworkEvaluator:
     # --- scoring -----------------------------------------------------------------------------------------
     def score_cell(self, pos: int, indices: Config) -> torch.Tensor:
         """Objective ``[num_candidates]`` of the current configuration with cell ``pos`` set to each candidate."""
-        cand = self._powers(pos, indices)  # [C, num_grids]
-        g = int(self.group_of[pos])
-        rows = self.groups[g][1]
-        power = self.power[torch.as_tensor(rows)].unsqueeze(0).repeat(len(indices), 1, 1)  # [C, n_g, grids]
-        power[:, int(np.flatnonzero(rows == pos)[0])] = cand
-        samples = [s if k != g else self._carrier(g, power) for k, s in enumerate(self._samples)]
-        samples = [_expand(s, len(indices)) for s in samples]
+        return self.score_moves([{pos: tuple(i)} for i in indices])
+
+    def score_moves(self, moves: list[dict[int, tuple[int, ...]]]) -> torch.Tensor:
+        """Objective ``[num_moves]`` of the current configuration with each move applied; every move sets the
+        same cells (e.g. the cells of one antenna panel, which may lie on different carriers)."""
+        positions = list(moves[0])
+        n = len(moves)
+        cand = {p: self._powers(p, [m[p] for m in moves]) for p in positions}  # [C, num_grids] each
+        samples = list(self._samples)
+        for g in sorted({int(self.group_of[p]) for p in positions}):
+            rows = self.groups[g][1]
+            power = self.power[torch.as_tensor(rows)].unsqueeze(0).repeat(n, 1, 1)  # [C, n_g, grids]
+            for p in positions:
+                if int(self.group_of[p]) == g:
+                    power[:, int(np.flatnonzero(rows == p)[0])] = cand[p]
+            samples[g] = self._carrier(g, power)
+        samples = [_expand(s, n) for s in samples]
         kpis = area_kpis(samples, self.kpi, percentile=False)  # no objective uses the percentile
         return objective_value(kpis, self.objective, self.sinr_weight)
 
@@ -130,7 +145,7 @@ class NetworkEvaluator:
     def kpis(self) -> dict[str, Any]:
         """Network KPIs (pooled and per carrier) of the current configuration."""
         return network_kpis(self.power.double().numpy(), self.freqs, self.kpi,
-                            None if self.all_known else self.cache.known)  # fmt: skip
+                            None if self.all_known else self.known_np)  # fmt: skip
 
 
 def _expand(samples: dict[str, torch.Tensor], n: int) -> dict[str, torch.Tensor]:
@@ -155,13 +170,35 @@ class SearchResult:
 
 def _line(ev: NetworkEvaluator, pos: int, var: int) -> Config:
     """Candidates of cell ``pos`` along variable ``var`` that respect the changed-cells limit."""
+    return [m[pos] for m in _moves(ev, pos, var)]
+
+
+def _moves(ev: NetworkEvaluator, pos: int, var: int) -> list[dict[int, tuple[int, ...]]]:
+    """Moves of cell ``pos`` along variable ``var`` (with the cells sharing its antenna panel when ``var`` is
+    a panel's) that respect the total-tilt step and the changed-cells limit; the present state is one."""
     current = ev.config[pos]
     opts = ev.space.cells[pos]
-    cands = [(*current[:var], k, *current[var + 1 :]) for k in range(opts.sizes()[var])]
-    limit = ev.space.max_changed_cells
-    if limit is not None and current == ev.base[pos] and ev.num_changed() >= limit:
-        cands = [c for c in cands if c == ev.base[pos]]
-    return cands
+    space = ev.space
+    group = space.panel_of(pos) if VARIABLES[var] in SHARED_VARIABLES else (pos,)
+    limit = space.max_changed_cells
+    others = ev.num_changed() - sum(ev.config[p] != ev.base[p] for p in group)
+    moves = []
+    for k in range(opts.sizes()[var]):
+        cand = (*current[:var], k, *current[var + 1 :])
+        move = {pos: cand}
+        for other in group:
+            if other != pos:
+                followed = space.follow(pos, cand, other, ev.config[other])
+                if followed is None:
+                    break
+                move[other] = followed
+        else:
+            if not all(space.tilt_ok(p, i) for p, i in move.items()):
+                continue
+            if limit is not None and others + sum(i != ev.base[p] for p, i in move.items()) > limit:
+                continue
+            moves.append(move)
+    return moves
 
 
 def coordinate_descent(
@@ -198,13 +235,14 @@ def coordinate_descent(
             improved = False
             for pos in order:
                 for var in range(len(VARIABLES)):
-                    cands = _line(ev, pos, var)
-                    if len(cands) < 2:
+                    moves = _moves(ev, pos, var)
+                    if len(moves) < 2:
                         continue
-                    scores = ev.score_cell(pos, cands)
+                    scores = ev.score_moves(moves)
                     k = int(torch.argmax(scores))
-                    if float(scores[k]) > current + 1e-12 and cands[k] != ev.config[pos]:
-                        ev.set_cell(pos, cands[k])
+                    if float(scores[k]) > current + 1e-12 and any(i != ev.config[p] for p, i in moves[k].items()):
+                        for p, i in moves[k].items():
+                            ev.set_cell(p, i)
                         current, improved = ev.score(), True
                 if on_cell is not None:
                     on_cell()
@@ -226,11 +264,14 @@ def coordinate_descent(
 
 
 def _perturb(ev: NetworkEvaluator, rng: np.random.Generator, free: list[int], n: int) -> None:
+    limit = ev.space.max_changed_cells
     for pos in rng.permutation(free)[:n]:
-        limit = ev.space.max_changed_cells
-        if limit is not None and ev.config[pos] == ev.base[pos] and ev.num_changed() >= limit:
+        config = list(ev.config)
+        config[int(pos)] = tuple(int(rng.integers(s)) for s in ev.space.cells[pos].sizes())
+        config = ev.space.tie(config)
+        if limit is not None and ev.num_changed(config) > limit:
             continue
-        ev.set_cell(int(pos), tuple(int(rng.integers(s)) for s in ev.space.cells[pos].sizes()))
+        ev.set_config(config)
 
 
 def differential_evolution(
@@ -261,7 +302,14 @@ def differential_evolution(
             cand = tuple(int(v) for v in row)
             if cand != ev.base[p] and (ev.space.max_changed_cells is None or changed < ev.space.max_changed_cells):
                 config[p], changed = cand, changed + 1
-        return config
+        config = ev.space.tie(config)
+        limit = ev.space.max_changed_cells
+        for p in reversed(free):  # a panel that followed its lead may pass the limit: undo the last changes
+            if limit is None or ev.num_changed(config) <= limit:
+                break
+            for q in ev.space.panel_of(p):
+                config[q] = ev.base[q]
+        return ev.space.tie(config)
 
     def fun(x: np.ndarray) -> float:
         config = decode(x)

@@ -26,8 +26,11 @@ def scen(tmp_path: Path):
     return load(pencil_scenario(tmp_path / "pencil"))
 
 
+NO_STEP = {"max_step": {"mech_tilt_deg": None, "elec_tilt_deg": None, "total_tilt_deg": None, "azimuth_deg": None}}
+
+
 def test_candidate_matrices_equal_scenario_sensing(scen) -> None:
-    space = build_space({}, scen.cells[1], scen.meta.codebooks)
+    space = build_space(NO_STEP, scen.cells[1], scen.meta.codebooks)
     dirs = GRID.directions(dtype=torch.float32)
     bins = torch.arange(0, GRID.num_bins, 7)
     pos = 1  # cell 12: ssb8, tilts 2/4
@@ -46,7 +49,7 @@ def test_candidate_matrices_equal_scenario_sensing(scen) -> None:
 
 
 def _one_free_cell(scen, spec_cell: dict) -> tuple:
-    spec = {"cells": {11: spec_cell}, "frozen": [12]}
+    spec = {"cells": {11: spec_cell}, "frozen": [12], **NO_STEP}
     return build_space(spec, scen.cells[1], scen.meta.codebooks)
 
 
@@ -109,3 +112,25 @@ def test_max_changed_cells_is_respected(scen) -> None:
     ev = NetworkEvaluator(scen, 1, cache, space, KPIConfig(), "sinr")
     coordinate_descent(ev, restarts=2)
     assert ev.num_changed() <= 1
+
+
+def test_cells_sharing_a_panel_never_get_different_azimuths(scen) -> None:
+    cells = scen.cells[1].copy()
+    cells["azimuth_deg"] = 60.0  # 3.5 and 2.1 GHz cells of one site on one panel
+    scen = replace_cells(scen, 1, cells)
+    space = build_space({"defaults": {"ssb_codebooks": ["pencil", "ssb8"]}}, cells, scen.meta.codebooks)
+    assert space.panels == ((0, 1),)
+    cache = single_bin_cache(scen, -12.0, 40.0, 1e-15)  # the only path is 10° off the shared azimuth
+    for search in (lambda ev: coordinate_descent(ev, restarts=2, seed=1),
+                   lambda ev: differential_evolution(ev, time_budget_s=1.0, seed=0)):  # fmt: skip
+        ev = NetworkEvaluator(scen, 1, cache, space, KPIConfig(), "sinr")
+        result = search(ev)
+        a, b = (space.cells[p].config(result.config[p]) for p in (0, 1))
+        assert a["azimuth_deg"] == b["azimuth_deg"]
+        assert a["mech_tilt_deg"] - 4.0 == b["mech_tilt_deg"] - 2.0  # the panel tilts as one
+        for p in (0, 1):
+            assert space.tilt_ok(p, result.config[p])
+    # coordinate descent did turn the panel towards the path
+    ev = NetworkEvaluator(scen, 1, cache, space, KPIConfig(), "sinr")
+    result = coordinate_descent(ev, restarts=1)
+    assert space.cells[0].config(result.config[0])["azimuth_deg"] != 60.0
