@@ -94,18 +94,22 @@ def import_(
     origin: str | None = typer.Option(
         None, "--origin", help="Origin LAT,LON in degrees (default: centroid of the cells)."
     ),
-    grid_size: float | None = typer.Option(None, "--grid-size", help="Grid side in metres (default 10)."),
-    min_samples: int | None = typer.Option(None, "--min-samples", help="Samples a bin needs to be kept (default 3)."),
+    grid_size: float | None = typer.Option(None, "--grid-size", help="Grid side (m; default 10)."),
+    min_samples: int | None = typer.Option(
+        None, "--min-samples", help="Samples a bin needs to be kept (samples; default 3)."
+    ),
     outlier_k: float | None = typer.Option(
-        None, "--outlier-k", help="Drop samples > k·1.4826·MAD dB from their bin's median (default 3; 0: off)."
+        None,
+        "--outlier-k",
+        help="Drop samples more than k·1.4826·MAD from their bin's median in dB (k, count of scaled MADs; default 3; 0: off).",
     ),
     max_distance: float | None = typer.Option(
-        None, "--max-distance", help="Farthest (PCI, carrier) match in metres (default 10000)."
+        None, "--max-distance", help="Farthest (PCI, carrier) match (m; default 10000)."
     ),
     threshold: float | None = typer.Option(
         None,
         "--threshold",
-        help="rsrp_threshold_dbm in dBm; bins averaging below are dropped (default: −120 or the weakest bin).",
+        help="The scenario's rsrp_threshold_dbm (dBm); bins averaging below it are dropped (default: −120 or the weakest bin).",
     ),
     beam_type: BeamType | None = typer.Option(
         None, "--beam-type", help="Beam type of every sample (no beam_type column)."

@@ -123,9 +123,13 @@ def simulate(
     raw_out: Path | None = typer.Option(
         None, "--raw-out", help="Also write raw samples.csv, cells.csv and import.yaml here (for `rflscm import`)."
     ),
-    raw_samples: int = typer.Option(5, "--raw-samples", min=1, help="Raw samples per reported beam and grid."),
-    raw_fading: float = typer.Option(2.0, "--raw-fading", min=0.0, help="Per-sample log-normal fading σ in dB."),
-    raw_grids: int | None = typer.Option(None, "--raw-grids", min=1, help="Raw samples of at most this many grids."),
+    raw_samples: int = typer.Option(
+        5, "--raw-samples", min=1, help="Raw samples per reported beam and grid (samples)."
+    ),
+    raw_fading: float = typer.Option(2.0, "--raw-fading", min=0.0, help="Per-sample log-normal fading σ (dB)."),
+    raw_grids: int | None = typer.Option(
+        None, "--raw-grids", min=1, help="Write raw samples of at most this many grids (grids)."
+    ),
 ) -> None:
     """Trace a scene once per (site, carrier) and write a complete scenario with ground truth (truth/)."""
     backend, measurements = backend_choice.value, None if regime is None else regime.value
