@@ -211,8 +211,3 @@ def load_config(cls: type[T], path: str | Path) -> T:
         return from_dict(cls, data)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
-
-
-def save_config(obj: Any, path: str | Path) -> None:
-    """Write a config dataclass as YAML."""
-    Path(path).write_text(yaml.safe_dump(to_dict(obj), sort_keys=False))
