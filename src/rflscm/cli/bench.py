@@ -65,8 +65,8 @@ def bench(
     baseline: str | None = typer.Option(
         None,
         "--baseline",
-        metavar="REF",
-        help="b9: git commit whose code is the old model, or a folder holding its src (default: c7460d6).",
+        metavar="PATH",
+        help="b9 (required): folder holding the old model's exported src (git archive c7460d6 src | tar -x -C PATH).",
     ),
     device: str = DeviceOption,
     seed: int = SeedOption,
