@@ -293,3 +293,14 @@ def test_b8_realism_tiny(tmp_path: Path, scenario_dir: Path) -> None:
     assert (tmp_path / "b8" / "ideal" / "scenario.yaml").stat().st_mtime_ns == stamp
     measured(scenario_dir, "reporting", tmp_path / "b8" / "ideal")  # another regime in that folder: re-measured
     assert load_scenario(tmp_path / "b8" / "ideal").meta.reporting == field.meta.reporting
+
+
+def test_b9_without_a_baseline_folder_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    """``rflscm bench b9`` needs the old model's code as a folder (no git): one line, exit 2, nothing run."""
+    from check_helpers import assert_one_line_error, run_cli
+
+    out = tmp_path / "b9"
+    assert_one_line_error(*run_cli(["bench", "b9", "--out", str(out)], monkeypatch, capsys), ["--baseline PATH"])
+    code, stdout, err = run_cli(["bench", "b9", "--out", str(out), "--baseline", str(tmp_path)], monkeypatch, capsys)
+    assert_one_line_error(code, stdout, err, [str(tmp_path), "holds no src/rflscm"])
+    assert not (out / "b9_runs").exists() and not (out / "b9.json").exists()
