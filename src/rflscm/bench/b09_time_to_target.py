@@ -6,8 +6,8 @@ side by side in one run, on the same machine and thread count.
 Each model trains in its own subprocess (``python b09_worker.py …``, :mod:`rflscm.bench.b09_worker`),
 one after the other, never at once: the baseline with ``PYTHONPATH`` at ``PATH/src`` (made once with
 ``git archive c7460d6 src | tar -x -C PATH``; B9 itself runs no git, so it works from an installed
-wheel), the new one at the running package's ``src``; both with the parent's torch thread count (``rflscm --threads N``) and seed.  Training time counts
-from the start of the fit (data preparation included); at geometric marks of training time the
+wheel), the new one at the running package's ``src``; both with the parent's torch thread count
+(``rflscm --threads N``) and seed.  Training time counts from the start of the fit (data preparation included); at geometric marks of training time the
 worker evaluates the round-2 MAE (adjust protocol) on every cell and on the changed cells, and the
 evaluation's wall and CPU time are taken off the clocks (``train_s``, ``cpu_s`` =
 ``time.process_time``).  WNOMP's level is WNOMP fitted in the current code with the settings chosen
