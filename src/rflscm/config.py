@@ -213,11 +213,6 @@ def load_config(cls: type[T], path: str | Path) -> T:
         raise ConfigError(f"{path}: {exc}") from None
 
 
-def save_config(obj: Any, path: str | Path) -> None:
-    """Write a config dataclass as YAML."""
-    Path(path).write_text(yaml.safe_dump(to_dict(obj), sort_keys=False))
-
-
 # --- overrides: a preset, then a user's YAML, then `--set section.key=value` --------------------------------------
 
 

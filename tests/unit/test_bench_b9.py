@@ -29,16 +29,23 @@ def test_b9_time_to_target_on_a_hand_made_curve() -> None:
     assert time_to(finished, "ssb", 6.0) == 45 and best(finished, "ssb") == (5.0, 45)
 
 
-def test_b9_baseline_may_be_a_folder_holding_src(tmp_path) -> None:
-    # where no git checkout is at hand (a bare copy of the working tree), the baseline's code comes as a folder
+def test_b9_baseline_is_a_folder_holding_src(tmp_path) -> None:
+    # the old model's code comes as a folder (no git where B9 runs, e.g. from an installed wheel)
+    import pytest
+
     from rflscm.bench.b09_time_to_target import baseline_src
+    from rflscm.errors import ConfigError
 
     pkg = tmp_path / "old" / "src" / "rflscm"
     pkg.mkdir(parents=True)
     (pkg / "__init__.py").write_text("")
-    assert baseline_src(str(tmp_path / "old"), tmp_path / "out") == ((tmp_path / "old" / "src").resolve(), None)
-    assert baseline_src(str(tmp_path / "old" / "src"), tmp_path / "out")[0] == (tmp_path / "old" / "src").resolve()
-    assert not (tmp_path / "out").exists()  # nothing exported
+    assert baseline_src(str(tmp_path / "old")) == (tmp_path / "old" / "src").resolve()
+    assert baseline_src(tmp_path / "old" / "src") == (tmp_path / "old" / "src").resolve()
+    with pytest.raises(ConfigError, match="needs --baseline PATH") as missing:
+        baseline_src(None)
+    assert "\n" not in str(missing.value)
+    with pytest.raises(ConfigError, match="holds no src/rflscm"):
+        baseline_src(tmp_path / "empty")
 
 
 def test_b9_marks_are_geometric_and_end_at_the_cap() -> None:

@@ -6,7 +6,6 @@ to a power gain in linear units.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -94,11 +93,3 @@ class MeasuredElement:
 
 
 ElementPattern = TR38901Element | MeasuredElement
-
-
-def db_to_lin(value_db: float) -> float:
-    return 10.0 ** (value_db / 10.0)
-
-
-def lin_to_db(value: float) -> float:
-    return 10.0 * math.log10(value)

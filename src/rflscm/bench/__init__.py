@@ -21,7 +21,7 @@ class BenchContext:
     device: str
     scenario: str | None  # scenario directory; None = the shipped default
     config: str | None = None  # model preset or YAML for benchmarks that take one (b9: the new model's)
-    baseline: str | None = None  # git commit of the baseline code for benchmarks that compare with one (b9)
+    baseline: str | None = None  # folder holding the baseline code's src, for benchmarks that compare with one (b9)
 
 
 BenchFn = Callable[[BenchContext], dict[str, Any]]

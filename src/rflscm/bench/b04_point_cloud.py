@@ -57,7 +57,7 @@ def run(ctx: BenchContext) -> dict[str, Any]:
 
 def run_b4(ctx: BenchContext, size: BenchSize, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """B4 at ``size``; ``extra``: overrides for both arms on top of the size's (probes:
-    ``scripts/b4_probe.py``).  Seed ``s`` draws the training grids and initialises both arms, so the arms
+    ``experiments/b4_probe.py``).  Seed ``s`` draws the training grids and initialises both arms, so the arms
     of one seed see the same grids and ``prior_gain_db`` is the mean of paired differences."""
     full = load_bench_data(ctx, size)
     seeds = seeds_of(ctx)

@@ -1,13 +1,13 @@
 """B9 — time to target (issue 15, item 1): RF-LSCM's round-2 MAE against seconds of training, for
-*today's model* (a baseline commit's code, default ``c7460d6``, and its preset) and *the new one* (the
-current code's preset, or ``--config``), side by side in one run, on the same machine and thread count.
+*today's model* (an older commit's code, exported into a folder given as ``--baseline PATH``; the
+reference runs used ``c7460d6``, and its preset) and *the new one* (the current code's preset, or ``--config``),
+side by side in one run, on the same machine and thread count.
 
 Each model trains in its own subprocess (``python b09_worker.py …``, :mod:`rflscm.bench.b09_worker`),
-one after the other, never at once: the baseline with ``PYTHONPATH`` at the commit's ``src`` (exported
-with ``git archive REF src`` into ``<out>/_baseline_<sha>/``; the repository is the one holding the
-running package, so outside a git checkout B9 stops unless ``--baseline`` names a folder), the new one at the running package's ``src``;
-both with the parent's torch thread count (``rflscm --threads N``) and seed.  Training time counts
-from the start of the fit (data preparation included); at geometric marks of training time the
+one after the other, never at once: the baseline with ``PYTHONPATH`` at ``PATH/src`` (made once with
+``git archive c7460d6 src | tar -x -C PATH``; B9 itself runs no git, so it works from an installed
+wheel), the new one at the running package's ``src``; both with the parent's torch thread count
+(``rflscm --threads N``) and seed.  Training time counts from the start of the fit (data preparation included); at geometric marks of training time the
 worker evaluates the round-2 MAE (adjust protocol) on every cell and on the changed cells, and the
 evaluation's wall and CPU time are taken off the clocks (``train_s``, ``cpu_s`` =
 ``time.process_time``).  WNOMP's level is WNOMP fitted in the current code with the settings chosen
@@ -26,9 +26,7 @@ re-measure (``ideal``: ``rflscm simulate --from-trace … --measurements ideal``
 ``<out>/_ideal_scenario`` and reused); ``--scenario DIR`` runs that one scenario instead.  The
 baseline code refuses the field regime's ``reporting:`` key, so the baseline reads a copy of the
 scenario whose ``scenario.yaml`` lacks it (the other files linked): that is exactly today's model,
-whose missing-beam penalty assumes the threshold rule.  ``rflscm bench b9 --baseline REF`` picks
-another baseline commit, or a folder holding its exported ``src`` (``git archive REF src | tar -x -C
-DIR``), which needs no git where B9 runs.  The trainers' own periodic validation (the presets'
+whose missing-beam penalty assumes the threshold rule.  The trainers' own periodic validation (the presets'
 ``val_every``) is part of each model's training and counts.
 
 Sizes: ``quick`` = the whole scenario, both models at their ``quick`` preset (``AngleGrid()``),
@@ -39,18 +37,16 @@ evaluations out), marks 5, 7.07, 10, 14.1, 20, … s (×√2: a time to target i
 1800 s of training, 2 CPU cores (the
 baseline's quick schedule takes about 10 min there); ``full`` = the same with the ``full`` presets, no cap
 (for a GPU); ``tiny`` (tests only) = a tiny scenario, the tiny overrides, marks of a fraction of a
-second, baseline ``HEAD``.
+second.
 """
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import shutil
 import subprocess
 import sys
-import tarfile
 import tempfile
 import time
 from collections.abc import Sequence
@@ -64,11 +60,12 @@ import yaml
 from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import tiny_size
 from rflscm.bench.report import new_figure, save_figure, seeds_of
+from rflscm.data import BEAM_TYPES
 from rflscm.errors import ConfigError
 from rflscm.runtime import MALLOC_ENV
 
-BEAM_TYPES = ("ssb", "csi")
 DEFAULT_BASELINE = "c7460d6"
+"""The commit whose code the reference runs took as the old model (named in the error without ``--baseline``)."""
 WORKER = Path(__file__).with_name("b09_worker.py")
 MARK_FACTOR = 2**0.5
 """Spacing of the evaluation marks (quick, full): a time to target is known to within this factor."""
@@ -91,16 +88,17 @@ def _tiny_overrides() -> dict[str, Any]:
 SETTINGS: dict[str, dict[str, Any]] = {  # per size: presets of the old and new model, overrides on both, the
     # angle grid (None: AngleGrid()), evaluation marks [s of training], cap per model [s] (None: whole schedule)
     "tiny": {"old_config": "quick", "new_config": "quick", "overrides": _tiny_overrides(),
-             "angle_grid": tiny_size().angle_grid, "marks_s": _marks(0.25, 64.0), "max_train_s": 60.0, "new_minutes": None,
-             "baseline": "HEAD"},
+             "angle_grid": tiny_size().angle_grid, "marks_s": _marks(0.25, 64.0), "max_train_s": 60.0, "new_minutes": None},
     "quick": {"old_config": "quick", "new_config": "quick", "overrides": {}, "angle_grid": None,
-              "marks_s": _marks(5.0, 1800.0, MARK_FACTOR), "max_train_s": 1800.0, "baseline": DEFAULT_BASELINE, "new_minutes": 3.0},
+              "marks_s": _marks(5.0, 1800.0, MARK_FACTOR), "max_train_s": 1800.0, "new_minutes": 3.0},
     "full": {"old_config": "full", "new_config": "full", "overrides": {}, "angle_grid": None,
-             "marks_s": _marks(5.0, 86400.0, MARK_FACTOR), "max_train_s": None, "baseline": DEFAULT_BASELINE, "new_minutes": None},
+             "marks_s": _marks(5.0, 86400.0, MARK_FACTOR), "max_train_s": None, "new_minutes": None},
 }  # fmt: skip
 
 
-@register_bench("b9", "time to target: old (c7460d6) vs new RF-LSCM, round-2 MAE vs training seconds against WNOMP")
+@register_bench(
+    "b9", "time to target: old (--baseline PATH) vs new RF-LSCM, round-2 MAE vs training seconds against WNOMP"
+)
 def run(ctx: BenchContext) -> dict[str, Any]:
     return run_b9(ctx, ctx.size)
 
@@ -108,17 +106,16 @@ def run(ctx: BenchContext) -> dict[str, Any]:
 def run_b9(ctx: BenchContext, size: str) -> dict[str, Any]:
     settings = dict(SETTINGS[size])
     out_dir = Path(ctx.out_dir).resolve()
-    ref = ctx.baseline or settings["baseline"]
+    old_src = baseline_src(ctx.baseline)
     new_config = ctx.config or settings["new_config"]
     if Path(new_config).suffix in (".yaml", ".yml"):
         new_config = str(Path(new_config).resolve())
-    old_src, sha = baseline_src(ref, out_dir)
     new_src = Path(__file__).resolve().parents[2]
     threads = torch.get_num_threads()
     seed = seeds_of(ctx)[0]
     result: dict[str, Any] = {
         "notes": __doc__.split("\n\n")[-1].strip(),
-        "settings": {**settings, "new_config": new_config, "baseline_ref": ref, "baseline_commit": sha,
+        "settings": {**settings, "new_config": new_config, "baseline": str(old_src),
                      "threads": threads, "seed": seed, "device": ctx.device},
         "regimes": {},
         "plots": [],
@@ -137,8 +134,8 @@ def run_b9(ctx: BenchContext, size: str) -> dict[str, Any]:
                  "comparison": {bt: compare(old["rows"], new["rows"], bt, wnomp["mae_db"][bt]["changed"])
                                 for bt in BEAM_TYPES}}  # fmt: skip
         result["regimes"][regime] = entry
-        old_label = f"old {sha[:7]}" if sha else f"old {old_src.parent.name}"
-        result["plots"].append(plot(ctx, regime, entry, {"old": old_label, "new": f"new {new_config}"}))
+        labels = {"old": f"old {old_src.parent.name}", "new": f"new {new_config}"}
+        result["plots"].append(plot(ctx, regime, entry, labels))
     return result
 
 
@@ -235,63 +232,17 @@ def without_reporting(source: Path, out: Path) -> Path:
     return out.resolve()
 
 
-def baseline_src(ref: str, out_dir: Path) -> tuple[Path, str | None]:
-    """``(src folder, commit)`` of the baseline: a folder holding ``rflscm/`` or ``src/rflscm/`` as it is
-    (commit ``None``; no git needed, e.g. on a machine with a bare copy of the working tree), else the
-    commit ``ref`` of the running package's repository exported into ``<out>/_baseline_<sha>/src``."""
-    folder = Path(ref).expanduser()
-    for src in (folder, folder / "src"):
+def baseline_src(path: str | Path | None) -> Path:
+    """The baseline's ``src``: ``path`` itself or ``path/src``, whichever holds ``rflscm/__init__.py``;
+    a one-line :class:`ConfigError` when ``path`` is missing or holds no exported ``src``."""
+    how = f"git archive {DEFAULT_BASELINE} src | tar -x -C PATH"
+    if path is None:
+        raise ConfigError(f"b9 needs --baseline PATH, a folder holding the old model's exported src (`{how}`).")
+    folder = Path(path).expanduser()
+    for src in (folder / "src", folder):
         if (src / "rflscm" / "__init__.py").is_file():
-            return src.resolve(), None
-    root = repository_root()
-    sha = _git(root, "rev-parse", "--verify", f"{ref}^{{commit}}").strip()
-    return export_src(root, sha, out_dir / f"_baseline_{sha[:12]}"), sha
-
-
-def repository_root() -> Path:
-    """The git checkout holding the running package; a :class:`ConfigError` outside one."""
-    here = Path(__file__).resolve().parent
-    try:
-        return Path(_git(here, "rev-parse", "--show-toplevel").strip())
-    except ConfigError:
-        raise ConfigError(
-            f"b9 exports a baseline commit's code with git, but {here} is not inside a git checkout "
-            "(give --baseline a folder holding that commit's src instead)."
-        ) from None
-
-
-def _git(cwd: Path, *args: str) -> str:
-    try:
-        done = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True, timeout=120)
-    except (OSError, subprocess.SubprocessError) as exc:
-        raise ConfigError(f"b9: `git {' '.join(args)}` could not run ({type(exc).__name__}).") from None
-    if done.returncode != 0:
-        why = (done.stderr.strip().splitlines() or ["failed"])[-1]
-        raise ConfigError(f"b9: `git {' '.join(args)}` in {cwd}: {why}")
-    return done.stdout
-
-
-def export_src(root: Path, sha: str, dest: Path) -> Path:
-    """``git archive SHA src`` unpacked into ``dest`` once (reused when there); returns ``dest/src``."""
-    src = dest / "src"
-    if (src / "rflscm" / "__init__.py").is_file():
-        return src.resolve()
-    done = subprocess.run(["git", "archive", "--format=tar", sha, "src"], cwd=root, capture_output=True, timeout=300)
-    if done.returncode != 0:
-        why = (done.stderr.decode(errors="replace").strip().splitlines() or ["failed"])[-1]
-        raise ConfigError(f"b9: `git archive {sha} src` in {root}: {why}")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
-    with tarfile.open(fileobj=io.BytesIO(done.stdout)) as tar:
-        if hasattr(tarfile, "data_filter"):  # Python ≥ 3.11.4
-            tar.extractall(tmp, filter="data")
-        else:  # pragma: no cover - our own repository's archive
-            tar.extractall(tmp)
-    dest.mkdir(exist_ok=True)
-    shutil.rmtree(src, ignore_errors=True)
-    shutil.move(str(tmp / "src"), str(src))
-    shutil.rmtree(tmp, ignore_errors=True)
-    return src.resolve()
+            return src.resolve()
+    raise ConfigError(f"b9: --baseline {folder} holds no src/rflscm/__init__.py (make it with `{how}`).")
 
 
 def wnomp_level(path: Path, angle_grid: tuple | None, seed: int, device: str) -> dict[str, Any]:

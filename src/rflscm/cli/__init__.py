@@ -11,7 +11,7 @@ import os
 import sys
 
 # OpenMP threads that spin while idle make torch's many small CPU ops several times slower as soon as
-# another process competes for the cores (scripts/omp_contention.py; 2 cores, 3 busy processes:
+# another process competes for the cores (experiments/omp_contention.py; 2 cores, 3 busy processes:
 # 13.6 s vs 2.6 s) and cost nothing on an idle machine.  Read when torch loads, hence before imports.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 

@@ -71,9 +71,8 @@ def bench(
     baseline: str | None = typer.Option(
         None,
         "--baseline",
-        metavar="REF",
-        help="b9: git revision whose code is the old model, or a folder holding its src (default: the revision "
-        "recorded in BENCHMARKS.md).",
+        metavar="PATH",
+        help="b9 (required): folder holding the baseline model's exported src tree (a path; BENCHMARKS.md names the revision).",
     ),
     device: Device = DeviceOption,
     seed: int = SeedOption,

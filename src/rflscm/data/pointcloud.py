@@ -69,12 +69,6 @@ class PointCloud:
                 f"{self.xyz.shape[0]} points)."
             )
 
-    @classmethod
-    def from_xyz(cls, xyz: np.ndarray) -> PointCloud:
-        """Unclassified points (class 0)."""
-        xyz = np.asarray(xyz, dtype=np.float64)
-        return cls(xyz, np.zeros(len(xyz), dtype=np.uint8))
-
     @property
     def num_points(self) -> int:
         return int(self.xyz.shape[0])

@@ -102,13 +102,6 @@ def aps_nmse(est: np.ndarray, true: np.ndarray) -> np.ndarray:
         return np.where(den > 0, num / den, np.nan)
 
 
-def to_db(value: float | None) -> float | None:
-    """10·log10 of a positive linear value; ``None`` for ``None``, zero, negative or non-finite input."""
-    if value is None or not np.isfinite(value) or value <= 0:
-        return None
-    return float(10.0 * np.log10(value))
-
-
 def aps_nmse_db(est: np.ndarray, true: np.ndarray) -> np.ndarray:
     """Per-pair NMSE in dB ``[num_pairs]`` (NaN where the true APS is zero; floored at −100 dB, an exact match).
 

@@ -4,7 +4,7 @@ The true APS is summed per β × β block and sensed through the block-mean colu
 coarse stage renders and trains on), and through the paper's representative columns, beside the
 fine-bin oracle.  Round 1, SSB and CSI-RS pooled.
 
-Usage: python scripts/coarse_floor.py [MAX_CELLS]   (about a minute for 12 cells on 2 cores)
+Usage: python experiments/coarse_floor.py [MAX_CELLS]   (about a minute for 12 cells on 2 cores)
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ whose truth (``truth/rsrp_noiseless``, through the real antenna) lies above the 
 than 3 dB; and the mean and absolute error of the reported beams against the truth (the report error and
 the selection of the reporting rule).
 
-    python scripts/bound_check.py src/rflscm/assets/scenarios/default
+    python experiments/bound_check.py src/rflscm/assets/scenarios/default
 """
 
 from __future__ import annotations

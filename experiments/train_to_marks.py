@@ -1,10 +1,10 @@
 """Train RF-LSCM (quick preset, 3-minute budget schedule, one thread) and save a checkpoint at marks of training time.
 
-    PYTHONPATH=src python scripts/train_to_marks.py SCENARIO OUT_PREFIX 20,45
+    PYTHONPATH=src python experiments/train_to_marks.py SCENARIO OUT_PREFIX 20,45
 
 writes ``OUT_PREFIX_20.ckpt``, ``OUT_PREFIX_45.ckpt`` (each after ``finish_training``, whose time and the
 save's are left out of the clock) and stops after the last mark.  Used with
-``scripts/pair_posterior_probe.py`` (issue 15).
+``scripts/pair_posterior_probe.py`` (issue 15; removed, see experiments/README.md).
 """
 
 import contextlib

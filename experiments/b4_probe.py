@@ -1,6 +1,6 @@
 """Probe B4 (point-cloud prior on/off, 10 % of the training grids): both arms with extra overrides.
 
-    python scripts/b4_probe.py SCENARIO OUT [--extra JSON] [--effect STEP] [--seed N] [--seeds N]
+    python experiments/b4_probe.py SCENARIO OUT [--extra JSON] [--effect STEP] [--seed N] [--seeds N]
 
 Runs :func:`rflscm.bench.b04_point_cloud.run_b4` at the quick size on ``SCENARIO`` (one thread) and
 writes ``OUT/b4.json`` and the plots; prints each arm's measured MAE, truth MAE and unseen-grid bias.

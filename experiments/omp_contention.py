@@ -4,7 +4,7 @@ Starts one busy-looping process per CPU core (the "other job"), then times 300 s
 steps in a fresh interpreter with torch's defaults, with OMP_NUM_THREADS=1, and with
 OMP_WAIT_POLICY=PASSIVE, and prints the seconds of each.
 
-Usage: python scripts/omp_contention.py [HOGS]   (HOGS defaults to the number of cores; about a minute)
+Usage: python experiments/omp_contention.py [HOGS]   (HOGS defaults to the number of cores; about a minute)
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 BENCHMARKS.md, "RF-LSCM tuning").
 
 Usage:
-    python scripts/tune_rflscm.py TAG STEPS ['{"decoder": {"hidden": 128}, "_warmup": 600}']
+    python experiments/tune_rflscm.py TAG STEPS ['{"decoder": {"hidden": 128}, "_warmup": 600}']
 
 The JSON holds config overrides laid over the quick preset and the bench's quick size;
 ``_warmup`` sets the HiTAM warm-up (default two thirds of STEPS; the ramp is a tenth of STEPS) and

@@ -6,7 +6,7 @@ and compares its round-2 predictions at the grids it never saw with the noiseles
 reported (the pairs B4 scores), and over every pair the truth has.  A model that is unbiased over all
 pairs but low on the reported ones is being scored on the pairs whose truth happened to be high.
 
-    python scripts/unseen_selection_probe.py src/rflscm/assets/scenarios/default prior_on [ALPHA_P]
+    python experiments/unseen_selection_probe.py src/rflscm/assets/scenarios/default prior_on [ALPHA_P]
 
 An optional third argument sets α_P (the missing-beam penalty) instead of the default.
 """

@@ -1,6 +1,6 @@
 """Pool B4 runs over disjoint seeds: every draw's paired prior gain, their mean, std and how many are positive.
 
-    python scripts/b4_pool.py RUN1/b4.json [RUN2/b4.json …]
+    python experiments/b4_pool.py RUN1/b4.json [RUN2/b4.json …]
 
 Each file is ``rflscm bench b4 … --seed S --seeds N`` output (seed ``s`` draws the training grids and
 initialises both arms).  Prints per draw the prior gain (prior off − prior on, measured MAE over all cells

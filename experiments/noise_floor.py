@@ -7,7 +7,7 @@ oracle (true APS through A′) has none of it.  The script prints, per beam type
 WNOMP (fitted here) and the oracle over the same rows: all cells, unchanged and changed cells
 (replay only where the pair and beam were reported in both rounds), and the 0.8 × WNOMP target.
 
-Usage: python scripts/noise_floor.py   (about a minute on 2 cores)
+Usage: python experiments/noise_floor.py   (about a minute on 2 cores)
 """
 
 from __future__ import annotations

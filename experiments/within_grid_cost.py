@@ -3,7 +3,7 @@ taken from the round-2 UE samples themselves (the model floor), from all traced 
 round-1 samples (what a perfect per-grid fit of round 1 could know), beside the noise floor; with each oracle's
 mean signed error (prediction − measurement), which shows the selection bias of top-N and detection reports.
 
-    PYTHONPATH=src python scripts/within_grid_cost.py [SCENARIO]   # default: the shipped scenario
+    PYTHONPATH=src python experiments/within_grid_cost.py [SCENARIO]   # default: the shipped scenario
 
 Prints one JSON object; needs a field-regime scenario (truth/aps_samples.parquet).
 """
