@@ -13,6 +13,7 @@ from rich.console import Console
 from rflscm.cli import app
 from rflscm.cli.common import DeviceOption, SeedOption, output_file, resolve_device, seed_everything
 from rflscm.errors import ConfigError
+from rflscm.parallel import Engine, RayAddressOption, WorkersOption
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
@@ -136,11 +137,13 @@ def predict(
     threshold: float = typer.Option(-105.0, "--threshold", help="--kpi: coverage threshold [dBm]."),
     device: str = DeviceOption,
     seed: int = SeedOption,
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:
     """Predict RSRP of every beam for a round's antenna configuration (also for grids without measurements)."""
     from rflscm.data import load_scenario, write_table
-    from rflscm.eval.cache import APSCache
     from rflscm.models import load_model
+    from rflscm.parallel.aps import checkpoint_loader, prediction_cache
 
     output_file(out, "--out")
     cells, grids = _id_list(aps_cells, "--aps-cells"), _id_list(aps_grids, "--aps-grids")
@@ -160,7 +163,10 @@ def predict(
         )
     model = load_model(checkpoint, scen, device=dev)
     selected = prediction_pairs(scen, model, pairs)
-    cached = APSCache(model)  # SSB and CSI-RS of a pair share its APS
+    engine = Engine(workers, ray_address)  # > 1 worker: the APS of the pairs are computed by Ray workers first
+    cached = prediction_cache(model, scen, selected, engine, checkpoint_loader(checkpoint, scenario, dev))
+    if engine.parallel:
+        console.print(f"{cached.filled} (cell, grid) pairs' APS computed by {workers} Ray worker(s)")
     with console.status(f"predicting {len(selected)} (cell, grid) pairs with {model.name}…"):
         tables = [
             long_form(round, bt, selected, cached.predict_rsrp(scen, round, bt, selected), scen)
