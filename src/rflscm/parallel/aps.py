@@ -20,7 +20,7 @@ import torch
 
 from rflscm.data import BEAM_TYPES
 from rflscm.errors import ConfigError, RflscmError, UnsupportedError
-from rflscm.eval.cache import APSCache
+from rflscm.eval.cache import APSCache, measured_grids
 from rflscm.parallel.engine import Engine, ray_session
 from rflscm.parallel.plan import Call, cache_misses, predict_blocks, split_even
 
@@ -216,4 +216,28 @@ def evaluation_cache(model: APSSource, scenario: Scenario, protocol: Protocol, e
     """The model as :func:`rflscm.eval.run_evaluation` should get it: its APS of the test pairs computed in
     parallel when ``engine`` is (the evaluation then only reads them)."""
     requests = evaluation_requests(model, scenario, protocol) if engine.parallel else []
+    return filled_cache(model, scenario, requests, engine, load)
+
+
+def render_requests(model: APSSource, scenario: Scenario, chunk: int = 1024) -> list[tuple[np.ndarray, np.ndarray]]:
+    """What :meth:`rflscm.eval.cache.ScenarioAPS.render` (the optimiser's APS) asks its source for: cell by
+    cell, every grid (field models) or the measured ones (WNOMP), in blocks of ``chunk``."""
+    grid_ids = scenario.grid_ids()
+    requests = []
+    for cell in scenario.cell_ids():
+        rows = (
+            np.arange(len(grid_ids))
+            if model.supports_unseen_grids
+            else np.searchsorted(grid_ids, measured_grids(scenario, int(cell)))
+        )
+        for start in range(0, len(rows), chunk):
+            sel = rows[start : start + chunk]
+            requests.append((np.full(len(sel), cell), grid_ids[sel]))
+    return requests
+
+
+def render_cache(model: APSSource, scenario: Scenario, engine: Engine, load: Callable[[], APSSource]) -> FilledAPSCache:
+    """The model as ``ScenarioAPS.render`` / ``load_or_render`` (``rflscm optimize``) should get it: every APS
+    it renders computed by Ray workers first when ``engine`` is parallel (the render then only reads them)."""
+    requests = render_requests(model, scenario) if engine.parallel else []
     return filled_cache(model, scenario, requests, engine, load)

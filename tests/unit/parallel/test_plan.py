@@ -9,10 +9,18 @@ import pytest
 import torch
 
 from rflscm.errors import RflscmError, UnsupportedError
-from rflscm.eval.cache import APSCache
+from rflscm.eval.cache import APSCache, ScenarioAPS
 from rflscm.geometry import AngleGrid
 from rflscm.models.source import Predicts
-from rflscm.parallel.aps import FilledAPSCache, answer, fill_cache, gather, prediction_requests, scatter
+from rflscm.parallel.aps import (
+    FilledAPSCache,
+    answer,
+    fill_cache,
+    gather,
+    prediction_requests,
+    render_requests,
+    scatter,
+)
 from rflscm.parallel.plan import cache_misses, predict_blocks, split_even
 
 GRID = AngleGrid(num_el=4, num_az=6, el_min_deg=-90.0, el_step_deg=45.0)
@@ -41,10 +49,20 @@ class FakeSource(Predicts):
     def level_offset_db(self, cell_ids, beam_type):
         return None
 
+    def content_sha256(self) -> str:
+        return "fake"
+
 
 class FakeScenario:
-    def __init__(self, grid_ids: np.ndarray) -> None:
+    def __init__(self, grid_ids: np.ndarray, cell_ids: np.ndarray | None = None) -> None:
         self.grids = pd.DataFrame({"grid_id": grid_ids, "x": grid_ids * 1.0, "y": 0.0, "z": 1.5})
+        self._cells = np.arange(3) if cell_ids is None else cell_ids
+
+    def cell_ids(self) -> np.ndarray:
+        return self._cells
+
+    def grid_ids(self) -> np.ndarray:
+        return self.grids["grid_id"].to_numpy()
 
 
 def test_predict_blocks_are_cell_by_cell_in_order_and_at_most_chunk_long() -> None:
@@ -119,3 +137,18 @@ def test_gather_refuses_a_worker_that_answered_the_wrong_shape() -> None:
         gather(chunks, [[good[0][0][:1]], good[1]])
     with pytest.raises(RflscmError, match="answers came back"):
         gather(chunks, good[:1])
+
+
+def test_the_optimisers_render_reads_a_filled_cache_and_gets_the_serial_aps() -> None:
+    scenario = FakeScenario(np.arange(0, 50, 2), np.array([3, 7]))
+    source = FakeSource()
+    filled = FilledAPSCache(source)
+    requests = render_requests(source, scenario, chunk=1024)
+    assert [len(c) for c, _ in requests] == [25, 25]
+    fill_cache(filled, scenario, requests, 2, lambda chunks: [answer(FakeSource(), c) for c in chunks])  # type: ignore[arg-type]
+    parallel = ScenarioAPS.render(filled, scenario)  # type: ignore[arg-type]
+    serial = ScenarioAPS.render(FakeSource(), scenario)  # type: ignore[arg-type]
+    assert source.calls == [] and parallel.source_sha256 == serial.source_sha256 == "fake"
+    for a, b in zip(parallel.aps, serial.aps):
+        assert torch.equal(a, b)
+    assert all(np.array_equal(a, b) for a, b in zip(parallel.bins, serial.bins))
