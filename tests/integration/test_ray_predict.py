@@ -30,7 +30,7 @@ def rflscm(*args: str) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def wnomp(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """Two sites (six cells) and 50 grids: more APS calls than chunks, so every worker answers several."""
+    """Two sites (twelve cells on two carriers) and 50 grids: more APS calls than chunks, so every worker answers several."""
     root = tmp_path_factory.mktemp("ray")
     config = SimulationConfig(num_sites=2, max_grids=50, seed=4, site_radius_m=120.0, angle_grid=GRID,
                               point_cloud_points_per_m2=0.05)  # fmt: skip
@@ -68,3 +68,24 @@ def test_evaluate_with_two_ray_workers_gives_the_serial_metrics(wnomp, tmp_path)
         m.pop("timing", None)
     assert metrics["2"]["mae_db"] == metrics["1"]["mae_db"]
     assert metrics["2"]["per_cell"] == metrics["1"]["per_cell"]
+
+
+def test_optimize_with_two_ray_workers_renders_the_serial_aps_and_finds_the_serial_answer(wnomp, tmp_path) -> None:
+    import torch
+
+    scenario, ckpt = wnomp
+    caches, summaries = {}, {}
+    for workers in ("1", "2"):
+        cache = tmp_path / f"aps{workers}.pt"
+        run = rflscm("optimize", str(ckpt), str(scenario), "--out", str(tmp_path / f"o{workers}"), "--tilt-range",
+                     "0:6:3", "--max-changed", "2", "--restarts", "0", "--device", "cpu", "--no-verify",
+                     "--aps-cache", str(cache), "--workers", workers)  # fmt: skip
+        assert run.returncode == 0, run.stderr
+        caches[workers] = torch.load(cache, weights_only=True)["payload"]
+        summaries[workers] = json.loads((tmp_path / f"o{workers}" / "summary.json").read_text())
+    serial, parallel = caches["1"], caches["2"]
+    assert len(serial["aps"]) == 12 and sum(int(a.count_nonzero()) for a in serial["aps"]) > 0
+    for a, b in zip(parallel["aps"], serial["aps"], strict=True):
+        assert torch.equal(a, b)
+    assert parallel["source_sha256"] == serial["source_sha256"]
+    assert summaries["2"]["search"]["objective_after"] == summaries["1"]["search"]["objective_after"]
