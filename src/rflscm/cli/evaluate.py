@@ -22,6 +22,7 @@ from rflscm.cli.common import (
 )
 from rflscm.cli.train import Protocol
 from rflscm.errors import ConfigError
+from rflscm.parallel import Engine, RayAddressOption, WorkersOption
 
 
 @app.command()
@@ -40,6 +41,8 @@ def evaluate(
     ),
     device: Device = DeviceOption,
     seed: int = SeedOption,
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:
     """Compare a trained model's predictions with measurements: MAE per beam type, changed cells, per cell,
     beside the oracle floor and the trivial baseline; APS recovery where ground truth exists."""
@@ -48,6 +51,7 @@ def evaluate(
     from rflscm.eval import PROTOCOLS, resolve_protocol, run_evaluation
     from rflscm.eval.report import metric_rows, write_report
     from rflscm.models import load_model
+    from rflscm.parallel.aps import checkpoint_loader, evaluation_cache
 
     if protocol is not None and protocol not in PROTOCOLS:
         raise ConfigError(f"--protocol {protocol!r} is unknown; choose one of: {', '.join(PROTOCOLS)}.")
@@ -58,9 +62,11 @@ def evaluate(
     sc = load_scenario(scenario)
     model = load_model(checkpoint, sc, device=dev)
     chosen = resolve_protocol(model, protocol)
+    engine = Engine(workers, ray_address)  # > 1 worker: the test pairs' APS are computed by Ray workers first
+    source = evaluation_cache(model, sc, chosen, engine, checkpoint_loader(checkpoint, scenario, dev))
     console = Console()
     with console.status(f"evaluating {model.name} ({chosen.name} protocol)…"):
-        evaluation = run_evaluation(model, sc, chosen, oracle="auto" if oracle else None)
+        evaluation = run_evaluation(source, sc, chosen, oracle="auto" if oracle else None)
     metrics = evaluation.metrics
     table = Table(title=f"{model.name} on {sc.meta.name} — {chosen.name} protocol, round {metrics['test_round']}")
     table.add_column("metric", justify="left")

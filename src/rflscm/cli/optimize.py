@@ -19,6 +19,7 @@ from rich.progress import (
 from rflscm.cli import app
 from rflscm.cli.common import Device, DeviceOption, SeedOption, resolve_device, seed_everything
 from rflscm.errors import ConfigError
+from rflscm.parallel import Engine, RayAddressOption, WorkersOption
 
 
 class Objective(StrEnum):
@@ -108,10 +109,13 @@ def optimize(
     aps_cache: Path | None = typer.Option(None, "--aps-cache", help="Reuse or write the rendered APS here (.pt file)."),
     device: Device = DeviceOption,
     seed: int = SeedOption,
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:  # fmt: skip
     """Search antenna settings that maximise a coverage/SINR objective; write them as a new round."""
     from rflscm.data import load_scenario
     from rflscm.models import load_model
+    from rflscm.models.source import APSSource
     from rflscm.network.kpi import KPIConfig
     from rflscm.network.optimize import load_or_cache_aps, run_optimize, write_round
     from rflscm.network.report import write_report
@@ -133,6 +137,12 @@ def optimize(
         truth_folder(scen)  # fail before the expensive part
     model = load_model(checkpoint, scen, device=resolve_device(device.value))
     objective_name, method_name = objective.value, method.value
+    source: APSSource = model  # > 1 worker: the APS to render are computed by Ray workers first
+    if aps_cache is None or not aps_cache.exists():
+        from rflscm.parallel.aps import checkpoint_loader, render_cache
+
+        load = checkpoint_loader(checkpoint, scenario, model.device)
+        source = render_cache(model, scen, Engine(workers, ray_address), load)
     columns = (
         TextColumn("{task.description}"),
         BarColumn(),
@@ -142,7 +152,7 @@ def optimize(
     with Progress(*columns, console=console, transient=True) as bar:
         task = bar.add_task(f"rendering APS ({model.name})", total=len(scen.cell_ids()))
         cache, cache_s = load_or_cache_aps(
-            model,
+            source,
             scen,
             aps_cache,
             on_cell=lambda done, _: bar.update(task, completed=done),

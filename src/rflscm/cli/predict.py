@@ -15,6 +15,7 @@ from rflscm.cli import app
 from rflscm.cli.common import Device, DeviceOption, SeedOption, output_file, resolve_device, seed_everything
 from rflscm.errors import ConfigError
 from rflscm.geometry.angles import internal_to_engineering
+from rflscm.parallel import Engine, RayAddressOption, WorkersOption
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
@@ -155,12 +156,14 @@ def predict(
     threshold: float = typer.Option(-105.0, "--threshold", help="--kpi: coverage threshold on best-server RSRP (dBm)."),
     device: Device = DeviceOption,
     seed: int = SeedOption,
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:
     """Predict RSRP of every beam for a round's antenna configuration (also for grids without measurements)."""
     pairs = pairs_choice.value
     from rflscm.data import load_scenario, write_table
-    from rflscm.eval.cache import APSCache
     from rflscm.models import load_model
+    from rflscm.parallel.aps import checkpoint_loader, prediction_cache
 
     output_file(out, "--out")
     cells, grids = _id_list(aps_cells, "--aps-cells"), _id_list(aps_grids, "--aps-grids")
@@ -182,7 +185,10 @@ def predict(
     if attenuation_map is not None and not hasattr(model, "all_stages"):
         raise ConfigError(f"{model.name} has no attenuation field; --attenuation-map needs an rflscm or nerf2 model.")
     selected = prediction_pairs(scen, model, pairs)
-    cached = APSCache(model)  # SSB and CSI-RS of a pair share its APS
+    engine = Engine(workers, ray_address)  # > 1 worker: the APS of the pairs are computed by Ray workers first
+    cached = prediction_cache(model, scen, selected, engine, checkpoint_loader(checkpoint, scenario, dev))
+    if engine.parallel:
+        console.print(f"{cached.filled} (cell, grid) pairs' APS computed by {workers} Ray worker(s)")
     with console.status(f"predicting {len(selected)} (cell, grid) pairs with {model.name}…"):
         tables = [
             long_form(round, bt, selected, cached.predict_rsrp(scen, round, bt, selected), scen)

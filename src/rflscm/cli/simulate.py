@@ -134,6 +134,7 @@ def simulate(
     """Trace a scene once per (site, carrier) and write a complete scenario with ground truth (truth/)."""
     backend, measurements = backend_choice.value, None if regime is None else regime.value
     from rflscm.sim import SimulationConfig, build_scenario, make_backend
+    from rflscm.sim.builder import grow_procedural
 
     if measurements not in (None, "ideal", "field"):
         raise ConfigError(f"--measurements must be ideal or field (got {measurements!r}).")
@@ -154,6 +155,8 @@ def simulate(
     cfg = dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     _check_backend(backend, scene)
     scene = scene or ("city" if backend == "procedural" else "munich")
+    if backend == "procedural":  # beyond 7 sites the city, its site radius and (without --grids) the grids grow
+        cfg = grow_procedural(cfg, scene, scale_grids=grids is None)
     _prepare_out(out, force)
     dev = resolve_device(device)
     seed_everything(cfg.seed)

@@ -155,6 +155,29 @@ class SimulationConfig:
 
 
 # ---- layout: sites, cells, grids ---------------------------------------------------------------------
+def grow_procedural(config: SimulationConfig, scene: str, scale_grids: bool = True) -> SimulationConfig:
+    """``config`` for a procedural city that grows with ``num_sites`` at the default density.
+
+    Up to the default site count (7), or with explicit ``sites``, ``config`` is returned unchanged.  Beyond it,
+    by the factor f = num_sites / 7: the scene's area and building count × f (``backend_options`` ``size_m``,
+    ``num_buildings``; values set there win), ``site_radius_m`` × √f and, when ``scale_grids``, ``max_grids``
+    × f, so that cells (3 per site and carrier) and grids both grow linearly with the sites.
+    """
+    from rflscm.sim.procedural import grown_scene_options
+
+    base = SimulationConfig()
+    if config.sites or config.num_sites <= base.num_sites:
+        return config
+    factor = config.num_sites / base.num_sites
+    options = {**grown_scene_options(scene, config.num_sites, base.num_sites), **config.backend_options}
+    return dataclasses.replace(
+        config,
+        backend_options=options,
+        site_radius_m=config.site_radius_m * float(np.sqrt(factor)),
+        max_grids=round(config.max_grids * factor) if scale_grids else config.max_grids,
+    )
+
+
 def area_center(backend: SceneBackend, config: SimulationConfig) -> np.ndarray:
     if config.area_center_xy:
         return np.asarray(config.area_center_xy, dtype=np.float64)

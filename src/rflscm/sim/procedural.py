@@ -18,6 +18,7 @@ diffraction, so deep shadows are lit only by penetration.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -181,6 +182,24 @@ PROCEDURAL_SCENES: dict[str, dict] = {
     "free_space": {"num_buildings": 0, "ground_reflection": False},
 }
 """Named presets of :class:`ProceduralCity` keyword arguments (``rflscm simulate --scene``)."""
+DEFAULT_SIZE_M = 400.0
+DEFAULT_NUM_BUILDINGS = 40
+
+
+def grown_scene_options(scene: str, num_sites: int, base_sites: int) -> dict[str, float | int]:
+    """``size_m`` and ``num_buildings`` of preset ``scene`` grown from ``base_sites`` to ``num_sites`` at the
+    preset's density: the area and the building count in proportion to the sites (side × √(N / base)).
+    Empty (the preset as it is) up to ``base_sites``."""
+    if scene not in PROCEDURAL_SCENES:
+        raise ConfigError(f"unknown procedural scene {scene!r}; valid: {', '.join(PROCEDURAL_SCENES)}.")
+    if num_sites <= base_sites:
+        return {}
+    factor = num_sites / base_sites
+    preset = {"size_m": DEFAULT_SIZE_M, "num_buildings": DEFAULT_NUM_BUILDINGS, **PROCEDURAL_SCENES[scene]}
+    return {
+        "size_m": float(preset["size_m"]) * math.sqrt(factor),
+        "num_buildings": round(preset["num_buildings"] * factor),
+    }
 
 
 class ProceduralCity:
@@ -206,8 +225,8 @@ class ProceduralCity:
     def __init__(
         self,
         seed: int = 0,
-        size_m: float = 400.0,
-        num_buildings: int = 40,
+        size_m: float = DEFAULT_SIZE_M,
+        num_buildings: int = DEFAULT_NUM_BUILDINGS,
         footprint_m: tuple[float, float] = (15.0, 45.0),
         height_m: tuple[float, float] = (10.0, 35.0),
         street_m: float = 12.0,
