@@ -25,6 +25,7 @@ from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import BenchData, BenchSize, bench_size, load_bench_data, train_and_evaluate
 from rflscm.bench.measure import parameter_count, render_throughput
 from rflscm.bench.report import aggregate, header, mae_summary, new_figure, record, save_figure, seeds_of
+from rflscm.data import BEAM_TYPES
 from rflscm.eval import AdjustProtocol
 
 MODELS = ("rflscm", "nerf2", "wnomp")
@@ -55,7 +56,7 @@ def run_b1(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
     out["oracle"] = {"mae_db": reference["oracle"]}
     out["trivial"] = {"mae_db": reference["trivial"]}
     out["changed_cells"] = reference["counts"]["changed_cells"]
-    out["test_beams"] = {bt: reference["counts"][bt]["beams"] for bt in ("ssb", "csi")}
+    out["test_beams"] = {bt: reference["counts"][bt]["beams"] for bt in BEAM_TYPES}
     out["plots"] = [_plot(ctx, models, out["oracle"], out["trivial"])]
     return out
 

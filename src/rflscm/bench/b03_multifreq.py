@@ -21,6 +21,7 @@ import numpy as np
 from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import BenchSize, bench_size, load_bench_data, train_and_evaluate
 from rflscm.bench.report import aggregate, header, mae_summary, new_figure, record, save_figure, seeds_of
+from rflscm.data import BEAM_TYPES
 from rflscm.eval import MultiFreqProtocol
 
 PERCENTS = {"tiny": (5.0, 30.0), "quick": (3.0, 5.0, 10.0, 20.0, 30.0), "full": (3.0, 5.0, 10.0, 20.0, 30.0)}
@@ -53,14 +54,14 @@ def run_b3(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
             agg = aggregate([record(r) for r in runs])
             _, train_grids, test_grids = protocol.split(data.scenario)
             arms[arm][_key(p)] = {
-                "mae_db": {bt: agg["mean"]["mae_db"][bt]["all"] for bt in ("ssb", "csi")},
-                "mae_std_db": {bt: agg["std"]["mae_db"][bt]["all"] for bt in ("ssb", "csi")},
+                "mae_db": {bt: agg["mean"]["mae_db"][bt]["all"] for bt in BEAM_TYPES},
+                "mae_std_db": {bt: agg["std"]["mae_db"][bt]["all"] for bt in BEAM_TYPES},
                 "train_grids": int(len(train_grids)),
                 "test_grids": int(len(test_grids)),
-                "trivial_mae_db": {bt: mae_summary(runs[0].metrics)["trivial"][bt]["all"] for bt in ("ssb", "csi")},
+                "trivial_mae_db": {bt: mae_summary(runs[0].metrics)["trivial"][bt]["all"] for bt in BEAM_TYPES},
                 "train_time_s": agg["mean"]["train_time_s"],
             }
-            oracle.setdefault(_key(p), {bt: mae_summary(runs[0].metrics)["oracle"][bt]["all"] for bt in ("ssb", "csi")})
+            oracle.setdefault(_key(p), {bt: mae_summary(runs[0].metrics)["oracle"][bt]["all"] for bt in BEAM_TYPES})
     out["carrier_hz"] = MultiFreqProtocol().carrier(data.scenario)
     out["arms"] = arms
     out["oracle_mae_db"] = oracle
@@ -78,7 +79,7 @@ def _gains(arms: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     gain_pct: dict[str, Any] = {}
     for key in arms["with_other_band"]:
         gain_db[key], gain_pct[key] = {}, {}
-        for bt in ("ssb", "csi"):
+        for bt in BEAM_TYPES:
             w, wo = arms["with_other_band"][key]["mae_db"][bt], arms["without_other_band"][key]["mae_db"][bt]
             ok = w is not None and wo is not None
             gain_db[key][bt] = wo - w if ok else None
@@ -88,7 +89,7 @@ def _gains(arms: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
 
 def _plot(ctx: BenchContext, percents: tuple[float, ...], arms: dict[str, Any], oracle: dict[str, Any]) -> str:
     fig, axes = new_figure(ncols=2)
-    for ax, bt in zip(axes, ("ssb", "csi")):
+    for ax, bt in zip(axes, BEAM_TYPES):
         for arm, entries in arms.items():
             mae = [np.nan if e["mae_db"][bt] is None else e["mae_db"][bt] for e in entries.values()]
             ax.plot(percents, mae, marker="o", label=arm.replace("_", " "))

@@ -36,6 +36,7 @@ from rflscm.bench.harness import (
     train_and_evaluate,
 )
 from rflscm.bench.report import aggregate, header, mae_summary, new_figure, record, save_figure, seeds_of
+from rflscm.data import BEAM_TYPES
 from rflscm.eval import AdjustProtocol
 
 if TYPE_CHECKING:
@@ -92,7 +93,7 @@ def run_b4(ctx: BenchContext, size: BenchSize, extra: dict[str, Any] | None = No
     out["oracle"] = {"mae_db": reference["oracle"], "truth_mae_db": reference["truth"]["oracle"]}
     out["trivial"] = {"mae_db": reference["trivial"], "truth_mae_db": reference["truth"]["trivial"]}
     gains = [
-        {bt: _diff(off["mae_db"][bt]["all"], on["mae_db"][bt]["all"]) for bt in ("ssb", "csi")}
+        {bt: _diff(off["mae_db"][bt]["all"], on["mae_db"][bt]["all"]) for bt in BEAM_TYPES}
         for on, off in zip(records["prior_on"], records["prior_off"], strict=True)
     ]
     spread = aggregate(gains)

@@ -23,6 +23,7 @@ import numpy as np
 from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import BenchSize, bench_size, load_bench_data, merge, train_and_evaluate
 from rflscm.bench.report import aggregate, header, mae_summary, new_figure, record, save_figure, seeds_of
+from rflscm.data import BEAM_TYPES
 from rflscm.eval import AdjustProtocol
 
 EXTRA = {  # size → RF-LSCM overrides on top of the size's
@@ -69,8 +70,8 @@ def run_b5(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
     out["oracle"] = {"mae_db": reference["oracle"], "truth_mae_db": reference["truth"]["oracle"],
                      "missing_above_bound": oracle_above}  # fmt: skip
     out["trivial"] = {"mae_db": reference["trivial"], "truth_mae_db": reference["truth"]["trivial"]}
-    out["best_alpha"] = {bt: _best(sweep, bt) for bt in ("ssb", "csi")}
-    out["best_alpha_truth"] = {bt: _best(sweep, bt, "truth_mae_db") for bt in ("ssb", "csi")}
+    out["best_alpha"] = {bt: _best(sweep, bt) for bt in BEAM_TYPES}
+    out["best_alpha_truth"] = {bt: _best(sweep, bt, "truth_mae_db") for bt in BEAM_TYPES}
     out["plots"] = [_plot(ctx, sweep, reference["oracle"])]
     return out
 

@@ -27,6 +27,7 @@ from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import BenchSize, bench_size, load_bench_data, train_and_evaluate
 from rflscm.bench.measure import aps_recovery
 from rflscm.bench.report import aggregate, header, new_figure, save_figure, seeds_of
+from rflscm.data import BEAM_TYPES
 from rflscm.eval import UnseenProtocol
 
 if TYPE_CHECKING:
@@ -86,7 +87,7 @@ def _plot(ctx: BenchContext, models: dict[str, Any], oracle: dict[str, Any], tri
     fig, axes = new_figure(ncols=3, width=4.5)
     names = list(models)
     x = np.arange(len(names))
-    for i, bt in enumerate(("ssb", "csi")):
+    for i, bt in enumerate(BEAM_TYPES):
         vals = [models[n]["unseen_mae_db"].get(bt) for n in names]
         axes[0].bar(x + 0.4 * i, [np.nan if v is None else v for v in vals], 0.4, label=bt.upper())
         for ref, style in ((oracle, ":"), (trivial, "--")):

@@ -28,6 +28,7 @@ import numpy as np
 from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import BenchSize, bench_size, model_config, scenario_path
 from rflscm.bench.report import new_figure, save_figure
+from rflscm.data import BEAM_TYPES
 from rflscm.sim.field import FieldConfig
 
 IDEAL = FieldConfig.ideal()
@@ -116,7 +117,7 @@ def run_step(ctx: BenchContext, size: BenchSize, trace: Path, step: str) -> dict
         for key, floor in FLOORS:
             result[key] = {"mae_db": metrics[floor]}
     counts = scenario.measurements.groupby(["round", "beam_type"])["rsrp_dbm"].apply(lambda s: int(s.notna().sum()))
-    result["reported_beams_round1"] = {t: int(counts.get((1, t), 0)) for t in ("ssb", "csi")}
+    result["reported_beams_round1"] = {t: int(counts.get((1, t), 0)) for t in BEAM_TYPES}
     return result
 
 

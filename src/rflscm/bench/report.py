@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from rflscm.bench import BenchContext
+from rflscm.data import BEAM_TYPES
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -26,8 +27,8 @@ def record(result: RunResult) -> dict[str, Any]:
     return {
         "mae_db": mae_summary(m)["model"] if m else None,
         "truth_mae_db": truth_summary(m)["model"] if m else None,
-        "unseen_mae_db": {bt: unseen.get(bt) for bt in ("ssb", "csi")},
-        "unseen_bias_db": {bt: ((m.get("unseen") or {}).get("bias_db") or {}).get(bt) for bt in ("ssb", "csi")},
+        "unseen_mae_db": {bt: unseen.get(bt) for bt in BEAM_TYPES},
+        "unseen_bias_db": {bt: ((m.get("unseen") or {}).get("bias_db") or {}).get(bt) for bt in BEAM_TYPES},
         "aps_nmse_db": aps.get("nmse_db"),
         "aps_angle_error_deg": aps.get("angle_error_deg"),
         "train_time_s": result.train_time_s,
@@ -57,7 +58,7 @@ def mae_summary(metrics: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for who, key in (("model", "mae_db"), ("oracle", "oracle_mae_db"), ("trivial", "trivial_mae_db")):
         block = metrics.get(key) or {}
-        out[who] = {bt: dict(block.get(bt) or {"all": None, "changed": None}) for bt in ("ssb", "csi")}
+        out[who] = {bt: dict(block.get(bt) or {"all": None, "changed": None}) for bt in BEAM_TYPES}
     out["truth"] = truth_summary(metrics)
     return out
 
@@ -67,7 +68,7 @@ def truth_summary(metrics: dict[str, Any]) -> dict[str, Any]:
     {all, changed} [dB], ``None`` leaves without ground truth."""
     block = metrics.get("truth_mae_db") or {}
     return {
-        who: {bt: dict((block.get(who) or {}).get(bt) or {"all": None, "changed": None}) for bt in ("ssb", "csi")}
+        who: {bt: dict((block.get(who) or {}).get(bt) or {"all": None, "changed": None}) for bt in BEAM_TYPES}
         for who in ("model", "oracle", "trivial")
     }
 

@@ -34,10 +34,10 @@ from rflscm.data.columns import (
 )
 from rflscm.data.meta import RSRP_MAX_DBM, RSRP_MIN_DBM, ScenarioMeta
 from rflscm.data.positions import finish_table
+from rflscm.data.reporting import BEAM_TYPES
 
 MEASUREMENT_COLUMNS = ("round", "cell_id", "grid_id", "beam_type", "beam_id", "rsrp_dbm")
 MEASUREMENT_KEY = ["round", "cell_id", "grid_id", "beam_type", "beam_id"]
-BEAM_TYPES = ("ssb", "csi")
 """Beam types; index 0 / 1 in :func:`codebook_sizes`."""
 
 

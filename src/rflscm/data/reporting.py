@@ -35,6 +35,9 @@ import pandas as pd
 
 from rflscm.errors import ConfigError, DataError
 
+BEAM_TYPES = ("ssb", "csi")
+"""The two beam types of a scenario, in the order every table and report uses: SSB, then CSI-RS."""
+
 RULES = ("threshold", "top_n", "sinr")
 
 
@@ -84,7 +87,7 @@ def reporting_from_dict(value: Any) -> dict[str, ReportingRule]:
     fields = ("rule", "top_n", "detection_db", "noise_dbm", "serving_only")
     out = {}
     for beam_type, spec in value.items():
-        if beam_type not in ("ssb", "csi"):
+        if beam_type not in BEAM_TYPES:
             raise ConfigError(f"`reporting` keys must be ssb or csi (got {beam_type!r}).")
         if not isinstance(spec, dict):
             raise ConfigError(f"`reporting.{beam_type}` must be a mapping, e.g. {{rule: top_n, top_n: 4}}.")
@@ -236,7 +239,7 @@ def reported_fraction(scenario) -> pd.DataFrame:
     for rnd in sorted(m["round"].unique()) if len(m) else []:
         sub = m[(m["round"] == rnd).to_numpy()]
         pairs = sub[["cell_id", "grid_id"]].drop_duplicates()
-        for beam_type in ("ssb", "csi"):
+        for beam_type in BEAM_TYPES:
             possible = sum(scenario.num_beams(int(c), beam_type, int(rnd)) for c in pairs["cell_id"].to_numpy())
             rows = sub[(sub["beam_type"] == beam_type).to_numpy()]
             reported = int(rows["rsrp_dbm"].notna().sum())

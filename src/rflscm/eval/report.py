@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
+from rflscm.data import BEAM_TYPES
 from rflscm.eval import plots
 from rflscm.eval.evaluate import BeamResult, Evaluation
 
@@ -27,7 +28,7 @@ def _fmt(value: float | None, unit: str = "") -> str:
 def metric_rows(metrics: dict[str, Any]) -> list[tuple[str, str, str, str]]:
     """``(metric, model, oracle, trivial)`` rows of the summary table, as text."""
     rows = []
-    for beam_type in ("ssb", "csi"):
+    for beam_type in BEAM_TYPES:
         for subset in ("all", "changed"):
             if subset == "changed" and metrics["mae_db"][beam_type]["changed"] is None:
                 continue
@@ -38,7 +39,7 @@ def metric_rows(metrics: dict[str, Any]) -> list[tuple[str, str, str, str]]:
                 _fmt(metrics["trivial_mae_db"][beam_type][subset]),
             ))  # fmt: skip
     unseen = metrics["unseen"]
-    for beam_type in ("ssb", "csi"):
+    for beam_type in BEAM_TYPES:
         if unseen["pairs"][beam_type]:
             rows.append((
                 f"MAE {beam_type.upper()}, unseen pairs [dB] (n={unseen['pairs'][beam_type]})",
@@ -199,9 +200,7 @@ def _per_cell_table(per_cell: dict[str, Any], pairs: dict[str, dict[str, int]] |
              "CSI trivial |", "|---|:---:|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
     for cell, e in per_cell.items():
         n = pairs.get(cell, {})
-        count = {
-            bt: f"{n.get(bt, 0)} ⚠" if 0 < n.get(bt, 0) < FEW_PAIRS else str(n.get(bt, 0)) for bt in ("ssb", "csi")
-        }
+        count = {bt: f"{n.get(bt, 0)} ⚠" if 0 < n.get(bt, 0) < FEW_PAIRS else str(n.get(bt, 0)) for bt in BEAM_TYPES}
         lines.append(
             f"| {cell} | {'yes' if e['changed'] else ''} | {count['ssb']} | {_fmt(e['ssb'])} | "
             f"{_fmt(e['oracle']['ssb'])} | {_fmt(e['trivial']['ssb'])} | {count['csi']} | {_fmt(e['csi'])} | "

@@ -38,6 +38,7 @@ import pandas as pd
 import torch
 
 from rflscm.antenna import sensing_matrix
+from rflscm.data import BEAM_TYPES
 from rflscm.data.reporting import ReportingRule
 from rflscm.errors import ConfigError
 from rflscm.sim.noise import MeasurementModel
@@ -292,7 +293,7 @@ def field_rsrp(
             antenna = scenario.antenna(int(cell_id), rnd)
             if element is not None:
                 antenna = replace(antenna, element=element)
-            for beam_type in ("ssb", "csi"):
+            for beam_type in BEAM_TYPES:
                 book = scenario.codebook(int(cell_id), beam_type, rnd)
                 if key not in groups:
                     zeros = np.full((len(grid_ids), book.num_beams), -np.inf)

@@ -25,6 +25,7 @@ import pandas as pd
 import torch
 
 from rflscm.antenna import CellAntenna, Codebook, sensing_matrix
+from rflscm.data import BEAM_TYPES
 from rflscm.geometry import AngleGrid, unit_vectors
 
 if TYPE_CHECKING:
@@ -179,7 +180,7 @@ def noiseless_rsrp(scenario: Scenario, paths: pd.DataFrame, points_per_grid: pd.
             row = scenario.cell_row(cell_id, rnd)
             unchanged = rnd != 1 and row.equals(scenario.cell_row(cell_id, 1))
             sub = groups.get((int(row["site_id"]), float(row["freq_hz"])), empty)
-            for beam_type in ("ssb", "csi"):
+            for beam_type in BEAM_TYPES:
                 if not unchanged:
                     done[(int(cell_id), beam_type)] = to_dbm(path_rsrp_mw(
                         sub, scenario.antenna(cell_id, rnd), scenario.codebook(cell_id, beam_type, rnd),

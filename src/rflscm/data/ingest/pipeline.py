@@ -20,7 +20,7 @@ from rflscm.data.ingest.samples import Tally, read_samples
 from rflscm.data.ingest.spec import ImportSpec
 from rflscm.data.io import write_table
 from rflscm.data.meta import RSRP_MIN_DBM, meta_from_dict
-from rflscm.data.reporting import reporting_from_dict
+from rflscm.data.reporting import BEAM_TYPES, reporting_from_dict
 from rflscm.errors import DataError
 
 SCENARIO_CELL_COLUMNS = ("cell_id", "site_id", "x", "y", "z", "azimuth_deg", "mech_tilt_deg", "elec_tilt_deg",
@@ -132,7 +132,7 @@ def _meta_dict(spec: ImportSpec, cells: dict[int, pd.DataFrame], origin: Origin 
 def _check_beams(samples: pd.DataFrame, cells: dict[int, pd.DataFrame], meta: Any) -> None:
     """A beam index beyond the cell's codebook stops the import naming the sample's file, row and value."""
     for rnd, table in cells.items():
-        for beam_type in ("ssb", "csi"):
+        for beam_type in BEAM_TYPES:
             col = f"{beam_type}_codebook"
             if col not in table.columns:
                 raise DataError(f"the cell list has no `{col}`; add the column or `cell_defaults: {{{col}: NAME}}`.")

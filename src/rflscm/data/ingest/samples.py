@@ -23,6 +23,7 @@ from rflscm.data.ingest.cellist import carrier_hz
 from rflscm.data.ingest.spec import CARRIER_COLUMNS, SAMPLE_COLUMNS, ImportSpec, canonical
 from rflscm.data.io import LINE_NUMBERS, read_table
 from rflscm.data.meta import RSRP_MAX_DBM, RSRP_MIN_DBM
+from rflscm.data.reporting import BEAM_TYPES
 from rflscm.errors import DataError
 
 
@@ -105,7 +106,7 @@ def _beam_types(df: pd.DataFrame, ref: TableRef, spec: ImportSpec) -> np.ndarray
         return np.full(len(df), spec.beam_type, dtype=object)
     types = np.char.lower(str_column(df, ref, "beam_type").astype(str))
     types = np.where(np.isin(types, ("csirs", "csi-rs", "csi_rs")), "csi", types)
-    raise_rows(ref, ~np.isin(types, ("ssb", "csi")), "beam_type", df["beam_type"], "must be ssb or csi")
+    raise_rows(ref, ~np.isin(types, BEAM_TYPES), "beam_type", df["beam_type"], "must be ssb or csi")
     return types.astype(object)
 
 
