@@ -67,8 +67,6 @@ class MeasuredElement:
     vertical_loss_db: tuple[float, ...]
     max_attenuation_db: float = 40.0
     name: str = "measured"
-    frequency_hz: float | None = None
-    """The carrier the pattern was measured at (MSI ``FREQUENCY``, MHz in the file); None = not stated."""
 
     def _interp(self, table: tuple[float, ...], angle_deg: torch.Tensor) -> torch.Tensor:
         values = torch.as_tensor(table, dtype=angle_deg.dtype, device=angle_deg.device)

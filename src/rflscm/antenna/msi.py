@@ -80,7 +80,7 @@ def read_msi(path: str | Path) -> MeasuredElement:
         raise DataError(
             f"{path}: cannot read the antenna pattern file ({exc.strerror or type(exc).__name__})."
         ) from None
-    name, gain, frequency_hz = path.stem, None, None
+    name, gain = path.stem, None
     blocks: dict[str, np.ndarray] = {}
     i = 0
     while i < len(lines):
@@ -88,15 +88,6 @@ def read_msi(path: str | Path) -> MeasuredElement:
         key = tokens[0].upper() if tokens else ""
         if key == "NAME" and len(tokens) > 1:
             name = " ".join(tokens[1:])
-        elif key == "FREQUENCY" and len(tokens) > 1:
-            try:
-                frequency_hz = float(tokens[1]) * 1e6  # MHz in MSI files
-            except ValueError:
-                raise DataError(
-                    f"{path} line {i + 1}: `FREQUENCY` must be a number in MHz (got {tokens[1]!r})."
-                ) from None
-            if not np.isfinite(frequency_hz) or frequency_hz <= 0:
-                raise DataError(f"{path} line {i + 1}: `FREQUENCY` must be a positive carrier in MHz.")
         elif key == "GAIN":
             gain = _parse_gain(tokens, f"{path} line {i + 1}")
         elif key in ("HORIZONTAL", "VERTICAL"):
@@ -121,7 +112,6 @@ def read_msi(path: str | Path) -> MeasuredElement:
         horizontal_loss_db=tuple(float(v) for v in blocks["HORIZONTAL"]),
         vertical_loss_db=tuple(float(v) for v in blocks["VERTICAL"]),
         name=name,
-        frequency_hz=frequency_hz,
     )
 
 

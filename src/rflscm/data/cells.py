@@ -92,8 +92,6 @@ TX_POWER_RANGE_DBM = (-20.0, 40.0)
 output powers spread over the subcarriers); values outside are a unit mistake (W, mW or total power)."""
 MAX_ARRAY_ELEMENTS = 4096
 """Most antenna elements of one cell (array_nh × array_nv): 64 × 64; massive-MIMO panels have a few hundred."""
-MAX_PATTERN_DETUNING = 0.10
-"""Largest relative distance between a cell's carrier and the FREQUENCY of its MSI element pattern."""
 MAX_SPACING_WL = 2.0
 """Element spacings above this many wavelengths are taken for a unit mistake (wavelengths given as metres)."""
 
@@ -227,16 +225,9 @@ def _elements(df: pd.DataFrame, ref: TableRef, out: pd.DataFrame, root: Path) ->
                 f"relative to the scenario folder, `{DEFAULT_ELEMENT}`, or leave it empty."
             )
         try:
-            elements[name] = element = read_msi(path)
+            elements[name] = read_msi(path)
         except DataError as exc:
             raise DataError(f"{ref.row(first)}: `element` = {name!r}: {exc}") from None
-        if element.frequency_hz is not None:  # a pattern belongs to its band
-            off = np.abs(out["freq_hz"].to_numpy() / element.frequency_hz - 1.0) > MAX_PATTERN_DETUNING
-            raise_rows(
-                ref, (names == name) & off, "element", df.get("element", pd.Series(names)),
-                f"was measured at {element.frequency_hz / 1e6:g} MHz, more than "
-                f"{MAX_PATTERN_DETUNING:.0%} from this cell's carrier (`freq_hz`); give the pattern file of this band",
-            )  # fmt: skip
     out["element"] = pd.array(names, dtype="str")
     return elements
 

@@ -6,7 +6,6 @@ import hashlib
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 import torch
 import yaml
@@ -70,6 +69,8 @@ def test_weights_that_do_not_fit_the_array_are_refused(tmp_path: Path) -> None:
 )  # fmt: skip
 def test_bad_weight_tables_are_one_line_errors(tmp_path: Path, edit, message: str) -> None:
     _as_file(tmp_path, SSBCodebook(), "w.csv")
+    import pandas as pd
+
     edit(pd.read_csv(tmp_path / "w.csv")).to_csv(tmp_path / "w.csv", index=False)
     with pytest.raises(DataError, match=message) as info:
         read_weights_codebook(tmp_path, WeightsCodebook(file="w.csv"), "scenario.yaml: `codebooks.v.file`")
@@ -121,25 +122,3 @@ def test_any_codebook_serves_either_beam_type_end_to_end(tmp_path: Path) -> None
     fitted = pred[lookup["index"].to_numpy(), lookup["beam_id"].to_numpy()]
     assert np.isfinite(fitted).all()
     assert np.abs(fitted - lookup["rsrp_dbm"].to_numpy()).mean() < 3.0  # WNOMP fits its own training reports
-
-
-@pytest.mark.parametrize(("mhz", "refused"), [(1000, True), (None, False), ("own", False)])
-def test_an_element_pattern_is_tied_to_its_band(tmp_path: Path, mhz: object, refused: bool) -> None:
-    from rflscm.antenna import sample_msi_path
-
-    root = tiny_scenario(tmp_path / "tiny", seed=1)
-    scen = load_scenario(root)
-    own = float(scen.cells[1]["freq_hz"].iloc[0]) / 1e6
-    lines = [ln for ln in sample_msi_path().read_text().splitlines() if not ln.startswith("FREQUENCY")]
-    if mhz is not None:
-        lines.insert(1, f"FREQUENCY {own if mhz == 'own' else mhz}")
-    (root / "panel.msi").write_text("\n".join(lines) + "\n")
-    for cells in root.glob("cells_round*.csv"):
-        df = pd.read_csv(cells)
-        df.assign(element=np.where(np.isclose(df["freq_hz"], own * 1e6), "panel.msi", "")).to_csv(cells, index=False)
-    if refused:
-        with pytest.raises(DataError, match=r"`element` = 'panel.msi' was measured at 1000 MHz, more than 10%"):
-            load_scenario(root)
-    else:
-        loaded = load_scenario(root)
-        assert loaded.element("panel.msi").frequency_hz == (None if mhz is None else own * 1e6)
