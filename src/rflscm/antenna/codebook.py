@@ -1,6 +1,4 @@
-"""Beam codebooks: SSB wide beams, 3GPP Type I DFT beams and vendors' explicit per-beam weights.
-
-Any kind may serve either beam type (SSB or CSI-RS), as vendors' beam sets do.
+"""Beam codebooks: SSB wide beams and 3GPP Type I DFT (CSI-RS) beams.
 
 A codebook turns into beam weights ``W[num_beams, num_h, num_v]`` (complex,
 unit power per beam) for an array at a carrier.  Gain convention: the beam
@@ -150,71 +148,14 @@ def _check_angles(key: str, angles: tuple[float, ...], limit: float, meaning: st
         raise ConfigError(f"`{key}` lists {seen[0]!r} twice, which makes duplicate beams; drop the duplicate.")
 
 
-@dataclass(frozen=True)
-class WeightsCodebook:
-    """A vendor's beam set given as explicit complex element weights ``W[num_beams, num_h, num_v]``.
-
-    ``file`` (relative to the scenario folder) holds the weights; :mod:`rflscm.data.codebook_files` reads it
-    and builds the codebook with :meth:`of`.  Each beam is normalised to unit power (Σ_e |W_e|² = 1), as
-    every codebook here, so a file's overall scale does not change A; the element order is the array's
-    (``element_h`` along the horizontal axis, ``element_v`` along the vertical one, both from 0).
-    ``sha256`` is the file's content digest: it ties a checkpoint's fingerprint to the weights, and when
-    given in scenario.yaml it must match the file.
-    """
-
-    type: Literal["weights"] = "weights"
-    file: str = ""
-    sha256: str = ""
-
-    def __post_init__(self) -> None:
-        if not self.file:
-            raise ConfigError("a `type: weights` codebook needs `file:` (the weights table, relative to the scenario).")
-
-    @classmethod
-    def of(cls, values: np.ndarray, file: str, sha256: str) -> WeightsCodebook:
-        """The codebook of complex weights ``values [num_beams, num_h, num_v]`` (normalised per beam here)."""
-        w = np.asarray(values, dtype=np.complex128)
-        if w.ndim != 3 or w.shape[0] < 1 or min(w.shape[1:]) < 1:
-            raise ConfigError(f"`{file}`: weights need the shape [beams, num_h, num_v] (got {list(w.shape)}).")
-        if not np.isfinite(w).all():
-            raise ConfigError(f"`{file}`: weights must be finite (NaN or infinite values found).")
-        power = np.sqrt((np.abs(w) ** 2).sum(axis=(1, 2)))
-        if (power == 0).any():
-            raise ConfigError(f"`{file}`: beam {int(np.flatnonzero(power == 0)[0])} has all-zero weights.")
-        book = cls(file=file, sha256=sha256)
-        object.__setattr__(book, "_values", w / power[:, None, None])
-        return book
-
-    @property
-    def values(self) -> np.ndarray:
-        """Unit-power weights ``[num_beams, num_h, num_v]``."""
-        values = getattr(self, "_values", None)
-        if values is None:
-            raise ConfigError(f"codebook file `{self.file}` was not read (load the scenario to read it).")
-        return values
-
-    @property
-    def num_beams(self) -> int:
-        return int(self.values.shape[0])
-
-    def weights(self, array: ArrayGeometry, wavelength_m: float) -> torch.Tensor:
-        if (array.num_h, array.num_v) != self.values.shape[1:]:
-            raise ConfigError(
-                f"the weights in `{self.file}` are for a {self.values.shape[1]} × {self.values.shape[2]} array, "
-                f"not the {array.num_h} × {array.num_v} array."
-            )
-        return torch.as_tensor(self.values, dtype=torch.complex128)
-
-
-Codebook = SSBCodebook | DFTCodebook | WeightsCodebook
-_CODEBOOKS: dict[str, type] = {"ssb": SSBCodebook, "dft": DFTCodebook, "weights": WeightsCodebook}
+Codebook = SSBCodebook | DFTCodebook
+_CODEBOOKS: dict[str, type] = {"ssb": SSBCodebook, "dft": DFTCodebook}
 
 
 def codebook_from_dict(spec: dict[str, Any], where: str = "codebook") -> Codebook:
-    """Build a codebook from a YAML mapping with a ``type`` key (``ssb``, ``dft`` or ``weights``; a ``weights``
-    codebook still has to read its file: :func:`rflscm.data.codebook_files.bind_codebook_files`)."""
+    """Build a codebook from a YAML mapping with a ``type`` key (``ssb`` or ``dft``)."""
     if not isinstance(spec, dict) or "type" not in spec:
-        raise ConfigError(f"`{where}` must be a mapping with `type: ssb`, `type: dft` or `type: weights`.")
+        raise ConfigError(f"`{where}` must be a mapping with `type: ssb` or `type: dft`.")
     kind = spec["type"]
     if kind not in _CODEBOOKS:
         raise ConfigError(f"`{where}.type` must be one of {', '.join(sorted(_CODEBOOKS))} (got {kind!r}).")

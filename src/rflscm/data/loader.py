@@ -17,7 +17,6 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from rflscm.antenna import WeightsCodebook
 from rflscm.config import load_yaml
 from rflscm.data.cells import DEFAULT_ELEMENT, normalise_cells
 from rflscm.data.columns import TableRef
@@ -60,7 +59,7 @@ def load_meta(yaml_path: Path) -> ScenarioMeta:
         raise ConfigError(" ".join(str(exc).split())) from None
     if not data:
         raise ConfigError(f"{yaml_path.name} is empty; it needs name, frequencies_hz, codebooks, rounds and grids.")
-    return meta_from_dict(data, where=yaml_path.name, root=yaml_path.parent)
+    return meta_from_dict(data, where=yaml_path.name)
 
 
 def _referenced(root: Path, name: str, key: str, yaml_name: str) -> Path:
@@ -149,7 +148,6 @@ def save_scenario(scenario: Scenario, root: str | Path, table_format: str = "par
         pc_name = meta.point_cloud or "point_cloud.ply"
         write_point_cloud(scenario.point_cloud, root / pc_name)
     _copy_elements(scenario, root)
-    _copy_codebook_files(scenario, root)
     truth = _copy_truth(scenario, root)
     new_meta = dataclasses.replace(
         meta, rounds=rounds, grids=grids_name, measurements=measurements_name, point_cloud=pc_name, truth=truth
@@ -170,16 +168,6 @@ def _copy_elements(scenario: Scenario, root: Path) -> None:
         if not target.exists() or not target.samefile(source):
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(source, target)
-
-
-def _copy_codebook_files(scenario: Scenario, root: Path) -> None:
-    """Copy the files of ``type: weights`` codebooks into ``root`` (same relative paths)."""
-    for book in scenario.meta.codebooks.values():
-        if isinstance(book, WeightsCodebook):
-            source, target = scenario.root / book.file, root / book.file
-            if not target.exists() or not target.samefile(source):
-                target.parent.mkdir(parents=True, exist_ok=True)
-                shutil.copy2(source, target)
 
 
 def _copy_truth(scenario: Scenario, root: Path) -> str | None:

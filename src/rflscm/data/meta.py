@@ -24,12 +24,10 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from rflscm.antenna import Codebook, codebook_from_dict
 from rflscm.config import from_dict, to_dict
-from rflscm.data.codebook_files import bind_codebook_files
 from rflscm.data.columns import fmt_list, fmt_number
 from rflscm.data.geo import Origin
 from rflscm.data.reporting import ReportingRule, reporting_from_dict
@@ -100,9 +98,8 @@ class ScenarioMeta:
 _REQUIRED = ("name", "frequencies_hz", "codebooks", "rounds", "grids")
 
 
-def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml", root: Path | None = None) -> ScenarioMeta:
-    """Validate and build :class:`ScenarioMeta` from the YAML mapping; errors name ``where`` and the key.
-    Codebooks kept in files (``type: weights``) are read from folder ``root``."""
+def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml") -> ScenarioMeta:
+    """Validate and build :class:`ScenarioMeta` from the YAML mapping; errors name ``where`` and the key."""
     valid = [f.name for f in dataclasses.fields(ScenarioMeta)]
     unknown = sorted(str(k) for k in set(data) - set(valid))
     if unknown:
@@ -119,7 +116,7 @@ def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml", root: Pat
             origin=None if data.get("origin") is None else from_dict(Origin, data["origin"], prefix="origin"),
             rsrp_threshold_dbm=_threshold(data.get("rsrp_threshold_dbm", -120.0)),
             frequencies_hz=_frequencies(data["frequencies_hz"]),
-            codebooks=bind_codebook_files(_codebooks(data["codebooks"]), root, where),
+            codebooks=_codebooks(data["codebooks"]),
             rounds=_rounds(data["rounds"]),
             grids=_text(data["grids"], "grids"),
             measurements=_optional_text(data.get("measurements"), "measurements"),

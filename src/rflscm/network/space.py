@@ -6,7 +6,7 @@ A spec comes from a YAML file and/or CLI flags, with a planner's defaults::
       mech_tilt_deg: {min: 0, max: 15, step: 1}        # absolute mechanical down-tilt [deg]
       elec_tilt_deg: {min: 0, max: 15, step: 1}        # absolute electrical down-tilt [deg]
       azimuth_offset_deg: {min: -30, max: 30, step: 5} # around the current azimuth [deg]
-      ssb_codebooks: all                               # or a list of the scenario's SSB beam sets
+      ssb_codebooks: all                               # or a list of scenario.yaml `ssb` codebooks
     cells:                                             # per-cell overrides of `defaults`
       201: {mech_tilt_deg: {min: 2, max: 8, step: 1}}
     frozen: [101, 102]                                 # cells that must not change
@@ -33,7 +33,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from rflscm.antenna import ArrayGeometry, Codebook
 from rflscm.errors import ConfigError
 
 VARIABLES = ("ssb_codebook", "elec_tilt_deg", "mech_tilt_deg", "azimuth_deg")
@@ -195,7 +194,7 @@ def parse_range(text: str, option: str) -> dict[str, float]:
     }
 
 
-def build_space(spec: dict[str, Any], cells: pd.DataFrame, codebooks: dict[str, Codebook]) -> SearchSpace:
+def build_space(spec: dict[str, Any], cells: pd.DataFrame, codebooks: dict[str, Any]) -> SearchSpace:
     """Per-cell options from a spec mapping and the base round's cells table.
 
     Raises:
@@ -216,17 +215,12 @@ def build_space(spec: dict[str, Any], cells: pd.DataFrame, codebooks: dict[str, 
     for key, value in per_cell.items():
         overrides[_cell_id(key, ids, valid_ids, "cells")] = _cell_spec(value or {}, f"cells.{key}")
     frozen = {_cell_id(c, ids, valid_ids, "frozen") for c in (spec.get("frozen") or [])}
-    # Candidate SSB beam sets: the scenario's own (any kind serving SSB in this round, and every `type: ssb`
-    # codebook); a set is offered to a cell only if it fits the cell's array.  Vendors' explicit-weight sets
-    # are chosen among as given, never re-steered.
-    used = set(cells["ssb_codebook"].astype(str))
-    ssb_books = [name for name, cb in codebooks.items() if name in used or getattr(cb, "type", None) == "ssb"]
+    ssb_books = [name for name, cb in codebooks.items() if getattr(cb, "type", None) == "ssb"]
     out = []
     for row in cells.itertuples(index=False):
         cell_id = int(row.cell_id)
         opts = {**defaults, **overrides.get(cell_id, {})}
-        fitting = [name for name in ssb_books if _fits(codebooks[name], row)]
-        out.append(_cell_options(row, opts, fitting, cell_id in frozen, max_step))
+        out.append(_cell_options(row, opts, ssb_books, cell_id in frozen, max_step))
     max_changed = spec.get("max_changed_cells", DEFAULT_MAX_CHANGED)
     if max_changed is not None and (not isinstance(max_changed, int) or max_changed < 1):
         raise ConfigError(f"search spec `max_changed_cells` must be a whole number >= 1 or null (got {max_changed!r}).")
@@ -352,15 +346,6 @@ def _window(values: tuple[float, ...], current: float, step: float | None, circu
     return tuple(v for v in values if dist(v) <= step + 1e-9)
 
 
-def _fits(codebook: Codebook, row: Any) -> bool:
-    """Whether ``codebook`` can drive the cell's array (``array_nh`` × ``array_nv``)."""
-    try:
-        codebook.weights(ArrayGeometry(num_h=int(row.array_nh), num_v=int(row.array_nv)), 0.1)
-    except ConfigError:
-        return False
-    return True
-
-
 def _cell_options(row: Any, opts: dict[str, Any], ssb_books: list[str], frozen: bool,
                   max_step: dict[str, float | None] | None = None) -> CellOptions:  # fmt: skip
     cell_id = int(row.cell_id)
@@ -377,7 +362,7 @@ def _cell_options(row: Any, opts: dict[str, Any], ssb_books: list[str], frozen: 
     for name in books:
         if name not in ssb_books:
             raise ConfigError(
-                f"search spec: cell {cell_id}: {name!r} is not an SSB beam set of scenario.yaml that fits this cell's array; "
+                f"search spec: cell {cell_id}: {name!r} is not an SSB codebook of scenario.yaml; "
                 f"SSB codebooks: {', '.join(ssb_books) or 'none'}."
             )
     books = [b for b in ssb_books if b in books or b == current_book]

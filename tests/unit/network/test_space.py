@@ -81,8 +81,8 @@ def test_co_sited_cells_with_one_azimuth_share_a_panel(scen) -> None:
     [
         ({"defaults": {"mech_tilt_deg": {"min": 10, "max": 2}}}, "range reversed"),
         ({"frozen": [99]}, "unknown cell 99"),
-        ({"cells": {12: {"ssb_codebooks": ["nope"]}}}, "'nope' is not an SSB beam set"),
-        ({"defaults": {"ssb_codebooks": ["csi8"]}}, "not an SSB beam set"),
+        ({"cells": {12: {"ssb_codebooks": ["nope"]}}}, "'nope' is not an SSB codebook"),
+        ({"defaults": {"ssb_codebooks": ["csi8"]}}, "not an SSB codebook"),
         ({"frozen": [11, 12]}, "empty search space"),
         (
             {"defaults": {"mech_tilt_deg": {"min": 0, "max": 5, "step": 0}}},
