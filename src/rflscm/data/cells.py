@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from rflscm.antenna import ArrayGeometry, ElementPattern, TR38901Element, read_msi, wavelength_of
+from rflscm.antenna import ArrayGeometry, ElementPattern, PatternCodebook, TR38901Element, read_msi, wavelength_of
 from rflscm.data.columns import (
     TableRef,
     check_not_empty,
@@ -90,7 +90,6 @@ DEFAULT_ELEMENT = "tr38901"
 TX_POWER_RANGE_DBM = (-20.0, 40.0)
 """Plausible RS power per resource element (EPRE) [dBm]: small cells ≈ 0…10, macro cells ≈ 10…25 (TS 38.104
 output powers spread over the subcarriers); values outside are a unit mistake (W, mW or total power)."""
-_CODEBOOK_TYPE = {"ssb_codebook": "ssb", "csi_codebook": "dft"}
 MAX_ARRAY_ELEMENTS = 4096
 """Most antenna elements of one cell (array_nh × array_nv): 64 × 64; massive-MIMO panels have a few hundred."""
 MAX_SPACING_WL = 2.0
@@ -195,19 +194,14 @@ def _codebooks(df: pd.DataFrame, ref: TableRef, out: pd.DataFrame, meta: Scenari
         known = np.isin(names, list(meta.codebooks))
         problem = f"is not a codebook of scenario.yaml `codebooks`; valid: {valid}"
         raise_rows(ref, ~known, column, df[column], problem)
-        wanted = _CODEBOOK_TYPE[column]
-        kinds = np.array([meta.codebooks[n].type for n in names], dtype=object)
-        others = ", ".join(n for n, cb in meta.codebooks.items() if cb.type == wanted) or "none"
-        problem = (
-            f"is a `type: {'dft' if wanted == 'ssb' else 'ssb'}` codebook in scenario.yaml, but `{column}` needs a "
-            f"`type: {wanted}` codebook (of this kind: {others}); swapped `ssb_codebook` and `csi_codebook`?"
-        )
-        raise_rows(ref, kinds != wanted, column, df[column], problem)
         out[column] = pd.array(names, dtype="str")
         combos = pd.DataFrame({"name": names, "nh": out["array_nh"], "nv": out["array_nv"]})
         for row in combos.drop_duplicates().itertuples():  # few distinct (codebook, array) pairs
+            book = meta.codebooks[row.name]
+            if isinstance(book, PatternCodebook):  # measured gains: no elements to fit
+                continue
             try:
-                meta.codebooks[row.name].weights(ArrayGeometry(num_h=row.nh, num_v=row.nv), 0.1)
+                book.weights(ArrayGeometry(num_h=row.nh, num_v=row.nv), 0.1)
             except ConfigError as exc:
                 raise DataError(
                     f"{ref.row(int(row.Index))}: `{column}` = {row.name!r} does not fit this cell's array: "

@@ -59,7 +59,7 @@ def load_meta(yaml_path: Path) -> ScenarioMeta:
         raise ConfigError(" ".join(str(exc).split())) from None
     if not data:
         raise ConfigError(f"{yaml_path.name} is empty; it needs name, frequencies_hz, codebooks, rounds and grids.")
-    return meta_from_dict(data, where=yaml_path.name)
+    return meta_from_dict(data, where=yaml_path.name, root=yaml_path.parent)
 
 
 def _referenced(root: Path, name: str, key: str, yaml_name: str) -> Path:

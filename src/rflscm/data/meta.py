@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from rflscm.antenna import Codebook, codebook_from_dict
@@ -98,8 +99,11 @@ class ScenarioMeta:
 _REQUIRED = ("name", "frequencies_hz", "codebooks", "rounds", "grids")
 
 
-def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml") -> ScenarioMeta:
-    """Validate and build :class:`ScenarioMeta` from the YAML mapping; errors name ``where`` and the key."""
+def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml", root: Path | None = None) -> ScenarioMeta:
+    """Validate and build :class:`ScenarioMeta` from the YAML mapping; errors name ``where`` and the key.
+
+    ``root`` (the scenario folder) loads file codebooks (``type: weights`` / ``pattern``) at once.
+    """
     valid = [f.name for f in dataclasses.fields(ScenarioMeta)]
     unknown = sorted(str(k) for k in set(data) - set(valid))
     if unknown:
@@ -116,7 +120,7 @@ def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml") -> Scenar
             origin=None if data.get("origin") is None else from_dict(Origin, data["origin"], prefix="origin"),
             rsrp_threshold_dbm=_threshold(data.get("rsrp_threshold_dbm", -120.0)),
             frequencies_hz=_frequencies(data["frequencies_hz"]),
-            codebooks=_codebooks(data["codebooks"]),
+            codebooks=_codebooks(data["codebooks"], root),
             rounds=_rounds(data["rounds"]),
             grids=_text(data["grids"], "grids"),
             measurements=_optional_text(data.get("measurements"), "measurements"),
@@ -183,13 +187,13 @@ def _frequencies(value: Any) -> tuple[float, ...]:
     return tuple(out)
 
 
-def _codebooks(value: Any) -> dict[str, Codebook]:
+def _codebooks(value: Any, root: Path | None = None) -> dict[str, Codebook]:
     if not isinstance(value, dict):
         raise ConfigError(f"`codebooks` must map names to codebooks, e.g. {{ssb8: {{type: ssb}}}} (got {value!r}).")
     books = {}
     for name, spec in value.items():
         key = str(name)
-        books[key] = codebook_from_dict(spec, where=f"codebooks.{key}")
+        books[key] = codebook_from_dict(spec, where=f"codebooks.{key}", root=root)
     return books
 
 
