@@ -104,7 +104,7 @@ def test_pattern_codebook_ignores_element_and_tilt_but_follows_rotation(tmp_path
     a = sensing_matrix(ANT, pattern, GRID, WL)
     rotated = CellAntenna(azimuth_deg=ANT.azimuth_deg + 90.0, mech_tilt_deg=ANT.mech_tilt_deg, elec_tilt_deg=0.0)
     b = sensing_matrix(rotated, pattern, GRID, WL)
-    el, az = GRID.bin_angles()
+    _el, az = GRID.bin_angles()
     peak_a, peak_b = np.rad2deg(az[a.argmax(1).numpy()]), np.rad2deg(az[b.argmax(1).numpy()])
     turn = (peak_b - peak_a + 180.0) % 360.0 - 180.0
     # engineering azimuth turns clockwise, the grid's azimuth counter-clockwise: −90° in the grid
