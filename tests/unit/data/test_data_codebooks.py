@@ -1,0 +1,67 @@
+"""Any codebook kind serves either beam type, end to end (issue 25, deliverable 2)."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rflscm.antenna import DFTCodebook, PatternCodebook, SSBCodebook, WeightsCodebook, wavelength_of
+from rflscm.data import load_scenario
+from rflscm.errors import ConfigError, DataError
+from rflscm.geometry import AngleGrid
+from rflscm.models import MODEL_REGISTRY
+from rflscm.train import fit
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "antenna"))
+from test_file_codebooks import _pattern_table  # noqa: E402
+
+SMALL = AngleGrid(num_el=13, num_az=24, el_min_deg=-90.0, el_step_deg=15.0)
+
+
+@pytest.mark.parametrize("csi_kind", ["weights", "pattern"])
+def test_any_codebook_serves_either_beam_type_and_wnomp_trains(
+    tiny_dir: Path, edit_table: Callable, edit_yaml: Callable, csi_kind: str
+) -> None:
+    from rflscm.antenna import CellAntenna
+
+    ssb = SSBCodebook()
+    if csi_kind == "weights":  # the SSB beams given as explicit weights serve CSI-RS
+        np.save(tiny_dir / "vendor.npy", ssb.weights(CellAntenna().array, wavelength_of(3.5e9)).numpy())
+        spec = {"type": "weights", "file": "vendor.npy"}
+    else:  # measured per-beam patterns serve CSI-RS
+        _pattern_table(ssb, CellAntenna(), 10.0).to_csv(tiny_dir / "vendor.csv", index=False)
+        spec = {"type": "pattern", "file": "vendor.csv"}
+    edit_yaml(tiny_dir, lambda d: d["codebooks"].update(vendor=spec))
+    for name in ("cells_round1.csv", "cells_round2.csv"):  # the DFT book serves SSB, the vendor book CSI-RS
+        edit_table(tiny_dir / name, lambda df: df.assign(ssb_codebook="csi8", csi_codebook="vendor"))
+    scenario = load_scenario(tiny_dir)
+    assert isinstance(scenario.codebook(11, "ssb", 1), DFTCodebook)
+    assert isinstance(scenario.codebook(11, "csi", 1), WeightsCodebook if csi_kind == "weights" else PatternCodebook)
+    model = MODEL_REGISTRY["wnomp"].build(None, SMALL, "cpu")
+    summary = fit(model, scenario, progress=False)
+    assert summary["num_pairs"] == 6
+    for beam_type in ("ssb", "csi"):
+        pairs, measured = scenario.rsrp_table(1, beam_type)
+        predicted = model.predict_rsrp(scenario, 1, beam_type, pairs)
+        assert predicted.shape == measured.shape and np.isfinite(predicted[:, :8]).all()
+
+
+def test_weights_codebook_that_does_not_fit_the_cell_array_names_the_row(
+    tiny_dir: Path, edit_table: Callable, edit_yaml: Callable
+) -> None:
+    np.save(tiny_dir / "vendor.npy", np.ones((8, 4, 4), complex))
+    edit_yaml(tiny_dir, lambda d: d["codebooks"].update(vendor={"type": "weights", "file": "vendor.npy"}))
+    edit_table(tiny_dir / "cells_round1.csv", lambda df: df.assign(csi_codebook="vendor"))
+    with pytest.raises(DataError, match=r"cells_round1.csv row 1 .*`csi_codebook` = 'vendor' does not fit"):
+        load_scenario(tiny_dir)
+
+
+def test_weights_file_outside_the_scenario_folder_is_refused(tiny_dir: Path, edit_yaml: Callable) -> None:
+    np.save(tiny_dir.parent / "elsewhere.npy", np.ones((8, 8, 4), complex))
+    edit_yaml(tiny_dir, lambda d: d["codebooks"].update(vendor={"type": "weights", "file": "../elsewhere.npy"}))
+    with pytest.raises(ConfigError, match=r"`codebooks.vendor`.*outside the scenario folder"):
+        load_scenario(tiny_dir)
