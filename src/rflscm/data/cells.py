@@ -123,6 +123,7 @@ def normalise_cells(
     _array(df, ref, out)
     _codebooks(df, ref, out, meta)
     elements = _elements(df, ref, out, root)
+    _bands(ref, out, elements, meta)
     duplicate_rows(ref, out, ["cell_id"], "list each cell once per round")
     if round1 is not None:
         _same_cells_as_round1(out, ref, *round1)
@@ -233,6 +234,40 @@ def _elements(df: pd.DataFrame, ref: TableRef, out: pd.DataFrame, root: Path) ->
             raise DataError(f"{ref.row(first)}: `element` = {name!r}: {exc}") from None
     out["element"] = pd.array(names, dtype="str")
     return elements
+
+
+BAND_TOLERANCE = 0.10
+"""A pattern measured at f₀ serves carriers within ±10 % of f₀ (docs/codebooks.md, the band rule)."""
+
+
+def off_band(pattern_hz: float | None, carrier_hz: float) -> bool:
+    """True when a pattern measured at ``pattern_hz`` may not serve ``carrier_hz`` (``None`` = any band)."""
+    return pattern_hz is not None and abs(carrier_hz / pattern_hz - 1.0) > BAND_TOLERANCE
+
+
+def _bands(ref: TableRef, out: pd.DataFrame, elements: dict[str, ElementPattern], meta: ScenarioMeta) -> None:
+    """Refuse an element pattern or pattern codebook used off the band it was measured at."""
+    for i, row in enumerate(out.itertuples(index=False)):
+        element = elements[str(row.element)]
+        pattern_hz = getattr(element, "frequency_hz", None)
+        if pattern_hz is not None and off_band(pattern_hz, float(row.freq_hz)):
+            raise DataError(
+                f"{ref.row(i)}: cell {row.cell_id} on {fmt_number(row.freq_hz / 1e6)} MHz uses `element` = "
+                f"{row.element!r} measured at {fmt_number(pattern_hz / 1e6)} MHz (beyond ±10 %); give the pattern "
+                "of this band."
+            )
+        for column in ("ssb_codebook", "csi_codebook"):
+            book = meta.codebooks[str(getattr(row, column))]
+            if (
+                isinstance(book, PatternCodebook)
+                and book.frequency_hz
+                and off_band(book.frequency_hz, float(row.freq_hz))
+            ):
+                raise DataError(
+                    f"{ref.row(i)}: cell {row.cell_id} on {fmt_number(row.freq_hz / 1e6)} MHz uses `{column}` = "
+                    f"{getattr(row, column)!r} (file {book.file!r}) measured at "
+                    f"{fmt_number(book.frequency_hz / 1e6)} MHz (beyond ±10 %); give the patterns of this band."
+                )
 
 
 def _same_cells_as_round1(out: pd.DataFrame, ref: TableRef, round1: pd.DataFrame, round1_name: str) -> None:

@@ -17,7 +17,7 @@ from rflscm.models import MODEL_REGISTRY
 from rflscm.train import fit
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "antenna"))
-from test_file_codebooks import _pattern_table  # noqa: E402
+from test_file_codebooks import _pattern_table
 
 SMALL = AngleGrid(num_el=13, num_az=24, el_min_deg=-90.0, el_step_deg=15.0)
 
@@ -64,4 +64,34 @@ def test_weights_file_outside_the_scenario_folder_is_refused(tiny_dir: Path, edi
     np.save(tiny_dir.parent / "elsewhere.npy", np.ones((8, 8, 4), complex))
     edit_yaml(tiny_dir, lambda d: d["codebooks"].update(vendor={"type": "weights", "file": "../elsewhere.npy"}))
     with pytest.raises(ConfigError, match=r"`codebooks.vendor`.*outside the scenario folder"):
+        load_scenario(tiny_dir)
+
+
+def test_msi_element_off_its_band_is_refused_in_one_line(tiny_dir: Path, edit_table: Callable) -> None:
+    from rflscm.antenna import read_msi, sample_msi_path
+
+    (tiny_dir / "ant").mkdir()
+    (tiny_dir / "ant" / "p.msi").write_bytes(sample_msi_path().read_bytes())  # FREQUENCY 3500 (MHz)
+    assert read_msi(tiny_dir / "ant" / "p.msi").frequency_hz == 3.5e9
+    # cell 11 is on 3.5 GHz: accepted; cell 12 is on 2.1 GHz: refused
+    edit_table(tiny_dir / "cells_round1.csv", lambda df: df.assign(element=["ant/p.msi", ""]))
+    edit_table(tiny_dir / "cells_round2.csv", lambda df: df.assign(element=["ant/p.msi", ""]))
+    assert load_scenario(tiny_dir).antenna(11).element.frequency_hz == 3.5e9
+    edit_table(tiny_dir / "cells_round1.csv", lambda df: df.assign(element=["ant/p.msi", "ant/p.msi"]))
+    with pytest.raises(DataError) as exc:
+        load_scenario(tiny_dir)
+    text = str(exc.value)
+    assert "\n" not in text
+    assert "cells_round1.csv row 2" in text and "cell 12 on 2100 MHz" in text
+    assert "'ant/p.msi' measured at 3500 MHz" in text
+
+
+def test_pattern_codebook_off_its_band_is_refused(tiny_dir: Path, edit_table: Callable, edit_yaml: Callable) -> None:
+    from rflscm.antenna import CellAntenna
+
+    _pattern_table(SSBCodebook(), CellAntenna(), 30.0).to_csv(tiny_dir / "vendor.csv", index=False)
+    spec = {"type": "pattern", "file": "vendor.csv", "frequency_hz": 3.5e9}
+    edit_yaml(tiny_dir, lambda d: d["codebooks"].update(vendor=spec))
+    edit_table(tiny_dir / "cells_round1.csv", lambda df: df.assign(csi_codebook="vendor"))
+    with pytest.raises(DataError, match=r"cell 12 on 2100 MHz uses `csi_codebook` = 'vendor' \(file 'vendor.csv'\) "):
         load_scenario(tiny_dir)
