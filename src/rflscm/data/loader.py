@@ -158,9 +158,10 @@ def save_scenario(scenario: Scenario, root: str | Path, table_format: str = "par
 
 
 def _copy_elements(scenario: Scenario, root: Path) -> None:
-    """Copy MSI element files referenced by the cells tables into ``root`` (same relative paths)."""
+    """Copy MSI element files and codebook files (``type: weights``/``pattern``) into ``root`` (same relative paths)."""
     tables = [t for t in scenario.cells.values() if "element" in t.columns]
     names = {str(n) for table in tables for n in table["element"].dropna().unique()} - {DEFAULT_ELEMENT, ""}
+    names |= {str(book.file) for book in scenario.meta.codebooks.values() if getattr(book, "file", "")}
     for name in sorted(names):
         source, target = scenario.root / name, root / name
         if Path(name).is_absolute() or ".." in Path(name).parts or not source.is_file():

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rflscm.antenna import DFTCodebook, PatternCodebook, SSBCodebook, WeightsCodebook, wavelength_of
-from rflscm.data import load_scenario
+from rflscm.data import load_scenario, save_scenario
 from rflscm.errors import ConfigError, DataError
 from rflscm.geometry import AngleGrid
 from rflscm.models import MODEL_REGISTRY
@@ -41,6 +41,8 @@ def test_any_codebook_serves_either_beam_type_and_wnomp_trains(
     scenario = load_scenario(tiny_dir)
     assert isinstance(scenario.codebook(11, "ssb", 1), DFTCodebook)
     assert isinstance(scenario.codebook(11, "csi", 1), WeightsCodebook if csi_kind == "weights" else PatternCodebook)
+    copy = load_scenario(save_scenario(scenario, tiny_dir.parent / "copy"))  # the codebook file travels along
+    assert copy.num_beams(11, "csi", 1) == 8
     model = MODEL_REGISTRY["wnomp"].build(None, SMALL, "cpu")
     summary = fit(model, scenario, progress=False)
     assert summary["num_pairs"] == 6
