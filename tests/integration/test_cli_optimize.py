@@ -81,7 +81,7 @@ def test_optimize_writes_a_round_that_checks_and_predicts_the_same_kpis(simulate
     [
         (["--tilt-range", "10:2"], "range reversed"),
         (["--freeze", "424242"], "unknown cell 424242"),
-        (["--codebooks", "nope"], "'nope' is not an SSB codebook"),
+        (["--codebooks", "nope"], "'nope' is not a codebook of scenario.yaml"),
         (
             [
                 "--tilt-range",

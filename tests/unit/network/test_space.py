@@ -25,13 +25,18 @@ def test_defaults_are_a_planners(scen) -> None:
     assert cell12.config(cell12.current) == {v: scen.cells[1].iloc[1][v] for v in VARIABLES}
 
 
+def test_any_named_codebook_may_serve_ssb(scen) -> None:
+    # issue 25: any codebook kind may serve SSB, so a DFT book is a valid choice when named
+    space = build_space({"defaults": {"ssb_codebooks": ["csi8"]}}, scen.cells[1], scen.meta.codebooks)
+    assert "csi8" in space.cells[1].values["ssb_codebook"]
+
+
 @pytest.mark.parametrize(
     ("spec", "match"),
     [
         ({"defaults": {"mech_tilt_deg": {"min": 10, "max": 2}}}, "range reversed"),
         ({"frozen": [99]}, "unknown cell 99"),
-        ({"cells": {12: {"ssb_codebooks": ["nope"]}}}, "'nope' is not an SSB codebook"),
-        ({"defaults": {"ssb_codebooks": ["csi8"]}}, "not an SSB codebook"),
+        ({"cells": {12: {"ssb_codebooks": ["nope"]}}}, "'nope' is not a codebook of scenario.yaml"),
         ({"frozen": [11, 12]}, "empty search space"),
         (
             {"defaults": {"mech_tilt_deg": {"min": 0, "max": 5, "step": 0}}},
