@@ -114,7 +114,7 @@ def normalise_cells(
     """
     df = clean_column_names(df, ref)
     check_not_empty(df, ref, "one row per cell")
-    xyz = position_columns(df, ref, REQUIRED, meta.origin)
+    xyz = position_columns(df, ref, REQUIRED, meta.origin, meta.ground)
     check_unknown_columns(df, ref, known_columns(df, CELL_COLUMNS))
     out = pd.DataFrame({"cell_id": int_column(df, ref, "cell_id"), "site_id": int_column(df, ref, "site_id")})
     out[list(XYZ)] = xyz

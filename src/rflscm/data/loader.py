@@ -100,7 +100,7 @@ def load_scenario(path: str | Path) -> Scenario:
         cells[rnd], found = normalise_cells(df, ref, meta, root, round1)
         elements.update(found)
     df, ref = _read(root, meta.grids, "grids", yaml_name)
-    grids = normalise_grids(df, ref, meta.origin)
+    grids = normalise_grids(df, ref, meta.origin, meta.ground)
     if meta.measurements is None:
         measurements = empty_measurements()
     else:
@@ -161,7 +161,8 @@ def _copy_elements(scenario: Scenario, root: Path) -> None:
     """Copy MSI element files and codebook files (``type: weights``/``pattern``) into ``root`` (same relative paths)."""
     tables = [t for t in scenario.cells.values() if "element" in t.columns]
     names = {str(n) for table in tables for n in table["element"].dropna().unique()} - {DEFAULT_ELEMENT, ""}
-    names |= {str(book.file) for book in scenario.meta.codebooks.values() if getattr(book, "file", "")}
+    names |= {str(f) for book in scenario.meta.codebooks.values() if (f := getattr(book, "file", ""))}
+    names |= {scenario.meta.terrain} if scenario.meta.terrain else set()
     for name in sorted(names):
         source, target = scenario.root / name, root / name
         if Path(name).is_absolute() or ".." in Path(name).parts or not source.is_file():

@@ -32,6 +32,7 @@ from rflscm.config import from_dict, to_dict
 from rflscm.data.columns import fmt_list, fmt_number
 from rflscm.data.geo import Origin
 from rflscm.data.reporting import ReportingRule, reporting_from_dict
+from rflscm.data.terrain import Terrain, load_terrain
 from rflscm.errors import ConfigError
 
 RSRP_MIN_DBM = -156.0
@@ -69,6 +70,14 @@ class ScenarioMeta:
     """Reporting rule per beam type (:mod:`rflscm.data.reporting`); absent = ``rsrp_threshold_dbm`` for both."""
     simulation: dict[str, Any] = field(default_factory=dict)
     """Free-form provenance written by the simulator, kept as is."""
+    terrain: str | None = None
+    """DEM GeoTIFF or XYZ table (:mod:`rflscm.data.terrain`); with it ``height_m`` is above ground."""
+
+    @property
+    def ground(self) -> Terrain | None:
+        """The loaded terrain (``None`` without ``terrain:`` or when read without a scenario folder)."""
+        terrain: Terrain | None = getattr(self, "_terrain", None)
+        return terrain
 
     def to_dict(self) -> dict[str, Any]:
         """Plain (YAML-safe) mapping in the order of the example above."""
@@ -85,6 +94,7 @@ class ScenarioMeta:
             "measurements": self.measurements,
             "point_cloud": self.point_cloud,
             "truth": self.truth,
+            **({"terrain": self.terrain} if self.terrain else {}),
             "simulation": self.simulation,
         }
 
@@ -93,6 +103,7 @@ class ScenarioMeta:
         d = self.to_dict()
         for key in ("rounds", "grids", "measurements", "point_cloud", "truth"):
             d.pop(key)
+        d.pop("terrain", None)
         return d
 
 
@@ -114,7 +125,7 @@ def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml", root: Pat
     if missing:
         raise ConfigError(f"{where}: missing key(s) {', '.join(missing)}; required: {', '.join(_REQUIRED)}.")
     try:
-        return ScenarioMeta(
+        meta = ScenarioMeta(
             name=_text(data["name"], "name"),
             description=_text(data.get("description") or "", "description"),
             origin=None if data.get("origin") is None else from_dict(Origin, data["origin"], prefix="origin"),
@@ -127,10 +138,14 @@ def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml", root: Pat
             point_cloud=_optional_text(data.get("point_cloud"), "point_cloud"),
             truth=_optional_text(data.get("truth"), "truth"),
             simulation=_simulation(data.get("simulation")),
+            terrain=_optional_text(data.get("terrain"), "terrain"),
             reporting=reporting_from_dict(data.get("reporting")),
         )
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from None
+    if root is not None and meta.terrain is not None:
+        object.__setattr__(meta, "_terrain", load_terrain(root, meta.terrain, meta.origin))
+    return meta
 
 
 def _number(value: Any, key: str) -> float:
