@@ -60,9 +60,8 @@ def sensing_matrix(
         dirs = directions.to(dtype=dtype, device=device if device is not None else directions.device)
     rot = torch.as_tensor(antenna.rotation(), dtype=dtype, device=dirs.device)
     local = dirs @ rot  # world → antenna frame: (Rᵀ d)ᵀ = dᵀ R    [num_dirs, 3]
-    if isinstance(codebook, PatternCodebook):  # measured beams: element, array and tilt are in the pattern
-        if element_gains is not None:
-            raise ValueError("element_gains (array errors) do not apply to a measured pattern codebook")
+    if isinstance(codebook, PatternCodebook):
+        # measured beams: element, array, tilt (and a real array's errors: element_gains) are in the pattern
         return (antenna.tx_power_mw * codebook.gain_lin(local)).contiguous()
     gain_elem = antenna.element.gain_lin(local)  # [num_dirs]
     steer = steering_vectors(antenna.array, local, wavelength_m)  # [num_dirs, num_elem]

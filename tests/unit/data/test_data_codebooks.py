@@ -22,9 +22,11 @@ from test_file_codebooks import _pattern_table
 SMALL = AngleGrid(num_el=13, num_az=24, el_min_deg=-90.0, el_step_deg=15.0)
 
 
-@pytest.mark.parametrize("csi_kind", ["weights", "pattern"])
-def test_any_codebook_serves_either_beam_type_and_wnomp_trains(
-    tiny_dir: Path, edit_table: Callable, edit_yaml: Callable, csi_kind: str
+@pytest.mark.parametrize(
+    ("csi_kind", "model_name"), [("weights", "wnomp"), ("pattern", "wnomp"), ("pattern", "rflscm")]
+)
+def test_any_codebook_serves_either_beam_type_and_models_train(
+    tiny_dir: Path, edit_table: Callable, edit_yaml: Callable, csi_kind: str, model_name: str
 ) -> None:
     from rflscm.antenna import CellAntenna
 
@@ -43,9 +45,15 @@ def test_any_codebook_serves_either_beam_type_and_wnomp_trains(
     assert isinstance(scenario.codebook(11, "csi", 1), WeightsCodebook if csi_kind == "weights" else PatternCodebook)
     copy = load_scenario(save_scenario(scenario, tiny_dir.parent / "copy"))  # the codebook file travels along
     assert copy.num_beams(11, "csi", 1) == 8
-    model = MODEL_REGISTRY["wnomp"].build(None, SMALL, "cpu")
-    summary = fit(model, scenario, progress=False)
-    assert summary["num_pairs"] == 6
+    if model_name == "wnomp":
+        model = MODEL_REGISTRY["wnomp"].build(None, SMALL, "cpu")
+        assert fit(model, scenario, progress=False)["num_pairs"] == 6
+    else:
+        sys.path.insert(0, str(Path(__file__).parents[1] / "models"))
+        from tiny_rflscm import tiny_config
+
+        model = MODEL_REGISTRY["rflscm"].build(tiny_config(), SMALL, "cpu")
+        fit(model, scenario, progress=False)
     for beam_type in ("ssb", "csi"):
         pairs, measured = scenario.rsrp_table(1, beam_type)
         predicted = model.predict_rsrp(scenario, 1, beam_type, pairs)
