@@ -105,3 +105,35 @@ def test_pattern_codebook_off_its_band_is_refused(tiny_dir: Path, edit_table: Ca
     edit_table(tiny_dir / "cells_round1.csv", lambda df: df.assign(csi_codebook="vendor"))
     with pytest.raises(DataError, match=r"cell 12 on 2100 MHz uses `csi_codebook` = 'vendor' \(file 'vendor.csv'\) "):
         load_scenario(tiny_dir)
+
+
+def test_optimize_candidates_with_a_pattern_codebook_match_the_sensing_matrix(
+    tiny_dir: Path, edit_yaml: Callable
+) -> None:
+    import dataclasses
+
+    import torch
+
+    from rflscm.antenna import CellAntenna, sensing_matrix
+    from rflscm.network.candidates import CellSensing
+    from rflscm.network.space import CellOptions
+
+    _pattern_table(SSBCodebook(), CellAntenna(), 10.0).to_csv(tiny_dir / "vendor.csv", index=False)
+    edit_yaml(tiny_dir, lambda d: d["codebooks"].update(vendor={"type": "pattern", "file": "vendor.csv"}))
+    scenario = load_scenario(tiny_dir)
+    values = {
+        "ssb_codebook": ("ssb8", "vendor"),
+        "elec_tilt_deg": (6.0, 10.0),
+        "mech_tilt_deg": (4.0, 9.0),
+        "azimuth_deg": (60.0, 90.0),
+    }
+    dirs = SMALL.directions(dtype=torch.float32)
+    sensing = CellSensing(scenario, 11, 1, dirs, CellOptions(11, values, (0, 0, 0, 0)))
+    got = sensing.matrices([(1, 0, 1, 1), (1, 1, 1, 1), (0, 1, 1, 1)])
+    antenna = dataclasses.replace(scenario.antenna(11, 1), mech_tilt_deg=9.0, azimuth_deg=90.0)
+    want = sensing_matrix(antenna, scenario.meta.codebooks["vendor"], dirs, scenario.wavelength_m(11))
+    torch.testing.assert_close(got[0], want)
+    torch.testing.assert_close(got[1], want)  # the electrical tilt is in the measured pattern: no effect
+    tilted = dataclasses.replace(antenna, elec_tilt_deg=10.0)
+    ssb = sensing_matrix(tilted, SSBCodebook(), dirs, scenario.wavelength_m(11))
+    torch.testing.assert_close(got[2], ssb, rtol=1e-4, atol=1e-4 * float(ssb.max()))
