@@ -58,7 +58,7 @@ def test_geotiff_terrain_in_utm_is_transformed_to_the_scenario_frame(
     tiny_dir: Path, edit_table: Callable, edit_yaml: Callable
 ) -> None:
     import rasterio
-    from rasterio.transform import from_origin
+    from affine import Affine
 
     utm = pyproj.Transformer.from_crs("EPSG:4326", "EPSG:32632", always_xy=True)
     e0, n0 = utm.transform(ORIGIN.lon, ORIGIN.lat)
@@ -68,7 +68,7 @@ def test_geotiff_terrain_in_utm_is_transformed_to_the_scenario_frame(
     east, northing = west + step * (cols + 0.5), north - step * (rows + 0.5)
     dem = (300.0 + 0.04 * (east - e0) + 0.01 * (northing - n0)).astype(np.float64)
     profile = {"driver": "GTiff", "height": size, "width": size, "count": 1, "dtype": "float64"}
-    transform = from_origin(west, north, step, step)
+    transform = Affine.translation(west, north) @ Affine.scale(step, -step)
     with rasterio.open(tiny_dir / "dem.tif", "w", crs="EPSG:32632", transform=transform, **profile) as dst:
         dst.write(dem, 1)
     _to_geographic(tiny_dir, edit_table, edit_yaml, "dem.tif")
