@@ -104,7 +104,7 @@ def test_optimize_writes_a_round_that_checks_and_predicts_the_same_kpis(simulate
         (["--tilt-range", "0:40"], "--tilt-range 0:40: the mechanical tilt must stay within the physical limits"),
         (["--azimuth-range", "-90:90:10"], "physical limits -60…60 degrees"),
         (["--freeze", "424242"], "unknown cell 424242"),
-        (["--codebooks", "nope"], "'nope' is not an SSB codebook"),
+        (["--codebooks", "nope"], "'nope' is not a codebook of scenario.yaml"),
         (
             [
                 "--tilt-range",

@@ -228,16 +228,6 @@ CASES: list[tuple[str, Callable[[Path], None], list[str]]] = [
         ["`codebooks.csi8`", "lists the beam 15 twice"],
     ),
     ("dft-zero-beams", codebooks(lambda c: c["csi8"].update(beams_v=[])), ["`codebooks.csi8`", "at least one"]),
-    (
-        "dft-as-ssb",
-        both_rounds(lambda df: df.assign(ssb_codebook="csi8")),
-        ["cells_round1.csv row 1 (line 2): `ssb_codebook` = 'csi8' is a `type: dft` codebook", "swapped"],
-    ),
-    (
-        "ssb-as-csi",
-        both_rounds(lambda df: df.assign(csi_codebook="ssb8")),
-        ["`csi_codebook` = 'ssb8' is a `type: ssb` codebook"],
-    ),
     # item 12: messages that blamed the wrong thing
     (
         "cell-id-beyond-int64",

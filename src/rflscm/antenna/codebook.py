@@ -10,14 +10,16 @@ taper that steers every beam down by ``elec_tilt_deg``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 import torch
 
 from rflscm.antenna.array import ArrayGeometry
+from rflscm.antenna.beamfile import read_pattern_table, read_weights_file, resolve_inside
 from rflscm.config import from_dict
-from rflscm.errors import ConfigError
+from rflscm.errors import ConfigError, DataError
 
 
 @dataclass(frozen=True)
@@ -133,6 +135,129 @@ class DFTCodebook:
         return torch.as_tensor(w, dtype=torch.complex128)
 
 
+@dataclass(frozen=True)
+class WeightsCodebook:
+    """Explicit per-beam element weights from a file (a vendor's beam set), see docs/codebooks.md.
+
+    ``file`` (relative to the scenario folder) is ``.npy`` complex ``[num_beams, num_h, num_v]`` or a
+    CSV/Parquet table ``beam_id, element_h, element_v, re, im``.  Each beam is normalised to unit power
+    (Σ_e |W_e|² = 1): the file gives the beam *shape*, the cell's ``tx_power_dbm`` its power.  The
+    electrical tilt taper is applied on top, as for the built-in kinds.
+    """
+
+    type: Literal["weights"] = "weights"
+    file: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.file:
+            raise ConfigError("a `type: weights` codebook needs `file:` (a .npy, CSV or Parquet weights file).")
+
+    def load(self, root: Path) -> None:
+        """Read, validate and cache the weights (normalised to unit power per beam)."""
+        w = read_weights_file(resolve_inside(root, self.file, "file"))
+        object.__setattr__(self, "_values", w)
+
+    @property
+    def values(self) -> np.ndarray:
+        """``[num_beams, num_h, num_v]`` complex, unit power per beam."""
+        w: np.ndarray | None = getattr(self, "_values", None)
+        if w is None:
+            raise ConfigError(f"weights codebook file {self.file!r} was never loaded (load the scenario first).")
+        return w
+
+    @property
+    def num_beams(self) -> int:
+        return int(self.values.shape[0])
+
+    def weights(self, array: ArrayGeometry, wavelength_m: float) -> torch.Tensor:
+        w = self.values
+        if w.shape[1:] != (array.num_h, array.num_v):
+            raise ConfigError(
+                f"weights file {self.file!r} has {w.shape[1]} × {w.shape[2]} elements per beam, which does not "
+                f"match the {array.num_h} × {array.num_v} array."
+            )
+        return torch.as_tensor(w, dtype=torch.complex128)
+
+
+@dataclass(frozen=True)
+class PatternCodebook:
+    """Measured per-beam 3-D gain patterns from a table (a massive-MIMO vendor's beam set), see docs/codebooks.md.
+
+    ``file`` (relative to the scenario folder) is a CSV/Parquet table ``beam_id, azimuth_deg, elevation_deg,
+    gain_dbi`` on a full azimuth × elevation grid in the *antenna* frame (azimuth positive to the
+    boresight's left, elevation positive up).  The gain already includes element and array gain, so a
+    beam's sensing row is ``P_t · G_beam(ω')`` with no element pattern, array or electrical tilt applied
+    (the tilt is in the measurement; mechanical tilt and azimuth still rotate the antenna frame).
+    """
+
+    type: Literal["pattern"] = "pattern"
+    file: str = ""
+    frequency_hz: float | None = None
+    """Carrier the patterns were measured at [Hz]; a cell on another band (±10 %) is refused."""
+
+    def __post_init__(self) -> None:
+        if not self.file:
+            raise ConfigError("a `type: pattern` codebook needs `file:` (a CSV or Parquet gain table).")
+        if self.frequency_hz is not None and not (np.isfinite(self.frequency_hz) and self.frequency_hz > 0):
+            raise ConfigError(f"`frequency_hz` = {self.frequency_hz!r} must be a positive frequency [Hz].")
+
+    def load(self, root: Path) -> None:
+        """Read, validate and cache the gain grids."""
+        az, el, gain_db = read_pattern_table(resolve_inside(root, self.file, "file"))
+        object.__setattr__(self, "_grid", (az, el, gain_db))
+
+    @property
+    def grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sorted azimuths [deg] ``[n_az]``, elevations [deg] ``[n_el]``, gains [dBi] ``[beams, n_el, n_az]``."""
+        g: tuple[np.ndarray, np.ndarray, np.ndarray] | None = getattr(self, "_grid", None)
+        if g is None:
+            raise ConfigError(f"pattern codebook file {self.file!r} was never loaded (load the scenario first).")
+        return g
+
+    @property
+    def num_beams(self) -> int:
+        return int(self.grid[2].shape[0])
+
+    def weights(self, array: ArrayGeometry, wavelength_m: float) -> torch.Tensor:
+        raise ConfigError(
+            f"pattern codebook {self.file!r} has measured gains, not element weights; it cannot be re-steered "
+            "(choose among named codebooks instead)."
+        )
+
+    def gain_lin(self, local: torch.Tensor) -> torch.Tensor:
+        """Linear gain ``[num_beams, num_dirs]`` towards antenna-frame unit vectors ``local [num_dirs, 3]``.
+
+        Bilinear in (azimuth, elevation) with azimuth wrap-around; elevations beyond the table's range take
+        the nearest row (the table should cover −90…90°).
+        """
+        az_grid, el_grid, gain_db = self.grid
+        x = local.detach().to(torch.float64).cpu().numpy()
+        az = np.rad2deg(np.arctan2(x[:, 1], x[:, 0]))
+        el = np.rad2deg(np.arcsin(np.clip(x[:, 2], -1.0, 1.0)))
+        # azimuth: periodic axis; append the first column shifted by 360°
+        az_ext = np.concatenate((az_grid, [az_grid[0] + 360.0]))
+        lin = 10.0 ** (gain_db / 10.0)
+        lin_ext = np.concatenate((lin, lin[:, :, :1]), axis=2)
+        a = (az - az_grid[0]) % 360.0 + az_grid[0]
+        ia = np.clip(np.searchsorted(az_ext, a, side="right") - 1, 0, len(az_ext) - 2)
+        ta = (a - az_ext[ia]) / (az_ext[ia + 1] - az_ext[ia])
+        e = np.clip(el, el_grid[0], el_grid[-1])
+        if len(el_grid) == 1:
+            ie = np.zeros_like(ia)
+            te = np.zeros_like(ta)
+            lin_ext = np.concatenate((lin_ext, lin_ext), axis=1)
+        else:
+            ie = np.clip(np.searchsorted(el_grid, e, side="right") - 1, 0, len(el_grid) - 2)
+            te = (e - el_grid[ie]) / (el_grid[ie + 1] - el_grid[ie])
+        g = (
+            lin_ext[:, ie, ia] * (1 - te) * (1 - ta)
+            + lin_ext[:, ie, ia + 1] * (1 - te) * ta
+            + lin_ext[:, ie + 1, ia] * te * (1 - ta)
+            + lin_ext[:, ie + 1, ia + 1] * te * ta
+        )
+        return torch.as_tensor(g, dtype=local.dtype, device=local.device)
+
+
 MAX_ELEMENTS = 1024
 """Largest number of array elements per axis (as the cells tables' ``array_nh``/``array_nv``)."""
 MAX_OVERSAMPLING = 16
@@ -148,22 +273,34 @@ def _check_angles(key: str, angles: tuple[float, ...], limit: float, meaning: st
         raise ConfigError(f"`{key}` lists {seen[0]!r} twice, which makes duplicate beams; drop the duplicate.")
 
 
-Codebook = SSBCodebook | DFTCodebook
-_CODEBOOKS: dict[str, type] = {"ssb": SSBCodebook, "dft": DFTCodebook}
+Codebook = SSBCodebook | DFTCodebook | WeightsCodebook | PatternCodebook
+_CODEBOOKS: dict[str, type] = {
+    "ssb": SSBCodebook,
+    "dft": DFTCodebook,
+    "weights": WeightsCodebook,
+    "pattern": PatternCodebook,
+}
 
 
-def codebook_from_dict(spec: dict[str, Any], where: str = "codebook") -> Codebook:
-    """Build a codebook from a YAML mapping with a ``type`` key (``ssb`` or ``dft``)."""
+def codebook_from_dict(spec: dict[str, Any], where: str = "codebook", root: Path | None = None) -> Codebook:
+    """Build a codebook from a YAML mapping with a ``type`` key (``ssb``, ``dft``, ``weights``, ``pattern``).
+
+    ``root`` (the scenario folder) loads a file codebook's ``file`` at once; without it the file is read
+    on first use relative to the working directory's ``root`` given later via :meth:`WeightsCodebook.load`.
+    """
     if not isinstance(spec, dict) or "type" not in spec:
-        raise ConfigError(f"`{where}` must be a mapping with `type: ssb` or `type: dft`.")
+        raise ConfigError(f"`{where}` must be a mapping with `type:` one of {', '.join(_CODEBOOKS)}.")
     kind = spec["type"]
     if kind not in _CODEBOOKS:
         raise ConfigError(f"`{where}.type` must be one of {', '.join(sorted(_CODEBOOKS))} (got {kind!r}).")
     try:
-        return from_dict(_CODEBOOKS[kind], spec, prefix=where)
-    except ConfigError as exc:
+        book: Codebook = from_dict(_CODEBOOKS[kind], spec, prefix=where)
+        if root is not None and isinstance(book, (WeightsCodebook, PatternCodebook)):
+            book.load(root)
+    except (ConfigError, DataError) as exc:
         text = str(exc)
         raise ConfigError(text if f"`{where}" in text else f"`{where}`: {text}") from None
+    return book
 
 
 def electrical_tilt_taper(array: ArrayGeometry, wavelength_m: float, elec_tilt_deg: float) -> torch.Tensor:

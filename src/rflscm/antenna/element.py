@@ -67,6 +67,8 @@ class MeasuredElement:
     vertical_loss_db: tuple[float, ...]
     max_attenuation_db: float = 40.0
     name: str = "measured"
+    frequency_hz: float | None = None
+    """Carrier the pattern was measured at (MSI ``FREQUENCY``) [Hz]; ``None`` = not stated (any band)."""
 
     def _interp(self, table: tuple[float, ...], angle_deg: torch.Tensor) -> torch.Tensor:
         values = torch.as_tensor(table, dtype=angle_deg.dtype, device=angle_deg.device)

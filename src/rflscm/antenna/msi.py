@@ -33,6 +33,22 @@ def _parse_gain(tokens: list[str], where: str) -> float:
     return value + (_DBD_TO_DBI if unit == "dbd" else 0.0)
 
 
+def _parse_frequency(tokens: list[str], where: str) -> float:
+    """``FREQUENCY <MHz>`` (Planet's unit; an optional unit token MHz/GHz/Hz is honoured) → Hz."""
+    scale = {"hz": 1.0, "khz": 1e3, "mhz": 1e6, "ghz": 1e9}
+    try:
+        value = float(tokens[1])
+        unit = tokens[2].lower() if len(tokens) > 2 else "mhz"
+        hz = value * scale[unit]
+        if not 1e6 <= hz <= 1e12:  # also refuses nan and inf
+            raise ValueError
+    except (IndexError, ValueError, KeyError):
+        raise DataError(
+            f"{where}: FREQUENCY needs the carrier in MHz, e.g. `FREQUENCY 3500` (got {' '.join(tokens)!r})."
+        ) from None
+    return hz
+
+
 def _read_block(lines: list[str], start: int, count: int, label: str, path: Path) -> np.ndarray:
     if start + count > len(lines):
         raise DataError(
@@ -80,7 +96,7 @@ def read_msi(path: str | Path) -> MeasuredElement:
         raise DataError(
             f"{path}: cannot read the antenna pattern file ({exc.strerror or type(exc).__name__})."
         ) from None
-    name, gain = path.stem, None
+    name, gain, freq = path.stem, None, None
     blocks: dict[str, np.ndarray] = {}
     i = 0
     while i < len(lines):
@@ -88,6 +104,8 @@ def read_msi(path: str | Path) -> MeasuredElement:
         key = tokens[0].upper() if tokens else ""
         if key == "NAME" and len(tokens) > 1:
             name = " ".join(tokens[1:])
+        elif key == "FREQUENCY":
+            freq = _parse_frequency(tokens, f"{path} line {i + 1}")
         elif key == "GAIN":
             gain = _parse_gain(tokens, f"{path} line {i + 1}")
         elif key in ("HORIZONTAL", "VERTICAL"):
@@ -112,12 +130,15 @@ def read_msi(path: str | Path) -> MeasuredElement:
         horizontal_loss_db=tuple(float(v) for v in blocks["HORIZONTAL"]),
         vertical_loss_db=tuple(float(v) for v in blocks["VERTICAL"]),
         name=name,
+        frequency_hz=freq,
     )
 
 
 def write_msi(element: MeasuredElement, path: str | Path, frequency_mhz: float | None = None) -> None:
     """Write ``element`` as a Planet/MSI file (the inverse of :func:`read_msi`)."""
     out = [f"NAME {element.name}"]
+    if frequency_mhz is None and element.frequency_hz is not None:
+        frequency_mhz = element.frequency_hz / 1e6
     if frequency_mhz is not None:
         out.append(f"FREQUENCY {frequency_mhz:g}")
     out.append(f"GAIN {element.max_gain_dbi:.2f} dBi")

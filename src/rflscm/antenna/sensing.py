@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 
 from rflscm.antenna.array import CellAntenna, steering_vectors
-from rflscm.antenna.codebook import Codebook, electrical_tilt_taper
+from rflscm.antenna.codebook import Codebook, PatternCodebook, electrical_tilt_taper
 from rflscm.geometry.grid import AngleGrid
 
 _COMPLEX = {torch.float32: torch.complex64, torch.float64: torch.complex128}
@@ -60,6 +60,9 @@ def sensing_matrix(
         dirs = directions.to(dtype=dtype, device=device if device is not None else directions.device)
     rot = torch.as_tensor(antenna.rotation(), dtype=dtype, device=dirs.device)
     local = dirs @ rot  # world → antenna frame: (Rᵀ d)ᵀ = dᵀ R    [num_dirs, 3]
+    if isinstance(codebook, PatternCodebook):
+        # measured beams: element, array, tilt (and a real array's errors: element_gains) are in the pattern
+        return (antenna.tx_power_mw * codebook.gain_lin(local)).contiguous()
     gain_elem = antenna.element.gain_lin(local)  # [num_dirs]
     steer = steering_vectors(antenna.array, local, wavelength_m)  # [num_dirs, num_elem]
     w = beam_weights(codebook, antenna, wavelength_m, dtype=_COMPLEX[dtype]).to(dirs.device)

@@ -34,6 +34,10 @@ def _print_summary(sc: Scenario, console: Console) -> None:
     console.print(f"[bold]{meta.name}[/bold]  ({sc.root})" + (f"\n  {meta.description}" if meta.description else ""))
     origin = "none (x/y/z in metres)" if meta.origin is None else f"{meta.origin.lat}, {meta.origin.lon}"
     console.print(f"  origin: {origin}   threshold: {meta.rsrp_threshold_dbm:g} dBm   rounds: {sc.rounds()}")
+    ground = (
+        f"{meta.terrain} (height_m is above ground)" if meta.terrain else "none (heights are absolute z / height_m)"
+    )
+    console.print(f"  terrain: {ground}")
     per_carrier = ", ".join(f"{_ghz(f)}: {n}" for f, n in cells_per_carrier(sc).items())
     sites = sc.cells[1]["site_id"].nunique()
     console.print(f"  cells: {len(sc.cell_ids())} on {sites} site(s) ({per_carrier})")

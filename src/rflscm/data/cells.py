@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from rflscm.antenna import ArrayGeometry, ElementPattern, TR38901Element, read_msi, wavelength_of
+from rflscm.antenna import ArrayGeometry, ElementPattern, PatternCodebook, TR38901Element, read_msi, wavelength_of
 from rflscm.data.columns import (
     TableRef,
     check_not_empty,
@@ -90,7 +90,6 @@ DEFAULT_ELEMENT = "tr38901"
 TX_POWER_RANGE_DBM = (-20.0, 40.0)
 """Plausible RS power per resource element (EPRE) [dBm]: small cells ≈ 0…10, macro cells ≈ 10…25 (TS 38.104
 output powers spread over the subcarriers); values outside are a unit mistake (W, mW or total power)."""
-_CODEBOOK_TYPE = {"ssb_codebook": "ssb", "csi_codebook": "dft"}
 MAX_ARRAY_ELEMENTS = 4096
 """Most antenna elements of one cell (array_nh × array_nv): 64 × 64; massive-MIMO panels have a few hundred."""
 MAX_SPACING_WL = 2.0
@@ -115,7 +114,7 @@ def normalise_cells(
     """
     df = clean_column_names(df, ref)
     check_not_empty(df, ref, "one row per cell")
-    xyz = position_columns(df, ref, REQUIRED, meta.origin)
+    xyz = position_columns(df, ref, REQUIRED, meta.origin, meta.ground)
     check_unknown_columns(df, ref, known_columns(df, CELL_COLUMNS))
     out = pd.DataFrame({"cell_id": int_column(df, ref, "cell_id"), "site_id": int_column(df, ref, "site_id")})
     out[list(XYZ)] = xyz
@@ -124,6 +123,7 @@ def normalise_cells(
     _array(df, ref, out)
     _codebooks(df, ref, out, meta)
     elements = _elements(df, ref, out, root)
+    _bands(ref, out, elements, meta)
     duplicate_rows(ref, out, ["cell_id"], "list each cell once per round")
     if round1 is not None:
         _same_cells_as_round1(out, ref, *round1)
@@ -195,19 +195,14 @@ def _codebooks(df: pd.DataFrame, ref: TableRef, out: pd.DataFrame, meta: Scenari
         known = np.isin(names, list(meta.codebooks))
         problem = f"is not a codebook of scenario.yaml `codebooks`; valid: {valid}"
         raise_rows(ref, ~known, column, df[column], problem)
-        wanted = _CODEBOOK_TYPE[column]
-        kinds = np.array([meta.codebooks[n].type for n in names], dtype=object)
-        others = ", ".join(n for n, cb in meta.codebooks.items() if cb.type == wanted) or "none"
-        problem = (
-            f"is a `type: {'dft' if wanted == 'ssb' else 'ssb'}` codebook in scenario.yaml, but `{column}` needs a "
-            f"`type: {wanted}` codebook (of this kind: {others}); swapped `ssb_codebook` and `csi_codebook`?"
-        )
-        raise_rows(ref, kinds != wanted, column, df[column], problem)
         out[column] = pd.array(names, dtype="str")
         combos = pd.DataFrame({"name": names, "nh": out["array_nh"], "nv": out["array_nv"]})
         for row in combos.drop_duplicates().itertuples():  # few distinct (codebook, array) pairs
+            book = meta.codebooks[row.name]
+            if isinstance(book, PatternCodebook):  # measured gains: no elements to fit
+                continue
             try:
-                meta.codebooks[row.name].weights(ArrayGeometry(num_h=row.nh, num_v=row.nv), 0.1)
+                book.weights(ArrayGeometry(num_h=row.nh, num_v=row.nv), 0.1)
             except ConfigError as exc:
                 raise DataError(
                     f"{ref.row(int(row.Index))}: `{column}` = {row.name!r} does not fit this cell's array: "
@@ -239,6 +234,40 @@ def _elements(df: pd.DataFrame, ref: TableRef, out: pd.DataFrame, root: Path) ->
             raise DataError(f"{ref.row(first)}: `element` = {name!r}: {exc}") from None
     out["element"] = pd.array(names, dtype="str")
     return elements
+
+
+BAND_TOLERANCE = 0.10
+"""A pattern measured at f₀ serves carriers within ±10 % of f₀ (docs/codebooks.md, the band rule)."""
+
+
+def off_band(pattern_hz: float | None, carrier_hz: float) -> bool:
+    """True when a pattern measured at ``pattern_hz`` may not serve ``carrier_hz`` (``None`` = any band)."""
+    return pattern_hz is not None and abs(carrier_hz / pattern_hz - 1.0) > BAND_TOLERANCE
+
+
+def _bands(ref: TableRef, out: pd.DataFrame, elements: dict[str, ElementPattern], meta: ScenarioMeta) -> None:
+    """Refuse an element pattern or pattern codebook used off the band it was measured at."""
+    for i, row in enumerate(out.itertuples(index=False)):
+        element = elements[str(row.element)]
+        pattern_hz = getattr(element, "frequency_hz", None)
+        if pattern_hz is not None and off_band(pattern_hz, float(row.freq_hz)):
+            raise DataError(
+                f"{ref.row(i)}: cell {row.cell_id} on {fmt_number(row.freq_hz / 1e6)} MHz uses `element` = "
+                f"{row.element!r} measured at {fmt_number(pattern_hz / 1e6)} MHz (beyond ±10 %); give the pattern "
+                "of this band."
+            )
+        for column in ("ssb_codebook", "csi_codebook"):
+            book = meta.codebooks[str(getattr(row, column))]
+            if (
+                isinstance(book, PatternCodebook)
+                and book.frequency_hz
+                and off_band(book.frequency_hz, float(row.freq_hz))
+            ):
+                raise DataError(
+                    f"{ref.row(i)}: cell {row.cell_id} on {fmt_number(row.freq_hz / 1e6)} MHz uses `{column}` = "
+                    f"{getattr(row, column)!r} (file {book.file!r}) measured at "
+                    f"{fmt_number(book.frequency_hz / 1e6)} MHz (beyond ±10 %); give the patterns of this band."
+                )
 
 
 def _same_cells_as_round1(out: pd.DataFrame, ref: TableRef, round1: pd.DataFrame, round1_name: str) -> None:

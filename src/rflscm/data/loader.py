@@ -59,7 +59,7 @@ def load_meta(yaml_path: Path) -> ScenarioMeta:
         raise ConfigError(" ".join(str(exc).split())) from None
     if not data:
         raise ConfigError(f"{yaml_path.name} is empty; it needs name, frequencies_hz, codebooks, rounds and grids.")
-    return meta_from_dict(data, where=yaml_path.name)
+    return meta_from_dict(data, where=yaml_path.name, root=yaml_path.parent)
 
 
 def _referenced(root: Path, name: str, key: str, yaml_name: str) -> Path:
@@ -100,7 +100,7 @@ def load_scenario(path: str | Path) -> Scenario:
         cells[rnd], found = normalise_cells(df, ref, meta, root, round1)
         elements.update(found)
     df, ref = _read(root, meta.grids, "grids", yaml_name)
-    grids = normalise_grids(df, ref, meta.origin)
+    grids = normalise_grids(df, ref, meta.origin, meta.ground)
     if meta.measurements is None:
         measurements = empty_measurements()
     else:
@@ -158,9 +158,11 @@ def save_scenario(scenario: Scenario, root: str | Path, table_format: str = "par
 
 
 def _copy_elements(scenario: Scenario, root: Path) -> None:
-    """Copy MSI element files referenced by the cells tables into ``root`` (same relative paths)."""
+    """Copy MSI element files and codebook files (``type: weights``/``pattern``) into ``root`` (same relative paths)."""
     tables = [t for t in scenario.cells.values() if "element" in t.columns]
     names = {str(n) for table in tables for n in table["element"].dropna().unique()} - {DEFAULT_ELEMENT, ""}
+    names |= {str(f) for book in scenario.meta.codebooks.values() if (f := getattr(book, "file", ""))}
+    names |= {scenario.meta.terrain} if scenario.meta.terrain else set()
     for name in sorted(names):
         source, target = scenario.root / name, root / name
         if Path(name).is_absolute() or ".." in Path(name).parts or not source.is_file():

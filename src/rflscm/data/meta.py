@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from rflscm.antenna import Codebook, codebook_from_dict
@@ -31,6 +32,7 @@ from rflscm.config import from_dict, to_dict
 from rflscm.data.columns import fmt_list, fmt_number
 from rflscm.data.geo import Origin
 from rflscm.data.reporting import ReportingRule, reporting_from_dict
+from rflscm.data.terrain import Terrain, load_terrain
 from rflscm.errors import ConfigError
 
 RSRP_MIN_DBM = -156.0
@@ -68,6 +70,14 @@ class ScenarioMeta:
     """Reporting rule per beam type (:mod:`rflscm.data.reporting`); absent = ``rsrp_threshold_dbm`` for both."""
     simulation: dict[str, Any] = field(default_factory=dict)
     """Free-form provenance written by the simulator, kept as is."""
+    terrain: str | None = None
+    """DEM GeoTIFF or XYZ table (:mod:`rflscm.data.terrain`); with it ``height_m`` is above ground."""
+
+    @property
+    def ground(self) -> Terrain | None:
+        """The loaded terrain (``None`` without ``terrain:`` or when read without a scenario folder)."""
+        terrain: Terrain | None = getattr(self, "_terrain", None)
+        return terrain
 
     def to_dict(self) -> dict[str, Any]:
         """Plain (YAML-safe) mapping in the order of the example above."""
@@ -84,6 +94,7 @@ class ScenarioMeta:
             "measurements": self.measurements,
             "point_cloud": self.point_cloud,
             "truth": self.truth,
+            **({"terrain": self.terrain} if self.terrain else {}),
             "simulation": self.simulation,
         }
 
@@ -92,14 +103,18 @@ class ScenarioMeta:
         d = self.to_dict()
         for key in ("rounds", "grids", "measurements", "point_cloud", "truth"):
             d.pop(key)
+        d.pop("terrain", None)
         return d
 
 
 _REQUIRED = ("name", "frequencies_hz", "codebooks", "rounds", "grids")
 
 
-def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml") -> ScenarioMeta:
-    """Validate and build :class:`ScenarioMeta` from the YAML mapping; errors name ``where`` and the key."""
+def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml", root: Path | None = None) -> ScenarioMeta:
+    """Validate and build :class:`ScenarioMeta` from the YAML mapping; errors name ``where`` and the key.
+
+    ``root`` (the scenario folder) loads file codebooks (``type: weights`` / ``pattern``) at once.
+    """
     valid = [f.name for f in dataclasses.fields(ScenarioMeta)]
     unknown = sorted(str(k) for k in set(data) - set(valid))
     if unknown:
@@ -110,23 +125,27 @@ def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml") -> Scenar
     if missing:
         raise ConfigError(f"{where}: missing key(s) {', '.join(missing)}; required: {', '.join(_REQUIRED)}.")
     try:
-        return ScenarioMeta(
+        meta = ScenarioMeta(
             name=_text(data["name"], "name"),
             description=_text(data.get("description") or "", "description"),
             origin=None if data.get("origin") is None else from_dict(Origin, data["origin"], prefix="origin"),
             rsrp_threshold_dbm=_threshold(data.get("rsrp_threshold_dbm", -120.0)),
             frequencies_hz=_frequencies(data["frequencies_hz"]),
-            codebooks=_codebooks(data["codebooks"]),
+            codebooks=_codebooks(data["codebooks"], root),
             rounds=_rounds(data["rounds"]),
             grids=_text(data["grids"], "grids"),
             measurements=_optional_text(data.get("measurements"), "measurements"),
             point_cloud=_optional_text(data.get("point_cloud"), "point_cloud"),
             truth=_optional_text(data.get("truth"), "truth"),
             simulation=_simulation(data.get("simulation")),
+            terrain=_optional_text(data.get("terrain"), "terrain"),
             reporting=reporting_from_dict(data.get("reporting")),
         )
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from None
+    if root is not None and meta.terrain is not None:
+        object.__setattr__(meta, "_terrain", load_terrain(root, meta.terrain, meta.origin))
+    return meta
 
 
 def _number(value: Any, key: str) -> float:
@@ -183,13 +202,13 @@ def _frequencies(value: Any) -> tuple[float, ...]:
     return tuple(out)
 
 
-def _codebooks(value: Any) -> dict[str, Codebook]:
+def _codebooks(value: Any, root: Path | None = None) -> dict[str, Codebook]:
     if not isinstance(value, dict):
         raise ConfigError(f"`codebooks` must map names to codebooks, e.g. {{ssb8: {{type: ssb}}}} (got {value!r}).")
     books = {}
     for name, spec in value.items():
         key = str(name)
-        books[key] = codebook_from_dict(spec, where=f"codebooks.{key}")
+        books[key] = codebook_from_dict(spec, where=f"codebooks.{key}", root=root)
     return books
 
 

@@ -31,6 +31,7 @@ from rflscm.data.plausibility import (
     height_problem,
     horizontal_problem,
 )
+from rflscm.data.terrain import Terrain
 from rflscm.errors import DataError
 
 XYZ = ("x", "y", "z")
@@ -42,10 +43,13 @@ MAX_GEO_DISTANCE_M = 200e3
 GRID_COLUMNS = ("grid_id", "x", "y", "z")
 
 
-def position_columns(df: pd.DataFrame, ref: TableRef, required: list[str], origin: Origin | None) -> np.ndarray:
+def position_columns(
+    df: pd.DataFrame, ref: TableRef, required: list[str], origin: Origin | None, terrain: Terrain | None = None
+) -> np.ndarray:
     """ENU positions ``[num_rows, 3]`` [m] of a table's rows.
 
-    ``required`` are the table's other required columns (for the missing-column message).
+    ``required`` are the table's other required columns (for the missing-column message).  With a
+    ``terrain``, ``height_m`` is above ground: z = terrain(x, y) + height_m − origin.height_m.
     """
     has_xyz = any(c in df.columns for c in XYZ)
     has_geo = any(c in df.columns for c in GEO)
@@ -66,6 +70,11 @@ def position_columns(df: pd.DataFrame, ref: TableRef, required: list[str], origi
             "`origin: {lat: …, lon: …, height_m: 0}` (the centre of the local frame) or give x/y/z in metres."
         )
     xyz = _project(df, ref, origin)
+    if terrain is not None:
+        ground = terrain.elevation(xyz[:, :2])
+        problem = f"puts the point outside the terrain {terrain.name!r} (or on a nodata cell); extend the DEM"
+        raise_rows(ref, ~np.isfinite(ground), "lat", df["lat"], problem)
+        xyz[:, 2] += ground  # height_m above ground; geodetic_to_enu already subtracted origin.height_m
     _plausible(df, ref, xyz, geo=True)
     return xyz
 
@@ -109,13 +118,15 @@ def _project(df: pd.DataFrame, ref: TableRef, origin: Origin) -> np.ndarray:
     return xyz
 
 
-def normalise_grids(df: pd.DataFrame, ref: TableRef, origin: Origin | None) -> pd.DataFrame:
+def normalise_grids(
+    df: pd.DataFrame, ref: TableRef, origin: Origin | None, terrain: Terrain | None = None
+) -> pd.DataFrame:
     """Validate the grids table; returns ``grid_id`` (int64), ``x``, ``y``, ``z`` (float64, m) + extra columns,
     sorted by ``grid_id`` with a 0…n−1 index."""
     df = clean_column_names(df, ref)
     check_not_empty(df, ref, "one row per grid: grid_id and the grid centre's position")
     require_columns(df, ref, ["grid_id"], "grid_id, " + POSITION_TEXT)
-    xyz = position_columns(df, ref, ["grid_id"], origin)
+    xyz = position_columns(df, ref, ["grid_id"], origin, terrain)
     check_unknown_columns(df, ref, known_columns(df, GRID_COLUMNS))
     out = pd.DataFrame({"grid_id": int_column(df, ref, "grid_id")})
     out[list(XYZ)] = xyz

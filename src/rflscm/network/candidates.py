@@ -17,7 +17,8 @@ from typing import TYPE_CHECKING
 import torch
 
 from rflscm.antenna.array import steering_vectors
-from rflscm.antenna.sensing import beam_weights
+from rflscm.antenna.codebook import PatternCodebook
+from rflscm.antenna.sensing import beam_weights, sensing_matrix
 from rflscm.eval.cache import ScenarioAPS
 from rflscm.network.space import CellOptions
 
@@ -80,6 +81,13 @@ class CellSensing:
             )
             rot = torch.as_tensor(antenna.rotation(), dtype=torch.float32)
             local = self.directions @ rot  # world → antenna frame    [num_kept, 3]
+            patterns = [k for k in members if isinstance(self.codebooks[indices[k][0]], PatternCodebook)]
+            for k in patterns:  # measured beams: gain from the table; electrical tilt is in the measurement
+                book = self.codebooks[indices[k][0]]
+                out[k, : book.num_beams] = sensing_matrix(antenna, book, self.directions, self.wavelength_m)
+            members = [k for k in members if k not in patterns]
+            if not members:
+                continue
             gain = antenna.element.gain_lin(local) * antenna.tx_power_mw  # [num_kept]
             steer = steering_vectors(antenna.array, local, self.wavelength_m)  # [num_kept, num_elements]
             weights = [self._beam_weights(indices[k][0], indices[k][1]) for k in members]

@@ -215,12 +215,14 @@ def build_space(spec: dict[str, Any], cells: pd.DataFrame, codebooks: dict[str, 
     for key, value in per_cell.items():
         overrides[_cell_id(key, ids, valid_ids, "cells")] = _cell_spec(value or {}, f"cells.{key}")
     frozen = {_cell_id(c, ids, valid_ids, "frozen") for c in (spec.get("frozen") or [])}
-    ssb_books = [name for name, cb in codebooks.items() if getattr(cb, "type", None) == "ssb"]
+    # any codebook kind may serve SSB (docs/codebooks.md): `all` = the `type: ssb` books and those serving SSB now
+    in_use = set(cells["ssb_codebook"].astype(str))
+    ssb_books = [name for name, cb in codebooks.items() if getattr(cb, "type", None) == "ssb" or name in in_use]
     out = []
     for row in cells.itertuples(index=False):
         cell_id = int(row.cell_id)
         opts = {**defaults, **overrides.get(cell_id, {})}
-        out.append(_cell_options(row, opts, ssb_books, cell_id in frozen, max_step))
+        out.append(_cell_options(row, opts, ssb_books, cell_id in frozen, list(codebooks), max_step))
     max_changed = spec.get("max_changed_cells", DEFAULT_MAX_CHANGED)
     if max_changed is not None and (not isinstance(max_changed, int) or max_changed < 1):
         raise ConfigError(f"search spec `max_changed_cells` must be a whole number >= 1 or null (got {max_changed!r}).")
@@ -346,8 +348,14 @@ def _window(values: tuple[float, ...], current: float, step: float | None, circu
     return tuple(v for v in values if dist(v) <= step + 1e-9)
 
 
-def _cell_options(row: Any, opts: dict[str, Any], ssb_books: list[str], frozen: bool,
-                  max_step: dict[str, float | None] | None = None) -> CellOptions:  # fmt: skip
+def _cell_options(
+    row: Any,
+    opts: dict[str, Any],
+    ssb_books: list[str],
+    frozen: bool,
+    valid: list[str] | None = None,
+    max_step: dict[str, float | None] | None = None,
+) -> CellOptions:
     cell_id = int(row.cell_id)
     current_book = str(row.ssb_codebook)
     if frozen:
@@ -359,13 +367,14 @@ def _cell_options(row: Any, opts: dict[str, Any], ssb_books: list[str], frozen: 
         books = list(ssb_books)
     if isinstance(books, str):
         books = [b.strip() for b in books.split(",") if b.strip()]
+    valid = ssb_books if valid is None else valid
     for name in books:
-        if name not in ssb_books:
+        if name not in valid:
             raise ConfigError(
-                f"search spec: cell {cell_id}: {name!r} is not an SSB codebook of scenario.yaml; "
-                f"SSB codebooks: {', '.join(ssb_books) or 'none'}."
+                f"search spec: cell {cell_id}: {name!r} is not a codebook of scenario.yaml; "
+                f"codebooks: {', '.join(valid) or 'none'}."
             )
-    books = [b for b in ssb_books if b in books or b == current_book]
+    books = [b for b in valid if b in books or b == current_book]
     elec, i_elec = _values(opts.get("elec_tilt_deg", DEFAULT_RANGES["elec_tilt_deg"]), row.elec_tilt_deg)
     mech, i_mech = _values(opts.get("mech_tilt_deg", DEFAULT_RANGES["mech_tilt_deg"]), row.mech_tilt_deg)
     offsets, i_az = _values(opts.get("azimuth_offset_deg", DEFAULT_RANGES["azimuth_offset_deg"]), 0.0)

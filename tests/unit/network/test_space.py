@@ -76,13 +76,18 @@ def test_co_sited_cells_with_one_azimuth_share_a_panel(scen) -> None:
     assert got["azimuth_deg"] == 70.0 and got["mech_tilt_deg"] == 3.0 and got["elec_tilt_deg"] == 4.0
 
 
+def test_any_named_codebook_may_serve_ssb(scen) -> None:
+    # issue 25: any codebook kind may serve SSB, so a DFT book is a valid choice when named
+    space = build_space({"defaults": {"ssb_codebooks": ["csi8"]}}, scen.cells[1], scen.meta.codebooks)
+    assert "csi8" in space.cells[1].values["ssb_codebook"]
+
+
 @pytest.mark.parametrize(
     ("spec", "match"),
     [
         ({"defaults": {"mech_tilt_deg": {"min": 10, "max": 2}}}, "range reversed"),
         ({"frozen": [99]}, "unknown cell 99"),
-        ({"cells": {12: {"ssb_codebooks": ["nope"]}}}, "'nope' is not an SSB codebook"),
-        ({"defaults": {"ssb_codebooks": ["csi8"]}}, "not an SSB codebook"),
+        ({"cells": {12: {"ssb_codebooks": ["nope"]}}}, "'nope' is not a codebook of scenario.yaml"),
         ({"frozen": [11, 12]}, "empty search space"),
         (
             {"defaults": {"mech_tilt_deg": {"min": 0, "max": 5, "step": 0}}},
