@@ -3,7 +3,7 @@
     PYTHONPATH=src python scripts/attenuation_init_probe.py SCENARIO
 
 Prepares the quick preset on SCENARIO without the initialisation, then fits the δ field's loss channel to the
-building targets (``rflscm.models.rflscm_scene.building_targets``) from the same start with several
+building targets (``rflscm.models.rflscm.scene.building_targets``) from the same start with several
 (learning rate, steps) pairs, one thread, and prints each one's time and RMS error against the targets
 (raw log-loss units) and against the channels the fit must keep.  Used for ``RFLSCM.init_fit``
 (DECISIONS.md, "Learning faster").
@@ -15,12 +15,12 @@ import time
 
 import torch
 
-import rflscm.models.rflscm as rflscm_module
+import rflscm.models.rflscm.model as rflscm_module
 from rflscm.data import load_scenario
 from rflscm.geometry import AngleGrid
 from rflscm.models import MODEL_REGISTRY
-from rflscm.models.rflscm_config import INIT_LOSS_DB
-from rflscm.models.rflscm_scene import building_targets
+from rflscm.models.rflscm.config import INIT_LOSS_DB
+from rflscm.models.rflscm.scene import building_targets
 
 torch.set_num_threads(1)
 scenario = load_scenario(sys.argv[1])

@@ -6,7 +6,7 @@ For every round-1 pair, per-bin gains v [dB] on the checkpoint's strongest BINS 
 pair's round-1 reports under a ridge λ‖v‖² (Gauss–Newton, ITERATIONS, default 3; also 1 and twice that).
 Prints the held-aside MAE of each λ (20 % of the reports held aside) and the round-2 MAE (all / changed) for
 each λ and iteration count, λ = inf being the checkpoint as it is.  This probe measured the idea before
-``train.pair_posterior`` existed (rflscm.models.posterior); it forms the Jacobian explicitly and counts only
+``train.pair_posterior`` existed (rflscm.models.rflscm.posterior); it forms the Jacobian explicitly and counts only
 the re-weighted bins in a report's power.  ``scripts/train_to_marks.py`` writes the checkpoints it read.
 """
 

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 import rflscm.models.pairs as pairs_module
-import rflscm.models.rflscm as rflscm_module
+import rflscm.models.rflscm.model as rflscm_module
 from rflscm.bench import BenchContext
 from rflscm.bench.b05_alpha_p import EXTRA
 from rflscm.bench.harness import bench_size, load_bench_data, merge, train_and_evaluate

@@ -32,7 +32,7 @@ from torch import nn
 
 from rflscm.errors import CheckpointError, ConfigError
 from rflscm.models.base import LSCMModel, TrainingPlan, discard_partial_save, read_checkpoint
-from rflscm.models.rflscm_config import TrainConfig
+from rflscm.models.rflscm.config import TrainConfig
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from rflscm.geometry import AngleGrid
-from rflscm.models.hitam import HiTAM, scatter_fine
+from rflscm.models.rflscm.hitam import HiTAM, scatter_fine
 
 GRID = AngleGrid(num_el=7, num_az=8, el_min_deg=-60.0, el_step_deg=20.0)  # β = 3: blocks 3,3,1 × 3,3,2
 

@@ -1,4 +1,4 @@
-"""The pair posterior: per-bin gains that fit a pair's reports under a ridge prior (rflscm.models.posterior),
+"""The pair posterior: per-bin gains that fit a pair's reports under a ridge prior (rflscm.models.rflscm.posterior),
 and RF-LSCM's use of it (``train.pair_posterior``)."""
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from rflscm.data.examples import tiny_scenario
 from rflscm.errors import CheckpointError
 from rflscm.geometry import AngleGrid
 from rflscm.models import load_model
-from rflscm.models.posterior import LambdaChoice, PairPosterior, fit_gains, predicted_change_db
 from rflscm.models.rflscm import RFLSCM
+from rflscm.models.rflscm.posterior import LambdaChoice, PairPosterior, fit_gains, predicted_change_db
 from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)

@@ -17,7 +17,7 @@ from rflscm.fields import TensorVM
 from rflscm.geometry import AngleGrid
 from rflscm.models import MODEL_REGISTRY, UnsupportedError, load_model
 from rflscm.models.rflscm import RFLSCM
-from rflscm.models.rflscm_config import RFLSCMConfig, load_rflscm_config, preset_path
+from rflscm.models.rflscm.config import RFLSCMConfig, load_rflscm_config, preset_path
 from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)
@@ -176,7 +176,7 @@ def test_iterative_models_are_trained_by_the_trainer_not_by_model_fit(scenario) 
 
 
 def test_checkpoints_from_before_the_field_seam_still_load(scenario, tmp_path) -> None:
-    from rflscm.models.rflscm import _current_key, _without_removed_options
+    from rflscm.models.rflscm.model import _current_key, _without_removed_options
 
     assert _current_key("coarse.delta_field.lines.0") == "coarse.fields.delta_vm.lines.0"
     assert _current_key("fine.feature_field.basis") == "fine.fields.feature_vm.basis"

@@ -18,8 +18,9 @@ from rflscm.data.examples import tiny_scenario
 from rflscm.errors import CheckpointError, ConfigError
 from rflscm.geometry import AngleGrid
 from rflscm.models.nerf2 import NeRF2Config
-from rflscm.models.rflscm import RFLSCM, _without_removed_options
-from rflscm.models.rflscm_config import RFLSCMConfig, load_rflscm_config
+from rflscm.models.rflscm import RFLSCM
+from rflscm.models.rflscm.config import RFLSCMConfig, load_rflscm_config
+from rflscm.models.rflscm.model import _without_removed_options
 from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)

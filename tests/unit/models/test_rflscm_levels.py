@@ -43,7 +43,7 @@ def corrected_residuals(model: RFLSCM, scenario) -> dict[tuple[int, str], np.nda
 def test_the_correction_centres_each_cells_round1_errors_and_survives_a_checkpoint(
     scenario, tmp_path, monkeypatch
 ) -> None:
-    import rflscm.models.rflscm as module
+    import rflscm.models.rflscm.model as module
 
     monkeypatch.setattr(module, "LEVEL_PAIRS_PER_CELL", 10**6)  # measure on every pair: exact medians
     torch.manual_seed(0)
@@ -170,7 +170,7 @@ def test_pair_anchors_can_be_switched_off_and_leave_validation_alone(scenario) -
 
 def test_damaged_pair_anchors_in_a_checkpoint_are_refused_in_one_line() -> None:
     from rflscm.errors import CheckpointError
-    from rflscm.models.rflscm import _anchors_from_state
+    from rflscm.models.rflscm.model import _anchors_from_state
 
     good = {"cell_id": torch.tensor([1, 2]), "grid_id": torch.tensor([5, 6]), "anchor_db": torch.tensor([0.5, -1.0])}
     assert _anchors_from_state(good).loc[(2, 6)] == -1.0 and _anchors_from_state(None) is None

@@ -7,7 +7,7 @@ import torch
 from torch import nn
 
 from rflscm.errors import CheckpointError, ConfigError
-from rflscm.models.rflscm_config import TrainConfig
+from rflscm.models.rflscm.config import TrainConfig
 from rflscm.train import Trainer
 
 

@@ -32,7 +32,7 @@ from rflscm.fields import (
     resolution_for,
 )
 from rflscm.fields.surfaces import specularity
-from rflscm.models.rflscm_config import (
+from rflscm.models.rflscm.config import (
     DELTA_BASIS,
     DELTA_INIT_SCALE,
     DIR_FREQS,
@@ -188,7 +188,7 @@ class RadianceDecoder(nn.Module):
     half-vector between it and −ω, of three log-distances (to the grid, along the ray, and to the grid
     relative to the ray's cone radius) and the specular cue.  The sum equals one linear layer over the
     concatenation, but each part is computed once.  Output: (log |R|, arg R), times the spreading factors
-    of :class:`~rflscm.models.rflscm_config.DecoderConfig`.
+    of :class:`~rflscm.models.rflscm.config.DecoderConfig`.
     """
 
     box_lo: torch.Tensor

@@ -17,10 +17,10 @@ import torch
 from torch import nn
 
 from rflscm.geometry import AngleGrid
-from rflscm.models.hitam import HiTAM
-from rflscm.models.radiance import Queries, RayBatch
-from rflscm.models.rflscm_config import RFLSCMConfig
-from rflscm.models.rflscm_scene import SceneInfo
+from rflscm.models.rflscm.config import RFLSCMConfig
+from rflscm.models.rflscm.fields import Queries, RayBatch
+from rflscm.models.rflscm.hitam import HiTAM
+from rflscm.models.rflscm.scene import SceneInfo
 from rflscm.render import RaySamples, build_ray_samples, chunk_bounds, chunked, gather_samples
 
 RayKind = Literal["coarse", "fine"]

@@ -312,7 +312,7 @@ class TrainConfig:
     pair_posterior: bool = True
     """Refine each training pair's APS on its own reported round-1 beams: per-bin gains on the field's strongest
     bins under a ridge prior centred on the field, the ridge chosen on held-aside reports (off when no choice
-    beats the field there; :mod:`~rflscm.models.posterior`).  Measured after training, like the anchors; pairs
+    beats the field there; :mod:`~rflscm.models.rflscm.posterior`).  Measured after training, like the anchors; pairs
     without round-1 reports keep the field's APS."""
 
     def __post_init__(self) -> None:

@@ -16,8 +16,8 @@ from rflscm.errors import ConfigError, DataError, UnsupportedError
 from rflscm.fields import PointPrior, density_grid
 from rflscm.fields.point_prior import grid_span
 from rflscm.fields.surfaces import SurfaceOrientation, structure_grid
-from rflscm.models.radiance import SceneFrame
-from rflscm.models.rflscm_config import SPECULAR_VOXEL_M, RFLSCMConfig
+from rflscm.models.rflscm.config import SPECULAR_VOXEL_M, RFLSCMConfig
+from rflscm.models.rflscm.fields import SceneFrame
 from rflscm.render import num_samples_for
 
 if TYPE_CHECKING:

@@ -1,17 +1,17 @@
 """RF-LSCM: the radiance-field localized statistical channel model (paper §III–IV, SPEC §3).
 
 ``RFLSCM`` implements the model contract (:mod:`rflscm.models.base`).  It owns HiTAM, the
-training data and the losses; it composes an :class:`~rflscm.models.rflscm_render.APSRenderer`
+training data and the losses; it composes an :class:`~rflscm.models.rflscm.renderer.APSRenderer`
 (rays, visibility, HiTAM's selection; no parameters) over its rendering stages
-(:class:`~rflscm.models.radiance.RadianceStage`: fields and decoder).  The fields come from the
-:class:`~rflscm.models.radiance.FieldFactory` given at construction — the one seam through which
+(:class:`~rflscm.models.rflscm.fields.RadianceStage`: fields and decoder).  The fields come from the
+:class:`~rflscm.models.rflscm.fields.FieldFactory` given at construction — the one seam through which
 NeRF²-LSCM plugs in MLP fields instead of VM tensors and reuses everything else.
 
 Units: the stages render the APS in the normalised unit x_ref = r_ref / a_ref (see
 :mod:`rflscm.models.pairs`); :meth:`aps` returns linear path gain.  Training is driven from above by
 the trainer's ``fit`` (package ``train``) through the the trainer's ``Trainable`` protocol methods (``prepare``, ``training_losses``, …).
 
-Decisions where the paper is silent (the constants and options of :mod:`~rflscm.models.rflscm_config`):
+Decisions where the paper is silent (the constants and options of :mod:`~rflscm.models.rflscm.config`):
 
 * media: 3 passive degrees of freedom (loss on a log scale at a reference carrier, excess real
   index, real μ ≥ 1), each on its own VM factors; FDAM itself is exact, δ^Φ uses the continuous
@@ -30,7 +30,7 @@ Decisions where the paper is silent (the constants and options of :mod:`~rflscm.
 * after training, predictions carry a level correction per cell and beam type, a level anchor per
   training pair (the median error left on the pair's own round-1 reports) and a posterior per training
   pair (per-bin gains fitted to those reports under a ridge prior centred on the field,
-  :mod:`~rflscm.models.posterior`); the paper predicts from the field alone (docs/DECISIONS.md,
+  :mod:`~rflscm.models.rflscm.posterior`); the paper predicts from the field alone (docs/DECISIONS.md,
   "Learning faster").
 """
 
@@ -56,26 +56,8 @@ from rflscm.fields.point_prior import PointPrior
 from rflscm.fields.surfaces import SurfaceOrientation
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import LSCMModel, TrainingPlan, register_model
-from rflscm.models.hitam import HiTAM
-from rflscm.models.losses import lscm_loss, mae_db
 from rflscm.models.pairs import PairData, build_pair_data, reference_power, stacked_sensing
-from rflscm.models.posterior import (
-    HOLDOUT,
-    LAMBDA_PAIRS,
-    POSTERIOR_BINS,
-    LambdaChoice,
-    PairPosterior,
-    fit_gains,
-)
-from rflscm.models.radiance import (
-    FieldFactory,
-    RadianceDecoder,
-    RadianceStage,
-    SceneFields,
-    SceneFrame,
-    VMFieldFactory,
-)
-from rflscm.models.rflscm_config import (
+from rflscm.models.rflscm.config import (
     ANY,
     FLOOR_DB,
     INIT_LEVEL_DB,
@@ -86,8 +68,26 @@ from rflscm.models.rflscm_config import (
     TrainConfig,
     load_rflscm_config,
 )
-from rflscm.models.rflscm_render import APSRenderer
-from rflscm.models.rflscm_scene import (
+from rflscm.models.rflscm.fields import (
+    FieldFactory,
+    RadianceDecoder,
+    RadianceStage,
+    SceneFields,
+    SceneFrame,
+    VMFieldFactory,
+)
+from rflscm.models.rflscm.hitam import HiTAM
+from rflscm.models.rflscm.losses import lscm_loss, mae_db
+from rflscm.models.rflscm.posterior import (
+    HOLDOUT,
+    LAMBDA_PAIRS,
+    POSTERIOR_BINS,
+    LambdaChoice,
+    PairPosterior,
+    fit_gains,
+)
+from rflscm.models.rflscm.renderer import APSRenderer
+from rflscm.models.rflscm.scene import (
     SceneInfo,
     building_targets,
     check_scene_box,
@@ -540,7 +540,7 @@ class RFLSCM(LSCMModel):
         return self.anchors
 
     def current_posterior(self) -> PairPosterior | None:
-        """The training pairs' posterior gains (``train.pair_posterior``, :mod:`~rflscm.models.posterior`) for the
+        """The training pairs' posterior gains (``train.pair_posterior``, :mod:`~rflscm.models.rflscm.posterior`) for the
         current weights, re-measured like :meth:`current_anchors`, or None when switched off or not known."""
         if not self.config.train.pair_posterior:
             return None
@@ -623,7 +623,7 @@ class RFLSCM(LSCMModel):
 
         *Posterior* (``train.pair_posterior``): per-bin gains on the anchored APS that fit the same reports
         under a ridge prior centred on the field, λ chosen on held-aside reports
-        (:mod:`~rflscm.models.posterior`).
+        (:mod:`~rflscm.models.rflscm.posterior`).
 
         Validation beams are used by neither, so :meth:`validation_mae` stays an honest held-aside score of the
         field alone."""
