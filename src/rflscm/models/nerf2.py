@@ -39,6 +39,7 @@ from rflscm.models.rflscm import RFLSCM
 from rflscm.models.rflscm.config import (
     INIT_LOSS_DB,
     LEARN_MU,
+    CorrectionsConfig,
     DecoderConfig,
     HiTAMConfig,
     LossConfig,
@@ -123,6 +124,7 @@ class NeRF2Config:
     hitam: HiTAMConfig = dataclasses.field(default_factory=HiTAMConfig)
     loss: LossConfig = dataclasses.field(default_factory=LossConfig)
     train: NeRF2TrainConfig = dataclasses.field(default_factory=NeRF2TrainConfig)
+    corrections: CorrectionsConfig = dataclasses.field(default_factory=CorrectionsConfig)
 
 
 class NeRF2Field(SceneFields):

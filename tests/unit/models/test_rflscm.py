@@ -175,22 +175,3 @@ def test_iterative_models_are_trained_by_the_trainer_not_by_model_fit(scenario) 
         RFLSCM.build(tiny_config(), GRID).fit(scenario, progress=False)
 
 
-def test_checkpoints_from_before_the_field_seam_still_load(scenario, tmp_path) -> None:
-    from rflscm.models.rflscm.model import _current_key, _without_removed_options
-
-    assert _current_key("coarse.delta_field.lines.0") == "coarse.fields.delta_vm.lines.0"
-    assert _current_key("fine.feature_field.basis") == "fine.fields.feature_vm.basis"
-    assert _current_key("fine.delta_field.net.trunk.out.weight") == "fine.fields.trunk.out.weight"  # NeRF²
-    old = {"decoder": {"hidden": 8, "grid_code_dim": 0, "grid_code_neighbours": 4}, "render": {"coherent": True}}
-    assert _without_removed_options(old) == {"decoder": {"hidden": 8}, "render": {}}
-    with pytest.raises(CheckpointError, match="grid_code_dim"):
-        _without_removed_options({"decoder": {"grid_code_dim": 16}})
-    model = RFLSCM.build(tiny_config(train={"steps": 2}), GRID)
-    fit(model, scenario, progress=False)
-    state = model.state_dict_for_checkpoint()
-    state["stages"] = {k.replace(".fields.delta_vm.", ".delta_field.").replace(".fields.feature_vm.", ".feature_field."): v
-                       for k, v in state["stages"].items()}  # fmt: skip
-    state["config"]["hitam"]["coarse_bins"] = "block"
-    loaded = RFLSCM.from_checkpoint(state)
-    cells, grids = np.array([11, 12]), np.array([100, 101])
-    assert torch.equal(loaded.aps(cells, grids), model.aps(cells, grids))

@@ -278,6 +278,9 @@ class LossConfig:
 @dataclass(frozen=True)
 class TrainConfig:
     REMOVED: ClassVar[dict[str, tuple[Any, str]]] = {
+        "calibrate_levels": (True, "issue 24: moved to `corrections.calibrate_levels`"),
+        "pair_anchors": (True, "issue 24: moved to `corrections.pair_anchors`"),
+        "pair_posterior": (True, "issue 24: moved to `corrections.pair_posterior`"),
         "val_beam_fraction": (VAL_BEAM_FRACTION, "issue 11: fixed at 0.25"),
     }
     """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
@@ -301,19 +304,6 @@ class TrainConfig:
     val_every: int = 100
     checkpoint_every: int = 500
     seed: int = 0
-    calibrate_levels: bool = True
-    """Correct each cell's SSB and CSI-RS predictions by the median error on its reported round-1 beams, measured
-    after training (:meth:`~rflscm.models.rflscm.RFLSCM.current_levels`); the training itself is unchanged."""
-    pair_anchors: bool = True
-    """Move each training pair's (cell, grid) predictions, in every round, by the median error that remains on
-    its own reported round-1 beams (:meth:`~rflscm.models.rflscm.RFLSCM.current_anchors`): the field gives the
-    angular shape and what a changed antenna does, the pair's own reports its level.  Measured after training;
-    pairs without round-1 reports (unseen grids) keep the field's level."""
-    pair_posterior: bool = True
-    """Refine each training pair's APS on its own reported round-1 beams: per-bin gains on the field's strongest
-    bins under a ridge prior centred on the field, the ridge chosen on held-aside reports (off when no choice
-    beats the field there; :mod:`~rflscm.models.rflscm.posterior`).  Measured after training, like the anchors; pairs
-    without round-1 reports keep the field's APS."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_pairs", "pairs_per_cell", "val_every", "checkpoint_every"):
@@ -330,6 +320,25 @@ class TrainConfig:
 
 
 @dataclass(frozen=True)
+class CorrectionsConfig:
+    """The post-training pair corrections (:mod:`~rflscm.models.rflscm.corrections`); training is unchanged."""
+
+    calibrate_levels: bool = True
+    """Correct each cell's SSB and CSI-RS predictions by the median error on its reported round-1 beams, measured
+    after training (:mod:`~rflscm.models.rflscm.corrections`); the training itself is unchanged."""
+    pair_anchors: bool = True
+    """Move each training pair's (cell, grid) predictions, in every round, by the median error that remains on
+    its own reported round-1 beams (:mod:`~rflscm.models.rflscm.corrections`): the field gives the
+    angular shape and what a changed antenna does, the pair's own reports its level.  Measured after training;
+    pairs without round-1 reports (unseen grids) keep the field's level."""
+    pair_posterior: bool = True
+    """Refine each training pair's APS on its own reported round-1 beams: per-bin gains on the field's strongest
+    bins under a ridge prior centred on the field, the ridge chosen on held-aside reports (off when no choice
+    beats the field there; :mod:`~rflscm.models.rflscm.posterior`).  Measured after training, like the anchors; pairs
+    without round-1 reports keep the field's APS."""
+
+
+@dataclass(frozen=True)
 class RFLSCMConfig:
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     decoder: DecoderConfig = dataclasses.field(default_factory=DecoderConfig)
@@ -338,6 +347,7 @@ class RFLSCMConfig:
     hitam: HiTAMConfig = dataclasses.field(default_factory=HiTAMConfig)
     loss: LossConfig = dataclasses.field(default_factory=LossConfig)
     train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
+    corrections: CorrectionsConfig = dataclasses.field(default_factory=CorrectionsConfig)
 
 
 def preset_path(name: str, family: str = "rflscm") -> Path:

@@ -36,29 +36,24 @@ Decisions where the paper is silent (the constants and options of :mod:`~rflscm.
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import typing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, cast
 
 import numpy as np
-import pandas as pd
 import torch
 from torch import nn
 
-from rflscm.config import from_dict, to_dict
 from rflscm.data import BEAM_TYPES
-from rflscm.errors import CheckpointError
 from rflscm.fields import PassiveMedium, TensorVM
 from rflscm.fields.point_prior import PointPrior
 from rflscm.fields.surfaces import SurfaceOrientation
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import LSCMModel, TrainingPlan, register_model
 from rflscm.models.pairs import PairData, build_pair_data, reference_power, stacked_sensing
+from rflscm.models.rflscm import checkpoint
 from rflscm.models.rflscm.config import (
-    ANY,
     FLOOR_DB,
     INIT_LEVEL_DB,
     INIT_LOSS_DB,
@@ -68,6 +63,7 @@ from rflscm.models.rflscm.config import (
     TrainConfig,
     load_rflscm_config,
 )
+from rflscm.models.rflscm.corrections import PAIR_CHUNK, PairCorrections, fit_corrections
 from rflscm.models.rflscm.fields import (
     FieldFactory,
     RadianceDecoder,
@@ -78,14 +74,6 @@ from rflscm.models.rflscm.fields import (
 )
 from rflscm.models.rflscm.hitam import HiTAM
 from rflscm.models.rflscm.losses import lscm_loss, mae_db
-from rflscm.models.rflscm.posterior import (
-    HOLDOUT,
-    LAMBDA_PAIRS,
-    POSTERIOR_BINS,
-    LambdaChoice,
-    PairPosterior,
-    fit_gains,
-)
 from rflscm.models.rflscm.renderer import APSRenderer
 from rflscm.models.rflscm.scene import (
     SceneInfo,
@@ -94,22 +82,12 @@ from rflscm.models.rflscm.scene import (
     make_frame,
     make_prior,
     make_surfaces,
-    prior_from_state,
-    prior_state,
     scene_box,
-    surfaces_from_state,
-    surfaces_state,
     visible_bins,
 )
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
-
-PAIR_CHUNK = 64  # pairs per inference chunk (A columns and APS rows stay small)
-LEVEL_PAIRS_PER_CELL = 16
-"""Training pairs per cell (evenly spaced) on which the level correction is measured."""
-LEVEL_MIN_BEAMS = 10
-"""A cell's own median needs this many reported beams of a type; fewer: the median over every cell."""
 
 
 @register_model
@@ -145,16 +123,8 @@ class RFLSCM(LSCMModel):
         self.train_state: dict[str, Any] | None = None
         self.renderer: APSRenderer | None = None
         """Built with the stages (fit or checkpoint)."""
-        self.levels: torch.Tensor | None = None
-        """``[C, 2]`` level correction [dB] of each cell's SSB (column 0) and CSI-RS (1) predictions
-        (``train.calibrate_levels``; see :meth:`_fit_levels`), or None."""
-        self._levels_step: int | None = None
-        self.anchors: pd.Series | None = None
-        """Per-pair level anchor [dB] indexed by (cell_id, grid_id) (``train.pair_anchors``; see
-        :meth:`_fit_pair_corrections`), or None."""
-        self.posterior: PairPosterior | None = None
-        """The training pairs' posterior gains (``train.pair_posterior``), or None."""
-        self._pairs_step: int | None = None
+        self.corrections = PairCorrections()
+        """The post-training pair corrections (fitted in :meth:`finish_training`, applied in :meth:`aps`)."""
         self._train: _TrainContext | None = None
 
     @classmethod
@@ -229,8 +199,7 @@ class RFLSCM(LSCMModel):
             self._init_attenuation(*targets)
         a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
         self._train = _TrainContext(data.to(self.device), a_norm, a_coarse, num_ssb)
-        self.levels, self._levels_step = None, None
-        self.anchors, self.posterior, self._pairs_step = None, None, None
+        self.corrections = PairCorrections()
         self.step, self.position, self.train_state = 0, -1.0, None
         self._calibrate_level(INIT_LEVEL_DB)
 
@@ -248,39 +217,12 @@ class RFLSCM(LSCMModel):
         return TrainingPlan(pairs, d.cell_index.cpu()[pairs])
 
     def resume_from(self, payload: dict[str, Any], path: str | Path) -> dict[str, Any]:
-        """Load weights and step from the checkpoint ``payload`` of ``path`` (it must hold this model of this
-        scenario with the same config); returns the trainer state saved with it."""
-        state = payload["state"]
-        if payload["model"] != self.name:
-            raise CheckpointError(
-                f"{path}: cannot resume: it holds a {payload['model']!r} model, not {self.name!r}; train {self.name} "
-                "into another file, or without --resume to overwrite it."
-            )
-        if payload["fingerprint"] != self.fingerprint:
-            raise CheckpointError(f"{path}: cannot resume: it was trained on another scenario (or other data).")
-        try:
-            theirs = _without_removed_options(state["config"], self.config_class)
-        except CheckpointError as exc:
-            raise CheckpointError(f"{path}: cannot resume: {exc}") from None
-        ours = to_dict(self.config)
-        steps_now, steps_then = ours["train"]["steps"], dict(theirs.get("train") or {}).get("steps")
-        if steps_now != steps_then:
-            raise CheckpointError(
-                f"{path}: cannot resume: it was trained towards `train.steps` = {steps_then}, this run asks for "
-                f"{steps_now}; the learning-rate schedule (lr_decay ** (step / steps)) depends on it. Resume with "
-                f"`train.steps: {steps_then}`, or train afresh without --resume."
-            )
-        if ours != theirs:
-            keys = _changed_keys(ours, theirs)
-            raise CheckpointError(
-                f"{path}: cannot resume: the checkpoint was trained with another config (changed: "
-                f"{', '.join(keys[:5]) or 'layout'}); resume with its config or train afresh without --resume."
-            )
-        if state.get("train_state") is None:
-            raise CheckpointError(f"{path}: cannot resume: the checkpoint holds no optimizer state.")
+        """Load weights and step from the checkpoint ``payload`` of ``path`` (see
+        :func:`~rflscm.models.rflscm.checkpoint.check_resume`); returns the trainer state saved with it."""
+        state = checkpoint.check_resume(self, payload, path)
         self._load_stage_weights(state["stages"])
-        self.step, self.position = _step_and_position(state)
-        return state["train_state"]
+        self.step, self.position = int(state["step"]), float(state["position"])
+        return cast(dict[str, Any], state["train_state"])
 
     def _init_attenuation(self, points: torch.Tensor, share: torch.Tensor) -> None:
         """Fit the δ field so that its per-voxel loss is ``building_loss_db`` to the power ``share`` times
@@ -493,235 +435,25 @@ class RFLSCM(LSCMModel):
         if keys:
             slot = {keys[i]: j for j, i in enumerate(todo)}
             out = rendered[torch.as_tensor([slot[k] for k in keys], dtype=torch.long, device=self.device)]
-        levels = self.current_levels()
-        if levels is not None:
-            out = out * torch.pow(10.0, levels[torch.as_tensor(cells, device=self.device), 0] / 10.0)[:, None]
-        anchors = self.current_anchors()
-        if anchors is not None and len(anchors) and len(keys):
-            at = pd.MultiIndex.from_arrays(
-                [np.asarray(cell_ids, np.int64).reshape(-1), np.asarray(grid_ids, np.int64).reshape(-1)]
-            )
-            shift = torch.as_tensor(
-                anchors.reindex(at).fillna(0.0).to_numpy(np.float32, copy=True), dtype=torch.float32, device=self.device
-            )
-            out = out * torch.pow(10.0, shift / 10.0)[:, None]
-        posterior = self.current_posterior()
-        if posterior is not None:
-            out = posterior.apply(
-                out, np.asarray(cell_ids, np.int64).reshape(-1), np.asarray(grid_ids, np.int64).reshape(-1)
-            )
+        out = self.corrections.apply(out, cells, cell_ids, grid_ids)
         return out * self.scene.x_ref
 
     def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
         """CSI-RS predictions carry each cell's CSI-RS level correction relative to its SSB one (the APS carries
-        the SSB correction); see :meth:`current_levels`."""
-        levels = self.current_levels()
-        if levels is None or beam_type != "csi" or self.scene is None:
+        the SSB one; :mod:`~rflscm.models.rflscm.corrections`)."""
+        if self.scene is None:
             return None
-        relative = (levels[:, 1] - levels[:, 0]).cpu().double().numpy()
-        return relative[self.scene.cell_index(np.asarray(cell_ids))]
-
-    # --- level correction -------------------------------------------------------------------------
-    def current_levels(self) -> torch.Tensor | None:
-        """The level correction ``[C, 2]`` [dB] for the current weights (re-measured when the weights moved
-        since it was last measured on the training data), or None when switched off or not known."""
-        if not self.config.train.calibrate_levels:
-            return None
-        if self._train is not None and self._levels_step != self.step:
-            self.levels, self._levels_step = self._fit_levels(), self.step
-        return self.levels
-
-    def current_anchors(self) -> pd.Series | None:
-        """The per-pair level anchors [dB] for the current weights (re-measured, like :meth:`current_levels`, when
-        the weights moved since the last measurement), or None when switched off or not known."""
-        if not self.config.train.pair_anchors:
-            return None
-        self._refresh_pair_corrections()
-        return self.anchors
-
-    def current_posterior(self) -> PairPosterior | None:
-        """The training pairs' posterior gains (``train.pair_posterior``, :mod:`~rflscm.models.rflscm.posterior`) for the
-        current weights, re-measured like :meth:`current_anchors`, or None when switched off or not known."""
-        if not self.config.train.pair_posterior:
-            return None
-        self._refresh_pair_corrections()
-        return self.posterior
-
-    def _refresh_pair_corrections(self, progress: bool = False) -> None:
-        if self._train is not None and self._pairs_step != self.step:
-            self.anchors, self.posterior = self._fit_pair_corrections(progress)
-            self._pairs_step = self.step
+        return self.corrections.level_offset_db(self.scene.cell_index(np.asarray(cell_ids)), beam_type)
 
     def finish_training(self, progress: bool = False) -> None:
-        """After the last step: measure the level correction, the pair anchors and the pair posterior that
-        predictions and the checkpoint carry (one render of every training pair; ``progress``: a bar)."""
-        if self.config.train.pair_anchors or self.config.train.pair_posterior:
-            self._refresh_pair_corrections(progress)  # measures the level correction on the same render
-        self.current_levels()
-
-    def _level_picks(self) -> torch.Tensor:
-        """The training pairs the level correction is measured on: up to ``LEVEL_PAIRS_PER_CELL`` evenly spaced
-        pairs with reports per cell (sorted)."""
-        d = self._training().data
-        assert self.scene is not None
-        reported = d.observed.any(1)
-        picks = []
-        for c in range(len(self.scene.cell_ids)):
-            p = torch.nonzero(reported & (d.cell_index == c)).squeeze(1)
-            if p.numel():
-                picks.append(p[torch.linspace(0, p.numel() - 1, min(p.numel(), LEVEL_PAIRS_PER_CELL)).round().long()])
-        return torch.cat(picks).unique() if picks else torch.zeros(0, dtype=torch.long, device=self.device)
-
-    @torch.no_grad()
-    def _fit_levels(self, rendered: _Rendered | None = None) -> torch.Tensor:
-        """Median (measured − predicted) [dB] over the reported round-1 training beams of the
-        :meth:`_level_picks`, per cell and beam type (the median over every cell where a cell has fewer than
-        ``LEVEL_MIN_BEAMS`` such beams; 0 where a type has none); from ``rendered`` when it holds them.
-
-        The training loss weighs each report's reported beams against the bounds of its unreported ones
-        (the missing-beam penalty); under top-N or SINR reporting a model that cannot yet resolve the beams
-        keeps every beam low to respect the bounds, so its reported beams come out too weak (a CSI-RS bias
-        of −3 to −5 dB after a few hundred steps on the shipped scenario).  This correction, measured on the
-        reported beams alone, removes that level error from the predictions without touching the field."""
+        """After the last step: fit the pair corrections that predictions and the checkpoint carry, once (one
+        render of every training pair; ``progress``: a bar)."""
         train = self._training()
-        d = train.data
         assert self.scene is not None
-        num_cells = len(self.scene.cell_ids)
-        levels = torch.zeros(num_cells, 2)
-        picks = self._level_picks()
-        if not picks.numel():
-            return levels.to(self.device)
-        if rendered is None:
-            rendered = self._render_pairs(picks, top=False)
-        pred = rendered.pred[rendered.rows_of(picks)]
-        resid = 10.0 * torch.log10(d.rsrp[picks] / pred.clamp_min(1e-30))
-        rows, beams = d.observed[picks].nonzero(as_tuple=True)
-        r = resid[rows, beams].cpu().double().numpy()
-        c = d.cell_index[picks][rows].cpu().numpy()
-        t = (beams >= train.num_ssb).cpu().numpy()
-        for beam_type in (0, 1):
-            of_type = t == beam_type
-            if not bool(of_type.any()):
-                continue
-            levels[:, beam_type] = float(np.median(r[of_type]))  # numpy: no size limit, mean of the middle pair
-            for cell in range(num_cells):
-                mine = of_type & (c == cell)
-                if int(mine.sum()) >= LEVEL_MIN_BEAMS:
-                    levels[cell, beam_type] = float(np.median(r[mine]))
-        return levels.to(self.device)
-
-    @torch.no_grad()
-    def _fit_pair_corrections(self, progress: bool = False) -> tuple[pd.Series | None, PairPosterior | None]:
-        """One render of every training pair with reports, then their level anchors and their posterior (and,
-        when stale, the level correction, from the same render).
-
-        *Anchor* (``train.pair_anchors``): the median (measured − predicted) [dB] over the pair's reported round-1
-        training beams (SSB and CSI-RS pooled, after the level correction).  An under-trained field gets the
-        angular shape and the antenna's effect right long before it gets each grid's level (its path loss)
-        right; the pair's own reports pin that level, as a per-grid fit would, and a changed antenna moves
-        both rounds' paths alike.
-
-        *Posterior* (``train.pair_posterior``): per-bin gains on the anchored APS that fit the same reports
-        under a ridge prior centred on the field, λ chosen on held-aside reports
-        (:mod:`~rflscm.models.rflscm.posterior`).
-
-        Validation beams are used by neither, so :meth:`validation_mae` stays an honest held-aside score of the
-        field alone."""
-        from tqdm.auto import tqdm
-
-        cfg = self.config.train
-        d = self._training().data
-        assert self.scene is not None
-        pairs = torch.nonzero(d.observed.any(1)).squeeze(1)
-        bar = tqdm(
-            total=pairs.numel() * (2 if cfg.pair_posterior else 1), desc="pair corrections", unit="pair",
-            disable=not progress, leave=False,
+        self.corrections = fit_corrections(
+            self.config.corrections, train.data, train.num_ssb, np.asarray(self.scene.cell_ids), self._render_training,
+            self._columns, self.config.train.seed, progress,
         )  # fmt: skip
-        rendered = self._render_pairs(pairs, top=cfg.pair_posterior, bar=bar)
-        if cfg.calibrate_levels and self._levels_step != self.step:
-            self.levels, self._levels_step = self._fit_levels(rendered), self.step
-        lam, scores = math.inf, {}
-        if cfg.pair_posterior and pairs.numel():
-            # λ from held-aside reports of a spread subset of the pairs, then one fit per pair
-            held = torch.rand(d.rsrp.shape, generator=torch.Generator().manual_seed(cfg.seed)) < HOLDOUT
-            subset = pairs[torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), LAMBDA_PAIRS)).round().long()]
-            choice = LambdaChoice()
-            for chunk in self._pair_chunks(rendered, rendered.rows_of(subset.unique())):
-                held_here = held[chunk.pairs.cpu()].to(self.device)
-                choice.add(*chunk.fit_inputs(), chunk.resid, chunk.mask, held_here)
-            lam, scores = choice.best(), choice.mae_db()
-        anchors, gains, bins_of = [], [], []
-        fitting = cfg.pair_posterior and math.isfinite(lam)
-        for chunk in self._pair_chunks(rendered, torch.arange(pairs.numel(), device=self.device), fitting):
-            anchors.append(chunk.anchor)
-            if chunk.top_bins is not None:
-                gains.append(fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, lam).cpu())
-                bins_of.append(chunk.top_bins.cpu())
-            bar.update(chunk.pairs.numel() if cfg.pair_posterior else 0)
-        bar.close()
-        cell_ids = np.asarray(self.scene.cell_ids, np.int64)[d.cell_index.cpu().numpy()[pairs.cpu().numpy()]]
-        index = pd.MultiIndex.from_arrays([cell_ids, d.grid_ids[pairs.cpu().numpy()]], names=["cell_id", "grid_id"])
-        median = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)
-        anchor_series = pd.Series(median, index=index, name="anchor_db") if cfg.pair_anchors else None
-        if not cfg.pair_posterior:
-            return anchor_series, None
-        if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
-            empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
-            return anchor_series, PairPosterior(
-                empty, torch.zeros(0, 0, dtype=torch.long), torch.zeros(0, 0), lam, scores
-            )
-        gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
-        return anchor_series, PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores)
-
-    @torch.no_grad()
-    def _render_pairs(self, pairs: torch.Tensor, top: bool, bar: Any = None) -> _Rendered:
-        """Render training ``pairs [P]`` (sorted) ``PAIR_CHUNK`` at a time: their predicted round-1 reports and,
-        with ``top``, their ``POSTERIOR_BINS`` strongest bins and the APS there (``bar``: a progress bar)."""
-        preds, tops, xs = [], [], []
-        for start in range(0, pairs.numel(), PAIR_CHUNK):
-            bins, values, pred = self._render_training(pairs[start : start + PAIR_CHUNK])
-            preds.append(pred)
-            if top:
-                best = torch.topk(values, min(POSTERIOR_BINS, values.shape[1]), dim=1).indices
-                tops.append(bins.gather(1, best).to(torch.int32))  # kept for every pair: half the memory
-                xs.append(values.gather(1, best))
-            if bar is not None:
-                bar.update(min(PAIR_CHUNK, pairs.numel() - start))
-        num_beams = self._training().data.rsrp.shape[1]
-        pred = torch.cat(preds) if preds else torch.zeros(0, num_beams, device=self.device)
-        return _Rendered(pairs, pred, torch.cat(tops) if tops else None, torch.cat(xs) if xs else None)
-
-    def _pair_chunks(
-        self, rendered: _Rendered, rows: torch.Tensor, with_columns: bool = True
-    ) -> typing.Iterator[_PairChunk]:
-        """Rows ``rows`` of ``rendered``, ``PAIR_CHUNK`` at a time, as the pair corrections see them: each pair's
-        anchor and, after level correction and anchor, its residuals and (``with_columns``) its strongest bins
-        with their columns."""
-        cfg = self.config.train
-        train = self._training()
-        d = train.data
-        observed = d.observed
-        levels = self.current_levels()
-        beam_type = (torch.arange(d.rsrp.shape[1], device=self.device) >= train.num_ssb).long()
-        for start in range(0, rows.numel(), PAIR_CHUNK):
-            at = rows[start : start + PAIR_CHUNK]
-            batch = rendered.pairs[at]
-            cells, pred = d.cell_index[batch], rendered.pred[at]
-            resid = 10.0 * torch.log10(d.rsrp[batch] / pred.clamp_min(1e-30))
-            if levels is not None:
-                resid = resid - levels[cells][:, beam_type]
-            mask = observed[batch]
-            median = np.nanmedian(torch.where(mask, resid, torch.nan).cpu().double().numpy(), axis=1)
-            anchor = torch.as_tensor(median, dtype=resid.dtype, device=resid.device)
-            if cfg.pair_anchors:
-                resid = resid - anchor[:, None]
-            chunk = _PairChunk(batch, anchor, resid, mask)
-            if with_columns:
-                assert rendered.top_bins is not None and rendered.top_x is not None
-                chunk.top_bins, chunk.top_x = rendered.top_bins[at].long(), rendered.top_x[at]
-                chunk.cols = self._columns(cells, chunk.top_bins)
-                chunk.rest = (pred - torch.einsum("bmk,bk->bm", chunk.cols, chunk.top_x)).clamp_min(0.0)
-            yield chunk
 
     @torch.no_grad()
     def _render_training(self, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -738,59 +470,16 @@ class RFLSCM(LSCMModel):
         bins, values = R.output(cells, xyz, self.position)
         return bins, values, torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
 
-    # --- persistence --------------------------------------------------------------------------
+    # --- persistence (:mod:`~rflscm.models.rflscm.checkpoint`) ---------------------------------------
     def state_dict_for_checkpoint(self) -> dict[str, Any]:
-        return {
-            "config": to_dict(self.config),
-            "angle_grid": self.angle_grid.to_dict(),
-            "scene": self.scene.to_dict() if self.scene is not None else None,
-            "prior": prior_state(self.prior),
-            "surfaces": surfaces_state(self.surfaces),
-            "stages": {k: v.detach().cpu().clone() for k, v in self.stages.state_dict().items()},
-            "step": self.step,
-            "position": self.position,
-            "levels": self.levels.detach().cpu().clone() if self.levels is not None else None,
-            "anchors": _anchors_state(self.anchors),
-            "posterior": self.posterior.to_state() if self.posterior is not None else None,
-            "train_state": self.train_state,
-        }
+        return checkpoint.model_state(self)
 
     @classmethod
     def from_checkpoint(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> RFLSCM:
-        config: Any = from_dict(cls.config_class, _without_removed_options(state["config"], cls.config_class))
-        model = cls(config, AngleGrid.from_dict(state["angle_grid"]), device)
-        if state["scene"] is None:
-            raise CheckpointError("this checkpoint holds an unfitted model.")
-        model.scene = SceneInfo.from_dict(state["scene"])
-        prior = prior_from_state(state["prior"])
-        model.prior = prior.to(model.device) if prior is not None else None
-        surfaces = surfaces_from_state(state.get("surfaces"))
-        model.surfaces = surfaces.to(model.device) if surfaces is not None else None
-        model._build_stages(model.scene.frame)
-        model._load_stage_weights(state["stages"])
-        (model.step, model.position), model.train_state = _step_and_position(state), state.get("train_state")
-        levels = state.get("levels")  # none in checkpoints before the level correction: no correction
-        model.levels = torch.as_tensor(levels, dtype=torch.float32, device=model.device) if levels is not None else None
-        model.anchors = _anchors_from_state(state.get("anchors"))  # none before the pair anchors: none applied
-        model.posterior = PairPosterior.from_state(state.get("posterior"), model.angle_grid.num_bins)
-        return model
+        return checkpoint.restore(cls, state, device)
 
     def _load_stage_weights(self, weights: dict[str, torch.Tensor]) -> None:
-        weights = {_current_key(k): v for k, v in weights.items()}
-        for name, module in self.stages.named_modules():
-            if isinstance(module, TensorVM):
-                nx, ny, nz = (int(weights[f"{name}.lines.{a}"].shape[2]) for a in range(3))
-                res = (nx, ny, nz)
-                if res != module.resolution:
-                    module.upsample(res)
-        try:
-            self.stages.load_state_dict(weights)
-        except (RuntimeError, KeyError) as exc:  # a checkpoint of an older layout of the model
-            first = str(exc).strip().splitlines()[-1].strip()
-            raise CheckpointError(
-                f"the checkpoint's weights do not fit this version of {self.name!r} ({first}); retrain it with this version."
-            ) from None
-        self.stages.to(self.device)
+        checkpoint.load_stage_weights(self, weights)
         if self._train is not None:
             self._train.selection = None
 
@@ -809,92 +498,6 @@ def fit_loss_channel(
         opt.step()
 
 
-def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:
-    if anchors is None:
-        return None
-    cells, grids = (
-        torch.as_tensor(anchors.index.get_level_values(k).to_numpy(np.int64, copy=True)) for k in ("cell_id", "grid_id")
-    )
-    return {"cell_id": cells, "grid_id": grids, "anchor_db": torch.as_tensor(anchors.to_numpy(np.float32))}
-
-
-def _anchors_from_state(state: dict[str, Any] | None) -> pd.Series | None:
-    if state is None:
-        return None
-    keys = ("cell_id", "grid_id", "anchor_db")
-    if not isinstance(state, dict) or any(k not in state for k in keys):
-        raise CheckpointError(
-            "the checkpoint's pair anchors are damaged (expected columns cell_id, grid_id, anchor_db)."
-        )
-    cols = {k: torch.as_tensor(state[k]).reshape(-1).numpy() for k in keys}
-    if not len(cols["cell_id"]) == len(cols["grid_id"]) == len(cols["anchor_db"]):
-        raise CheckpointError("the checkpoint's pair anchors are damaged (columns of different lengths).")
-    if not np.isfinite(cols["anchor_db"]).all():
-        raise CheckpointError("the checkpoint's pair anchors are damaged (non-finite values); retrain the model.")
-    index = pd.MultiIndex.from_arrays([cols["cell_id"].astype(np.int64), cols["grid_id"].astype(np.int64)],
-                                      names=["cell_id", "grid_id"])  # fmt: skip
-    return pd.Series(cols["anchor_db"].astype(np.float64), index=index, name="anchor_db")
-
-
-def _without_removed_options(config: dict[str, Any], config_class: type = RFLSCMConfig) -> dict[str, Any]:
-    """A checkpoint's config without the options removed from ``config_class``'s sections (their ``REMOVED``
-    tables), if each holds the value now hard-wired; any other value is a one-line :class:`CheckpointError`."""
-    config = {k: dict(v) if isinstance(v, dict) else v for k, v in config.items()}
-    sections = typing.get_type_hints(config_class)
-    for section in dataclasses.fields(config_class):
-        removed: dict[str, tuple[Any, str]] = getattr(sections[section.name], "REMOVED", {})
-        values = config.get(section.name)
-        if not isinstance(values, dict):
-            continue
-        for key in [k for k in values if k in removed]:
-            value = values.pop(key)
-            kept, note = removed[key]
-            if kept is not ANY and not _same(value, kept):
-                raise CheckpointError(
-                    f"the checkpoint uses `{section.name}.{key}: {value}`, an option this version no longer has "
-                    f"({note}); retrain it with this version."
-                )
-    return config
-
-
-def _same(a: Any, b: Any) -> bool:
-    """Config values equal, lists and tuples alike."""
-    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
-        return list(a) == list(b)
-    return bool(a == b)
-
-
-_OLD_KEYS = (
-    (".delta_field.net.", ".fields."),
-    (".delta_field.", ".fields.delta_vm."),
-    (".feature_field.", ".fields.feature_vm."),
-)
-"""Stage weight names before the field seam (issue 11) → now: NeRF²'s shared trunk, RF-LSCM's two VM tensors."""
-
-
-def _current_key(key: str) -> str:
-    for old, new in _OLD_KEYS:
-        if old in key:
-            return key.replace(old, new, 1)
-    return key
-
-
-def _step_and_position(state: dict[str, Any]) -> tuple[int, float]:
-    """Steps done and schedule position of a checkpoint's state (before budget mode: ``step − 1``)."""
-    step = int(state["step"])
-    return step, float(state.get("position", step - 1))
-
-
-def _changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
-    """Dotted keys whose values differ between two nested config dicts."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        out: list[str] = []
-        for key in sorted(set(a) | set(b), key=str):
-            out += _changed_keys(a.get(key), b.get(key), f"{prefix}.{key}" if prefix else str(key))
-        return out
-    return [] if _same(a, b) else [prefix]
-
-
 @dataclass
 class _TrainContext:
     """Training-only tensors: pair data, normalised A (full and coarse columns) and HiTAM's frozen selection."""
@@ -906,44 +509,3 @@ class _TrainContext:
     """Columns ``0 … num_ssb−1`` of the stacked sensing matrix are SSB beams, the rest CSI-RS beams."""
     selection: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
     """``(bins, valid, known)`` of every training pair once α = 1 (see :meth:`RFLSCM._frozen_selection`)."""
-
-
-@dataclass
-class _Rendered:
-    """Training pairs ``pairs [P]`` (sorted) rendered once with the current weights (:meth:`RFLSCM._render_pairs`):
-    their predicted round-1 reports ``pred [P, M]`` (normalised, uncorrected) and optionally their strongest
-    bins ``top_bins [P, n]`` (int32) with the APS there ``top_x [P, n]``."""
-
-    pairs: torch.Tensor
-    pred: torch.Tensor
-    top_bins: torch.Tensor | None = None
-    top_x: torch.Tensor | None = None
-
-    def rows_of(self, pairs: torch.Tensor) -> torch.Tensor:
-        """Rows of ``pairs`` (each one of :attr:`pairs`)."""
-        rows = torch.searchsorted(self.pairs, pairs)
-        if not bool((self.pairs[rows.clamp_max(max(self.pairs.numel() - 1, 0))] == pairs).all()):
-            raise ValueError("pairs that were not rendered")
-        return rows
-
-
-@dataclass
-class _PairChunk:
-    """A chunk of training pairs ``pairs [B]`` as the pair corrections see them (:meth:`RFLSCM._pair_chunks`):
-    ``anchor [B]`` [dB], ``resid [B, M]`` measured − predicted [dB] after the corrections (NaN where not reported),
-    ``mask [B, M]`` the reported training beams; with columns, the strongest bins ``top_bins [B, n]``, the APS
-    there ``top_x [B, n]``, their columns ``cols [B, M, n]`` and the other bins' ``rest [B, M]`` (normalised)."""
-
-    pairs: torch.Tensor
-    anchor: torch.Tensor
-    resid: torch.Tensor
-    mask: torch.Tensor
-    top_bins: torch.Tensor | None = None
-    top_x: torch.Tensor | None = None
-    cols: torch.Tensor | None = None
-    rest: torch.Tensor | None = None
-
-    def fit_inputs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``(cols, top_x, rest)``, the posterior's view of the chunk (made ``with_columns``)."""
-        assert self.cols is not None and self.top_x is not None and self.rest is not None
-        return self.cols, self.top_x, self.rest
