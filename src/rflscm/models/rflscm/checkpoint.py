@@ -27,6 +27,7 @@ from rflscm.models.rflscm.scene import (
 )
 
 if TYPE_CHECKING:
+    from rflscm.models.rflscm.config import RFLSCMConfig
     from rflscm.models.rflscm.model import RFLSCM
 
 STATE_VERSION = 2
@@ -34,8 +35,8 @@ STATE_VERSION = 2
 
 
 def model_state(model: RFLSCM) -> dict[str, Any]:
-    """The model's checkpoint state: config, scene, prior, surfaces, stage weights, schedule position and the
-    pair corrections (tensors and plain values only)."""
+    """The model's checkpoint state: config, scene, prior, surfaces, stage weights, schedule position and the pair
+    corrections (tensors and plain values only; the trainer saves its own state beside it)."""
     return {
         "version": STATE_VERSION,
         "config": to_dict(model.config),
@@ -44,10 +45,8 @@ def model_state(model: RFLSCM) -> dict[str, Any]:
         "prior": prior_state(model.prior),
         "surfaces": surfaces_state(model.surfaces),
         "stages": {k: v.detach().cpu().clone() for k, v in model.stages.state_dict().items()},
-        "step": model.step,
         "position": model.position,
         "corrections": model.corrections.to_state(),
-        "train_state": model.train_state,
     }
 
 
@@ -65,7 +64,7 @@ def restore(cls: type[RFLSCM], state: dict[str, Any], device: torch.device | str
     """A fitted model from :func:`model_state`'s ``state``."""
     check_version(state)
     try:
-        config = from_dict(cls.config_class, state["config"])
+        config: RFLSCMConfig = from_dict(cls.config_class, state["config"])
     except ConfigError as exc:
         raise CheckpointError(f"the checkpoint's config does not fit this version ({exc}); retrain it.") from None
     model = cls(config, AngleGrid.from_dict(state["angle_grid"]), device)
@@ -78,8 +77,7 @@ def restore(cls: type[RFLSCM], state: dict[str, Any], device: torch.device | str
     model.surfaces = surfaces.to(model.device) if surfaces is not None else None
     model._build_stages(model.scene.frame)
     load_stage_weights(model, state["stages"])
-    model.step, model.position = int(state["step"]), float(state["position"])
-    model.train_state = state.get("train_state")
+    model.position = float(state["position"])
     model.corrections = PairCorrections.from_state(state.get("corrections"), model.angle_grid.num_bins, model.device)
     return model
 
@@ -88,7 +86,8 @@ def load_stage_weights(model: RFLSCM, weights: dict[str, torch.Tensor]) -> None:
     """Load stage ``weights`` into ``model`` (upsampling its VM tensors to the saved resolution first)."""
     for name, module in model.stages.named_modules():
         if isinstance(module, TensorVM):
-            res = tuple(int(weights[f"{name}.lines.{a}"].shape[2]) for a in range(3))
+            nx, ny, nz = (int(weights[f"{name}.lines.{a}"].shape[2]) for a in range(3))
+            res = (nx, ny, nz)
             if res != module.resolution:
                 module.upsample(res)
     try:
@@ -130,8 +129,6 @@ def check_resume(model: RFLSCM, payload: dict[str, Any], path: str | Path) -> di
             f"{path}: cannot resume: the checkpoint was trained with another config (changed: "
             f"{', '.join(keys[:5]) or 'layout'}); resume with its config or train afresh without --resume."
         )
-    if state.get("train_state") is None:
-        raise CheckpointError(f"{path}: cannot resume: the checkpoint holds no optimizer state.")
     return state
 
 

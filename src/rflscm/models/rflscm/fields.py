@@ -343,3 +343,17 @@ class RadianceStage(nn.Module):
             features, points[live], along[live], rays, queries, join_query, join_sample, grid_features, surface
         )
         return accumulate_power(weight.index_select(0, join_sample) * radiance, join_query, queries.ray.numel())
+
+
+def fit_loss_channel(
+    fields: SceneFields, points: torch.Tensor, target: torch.Tensor, keep: torch.Tensor, steps: int, lr: float
+) -> None:
+    """Adam on ``fields``' δ module so that its raw loss channel at ``points [n, 3]`` approaches ``target [n]``
+    while its other channels stay at ``keep [n, C_δ − 1]`` (mean squared errors, ``steps`` steps at ``lr``)."""
+    opt = torch.optim.Adam(fields.delta_module().parameters(), lr=lr)
+    for _ in range(steps):
+        out = fields.delta(fields.encode(points))
+        loss = (out[:, 0] - target).square().mean() + (out[:, 1:] - keep).square().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()

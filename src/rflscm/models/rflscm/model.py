@@ -9,35 +9,16 @@ NeRF²-LSCM plugs in MLP fields instead of VM tensors and reuses everything else
 
 Units: the stages render the APS in the normalised unit x_ref = r_ref / a_ref (see
 :mod:`rflscm.models.pairs`); :meth:`aps` returns linear path gain.  Training is driven from above by
-the trainer's ``fit`` (package ``train``) through the the trainer's ``Trainable`` protocol methods (``prepare``, ``training_losses``, …).
+the trainer's ``fit`` (package ``train``) through the trainer's ``Trainable``
+protocol (``prepare``, ``training_losses``, …); the trainer owns the step count, the optimizer and
+its state; the model sees each step's schedule ``position`` only.
 
-Decisions where the paper is silent (the constants and options of :mod:`~rflscm.models.rflscm.config`):
-
-* media: 3 passive degrees of freedom (loss on a log scale at a reference carrier, excess real
-  index, real μ ≥ 1), each on its own VM factors; FDAM itself is exact, δ^Φ uses the continuous
-  branch of log δ; the cumulative |Π δ̃| is capped at 1 (a passivity guard: single FDAM factors
-  can exceed 1);
-* empty-space skipping from Φ is exact (Φ = 0 samples are inert); a ray's fields are computed
-  once per cell and shared by every grid that looks along it; directions a cell's round-1 beams
-  cannot see (−30 dB) are not rendered for that cell;
-* decoder: the paper's inputs plus the sample-to-grid geometry (direction, half-vector, log
-  distances, distance relative to the ray's cone), polar output (log |R|, arg R) with free-space
-  and bistatic spreading factors, level calibrated to the data at initialisation;
-* attenuation initialised from the classified scan (walls opaque, ground and air transparent);
-* HiTAM: coarse rays through block centres with block-mean columns; the refinement model starts
-  as a copy of the coarse one, rescaled to the coarse model's level;
-* loss in bels by default (paper: linear), L1 relative to each pair's power scale;
-* after training, predictions carry a level correction per cell and beam type, a level anchor per
-  training pair (the median error left on the pair's own round-1 reports) and a posterior per training
-  pair (per-bin gains fitted to those reports under a ridge prior centred on the field,
-  :mod:`~rflscm.models.rflscm.posterior`); the paper predicts from the field alone (docs/DECISIONS.md,
-  "Learning faster").
+The decisions where the paper is silent are listed in the package docstring (:mod:`rflscm.models.rflscm`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, cast
 
@@ -51,7 +32,7 @@ from rflscm.fields.point_prior import PointPrior
 from rflscm.fields.surfaces import SurfaceOrientation
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import LSCMModel, TrainingPlan, register_model
-from rflscm.models.pairs import PairData, build_pair_data, reference_power, stacked_sensing
+from rflscm.models.pairs import build_pair_data, reference_power, stacked_sensing
 from rflscm.models.rflscm import checkpoint
 from rflscm.models.rflscm.config import (
     FLOOR_DB,
@@ -68,13 +49,13 @@ from rflscm.models.rflscm.fields import (
     FieldFactory,
     RadianceDecoder,
     RadianceStage,
-    SceneFields,
     SceneFrame,
     VMFieldFactory,
+    fit_loss_channel,
 )
 from rflscm.models.rflscm.hitam import HiTAM
 from rflscm.models.rflscm.losses import lscm_loss, mae_db
-from rflscm.models.rflscm.renderer import APSRenderer
+from rflscm.models.rflscm.renderer import APSRenderer, TrainContext
 from rflscm.models.rflscm.scene import (
     SceneInfo,
     building_targets,
@@ -115,17 +96,14 @@ class RFLSCM(LSCMModel):
         self.surfaces: SurfaceOrientation | None = None
         """The scan's surface orientation (decoder's specular cue), or None."""
         self.stages = nn.ModuleDict()
-        self.step = 0
-        """Training steps done."""
         self.position = -1.0
         """Schedule position of the latest training step begun (units of ``train.steps``, see the trainer's
-        ``Trainable``; −1 before the first).  In step mode ``step − 1``; HiTAM and upsampling follow it."""
-        self.train_state: dict[str, Any] | None = None
+        ``Trainable``, which owns the step count; −1 before the first).  HiTAM and upsampling follow it."""
         self.renderer: APSRenderer | None = None
         """Built with the stages (fit or checkpoint)."""
         self.corrections = PairCorrections()
         """The post-training pair corrections (fitted in :meth:`finish_training`, applied in :meth:`aps`)."""
-        self._train: _TrainContext | None = None
+        self._train: TrainContext | None = None
 
     @classmethod
     def build(cls, config: str | Path | dict[str, Any] | None = None, angle_grid: AngleGrid | None = None,
@@ -198,9 +176,9 @@ class RFLSCM(LSCMModel):
         if targets is not None:
             self._init_attenuation(*targets)
         a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
-        self._train = _TrainContext(data.to(self.device), a_norm, a_coarse, num_ssb)
+        self._train = TrainContext(data.to(self.device), a_norm, a_coarse, num_ssb)
         self.corrections = PairCorrections()
-        self.step, self.position, self.train_state = 0, -1.0, None
+        self.position = -1.0
         self._calibrate_level(INIT_LEVEL_DB)
 
     @property
@@ -216,13 +194,12 @@ class RFLSCM(LSCMModel):
         pairs = torch.nonzero(d.beam_mask.any(1)).squeeze(1).cpu()
         return TrainingPlan(pairs, d.cell_index.cpu()[pairs])
 
-    def resume_from(self, payload: dict[str, Any], path: str | Path) -> dict[str, Any]:
-        """Load weights and step from the checkpoint ``payload`` of ``path`` (see
-        :func:`~rflscm.models.rflscm.checkpoint.check_resume`); returns the trainer state saved with it."""
+    def resume_from(self, payload: dict[str, Any], path: str | Path) -> None:
+        """Load weights and schedule position from the checkpoint ``payload`` of ``path`` (see
+        :func:`~rflscm.models.rflscm.checkpoint.check_resume`)."""
         state = checkpoint.check_resume(self, payload, path)
         self._load_stage_weights(state["stages"])
-        self.step, self.position = int(state["step"]), float(state["position"])
-        return cast(dict[str, Any], state["train_state"])
+        self.position = float(state["position"])
 
     def _init_attenuation(self, points: torch.Tensor, share: torch.Tensor) -> None:
         """Fit the δ field so that its per-voxel loss is ``building_loss_db`` to the power ``share`` times
@@ -245,7 +222,7 @@ class RFLSCM(LSCMModel):
         ``upsample_at`` step, hand the coarse model to the refinement model when it crosses the end of the
         HiTAM warm-up (previous step's position < threshold <= ``position``; in step mode: ``step`` equals the
         threshold).  True when parameters were replaced."""
-        before, self.step, self.position = self.position, step, position
+        before, self.position = self.position, position
         h = self.config.hitam
         if self.hitam is not None and before < float(h.warmup_steps) <= position and position > 0:
             self.stages["fine"].load_state_dict(self.stages["coarse"].state_dict())
@@ -273,7 +250,7 @@ class RFLSCM(LSCMModel):
     def all_stages(self) -> list[RadianceStage]:
         return [cast(RadianceStage, s) for s in self.stages.values()]
 
-    def _training(self) -> _TrainContext:
+    def _training(self) -> TrainContext:
         if self._train is None:
             raise RuntimeError("the model has no training data; fit it first.")
         return self._train
@@ -291,13 +268,6 @@ class RFLSCM(LSCMModel):
             pred, d.rsrp[pairs], d.beam_mask[pairs], x, d.x_scale[pairs], d.bound[pairs],
             c.fidelity, c.sparsity, c.missing_penalty, floor=10.0 ** (FLOOR_DB / 10.0),
         )  # fmt: skip
-
-    def _columns(self, cells: torch.Tensor, bins: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
-        """Normalised A columns ``[B, M, K]`` of fine ``bins [B, K]`` (zeroed where not ``valid``)."""
-        a = self._training().a_norm
-        beams = torch.arange(a.shape[1], device=a.device)
-        cols = a[cells[:, None, None], beams[None, :, None], bins[:, None, :]]
-        return cols if valid is None else cols * valid[:, None, :].to(cols.dtype)
 
     def training_losses(self, pairs: torch.Tensor, position: float) -> dict[str, Any]:
         """HiTAM loss (1 − α) L⁽¹⁾ + α L⁽²⁾ of a batch of pair indices ``pairs [B]``, α at schedule ``position``."""
@@ -321,7 +291,9 @@ class RFLSCM(LSCMModel):
             bins, valid = self._frozen_selection(pairs)
         if alpha > 0.0:
             l2 = self._loss(
-                self._columns(cells, bins, valid), self._renderer().fine_power(cells, xyz, bins, valid), pairs
+                self._training().columns(cells, bins, valid),
+                self._renderer().fine_power(cells, xyz, bins, valid),
+                pairs,
             )
             total = total + alpha * l2["total"]
             out.update({"fine": l2["total"], **{k: v for k, v in l2.items() if k != "total"}})
@@ -357,14 +329,8 @@ class RFLSCM(LSCMModel):
         d = self._training().data
         pairs = torch.arange(d.num_pairs, device=self.device)[:: max(1, d.num_pairs // num_pairs)][:num_pairs]
         cells, xyz = d.cell_index[pairs], d.grid_xyz[pairs]
-        if self.hitam is None:
-            bins, values = self._renderer().output(cells, xyz, self.position)
-        elif stage == "coarse":
-            bins, values = self._renderer().coarse_as_fine(self._renderer().coarse_power(cells, xyz))
-        else:
-            bins, valid = self._renderer().expand(cells, self._renderer().coarse_power(cells, xyz))
-            values = self._renderer().fine_power(cells, xyz, bins, valid)
-        pred = torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
+        bins, values = self._renderer().stage_output(cells, xyz, stage, self.position)
+        pred = torch.einsum("bmk,bk->bm", self._training().columns(cells, bins), values)
         observed = d.observed[pairs]
         diff = 10.0 * torch.log10(pred[observed].clamp_min(1e-30) / d.rsrp[pairs][observed])
         return float(diff.median())
@@ -397,7 +363,7 @@ class RFLSCM(LSCMModel):
             pairs = d.val_pairs[start : start + PAIR_CHUNK]
             cells = d.cell_index[pairs]
             bins, values = self._renderer().output(cells, d.grid_xyz[pairs], self.position)
-            pred = torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
+            pred = torch.einsum("bmk,bk->bm", self._training().columns(cells, bins), values)
             mask = d.val_mask[pairs]
             count = int((mask & ~torch.isnan(d.rsrp[pairs])).sum())
             if count:
@@ -452,7 +418,7 @@ class RFLSCM(LSCMModel):
         assert self.scene is not None
         self.corrections = fit_corrections(
             self.config.corrections, train.data, train.num_ssb, np.asarray(self.scene.cell_ids), self._render_training,
-            self._columns, self.config.train.seed, progress,
+            self._training().columns, self.config.train.seed, progress,
         )  # fmt: skip
 
     @torch.no_grad()
@@ -468,7 +434,7 @@ class RFLSCM(LSCMModel):
             bins, values = R.coarse_as_fine(coarse)
             return bins, values, torch.einsum("bmk,bk->bm", a_coarse[cells], coarse)
         bins, values = R.output(cells, xyz, self.position)
-        return bins, values, torch.einsum("bmk,bk->bm", self._columns(cells, bins), values)
+        return bins, values, torch.einsum("bmk,bk->bm", self._training().columns(cells, bins), values)
 
     # --- persistence (:mod:`~rflscm.models.rflscm.checkpoint`) ---------------------------------------
     def state_dict_for_checkpoint(self) -> dict[str, Any]:
@@ -482,30 +448,3 @@ class RFLSCM(LSCMModel):
         checkpoint.load_stage_weights(self, weights)
         if self._train is not None:
             self._train.selection = None
-
-
-def fit_loss_channel(
-    fields: SceneFields, points: torch.Tensor, target: torch.Tensor, keep: torch.Tensor, steps: int, lr: float
-) -> None:
-    """Adam on ``fields``' δ module so that its raw loss channel at ``points [n, 3]`` approaches ``target [n]``
-    while its other channels stay at ``keep [n, C_δ − 1]`` (mean squared errors, ``steps`` steps at ``lr``)."""
-    opt = torch.optim.Adam(fields.delta_module().parameters(), lr=lr)
-    for _ in range(steps):
-        out = fields.delta(fields.encode(points))
-        loss = (out[:, 0] - target).square().mean() + (out[:, 1:] - keep).square().mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-
-
-@dataclass
-class _TrainContext:
-    """Training-only tensors: pair data, normalised A (full and coarse columns) and HiTAM's frozen selection."""
-
-    data: PairData
-    a_norm: torch.Tensor
-    a_coarse: torch.Tensor | None
-    num_ssb: int
-    """Columns ``0 … num_ssb−1`` of the stacked sensing matrix are SSB beams, the rest CSI-RS beams."""
-    selection: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
-    """``(bins, valid, known)`` of every training pair once α = 1 (see :meth:`RFLSCM._frozen_selection`)."""
