@@ -1,14 +1,14 @@
 """Typed configuration of RF-LSCM (and of models that reuse its renderer, e.g. NeRF²-LSCM).
 
-``RFLSCMConfig(field, decoder, prior, render, hitam, loss, train)``; every default is visible
+``RFLSCMConfig(field, decoder, prior, render, hitam, loss, train, corrections)``; every default is visible
 here.  Presets ``quick`` and ``full`` live in ``rflscm/configs/rflscm_{quick,full}.yaml`` and list
 only what they change.
 
 Settings that used to be options and are fixed since issue 11 are the module constants below (why each is
 fixed: docs/DECISIONS.md, "Knobs removed (issue 11)").  Each section's ``REMOVED`` maps a removed key to the
-value now hard-wired and a note: a YAML config that sets it is refused naming the note
-(:func:`rflscm.config.from_dict`), a checkpoint that holds it loads when it holds that value
-(``rflscm.models.rflscm._without_removed_options``).
+value now hard-wired (None: none) and a note: a YAML config that sets it is refused naming the note
+(:func:`rflscm.config.from_dict`); a checkpoint of an older layout is refused as a whole
+(:mod:`rflscm.models.rflscm.checkpoint`).
 """
 
 from __future__ import annotations
@@ -73,15 +73,6 @@ FLOOR_DB = -80.0
 """Predictions are floored at this level relative to the median measured RSRP before logs [dB]."""
 VAL_BEAM_FRACTION = 0.25
 """Fraction of a validation pair's reported beams held aside (never trained on)."""
-
-
-class _AnyValue:
-    def __repr__(self) -> str:
-        return "any value"
-
-
-ANY = _AnyValue()
-"""In a ``REMOVED`` table: every value of the removed option loads (it no longer changes anything)."""
 
 
 def _positive(where: str, value: float, allow_zero: bool = False) -> None:
@@ -153,7 +144,7 @@ class DecoderConfig:
         "init_radiance_db": (INIT_RADIANCE_DB, "issue 11: fixed at -30 dB"),
         "init_level_db": (INIT_LEVEL_DB, "issue 11: fixed at -6 dB"),
         "grid_code_dim": (0, "issue 11: per-grid codes are gone"),
-        "grid_code_neighbours": (ANY, "issue 11: per-grid codes are gone"),
+        "grid_code_neighbours": (None, "issue 11: per-grid codes are gone"),
     }
     """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
 

@@ -90,7 +90,7 @@ class RFLSCM(LSCMModel):
         self.config = config
         self.fields: FieldFactory = fields if fields is not None else VMFieldFactory(config.field)
         h = config.hitam
-        self.hitam = HiTAM(angle_grid, h.beta, h.top_k, "block", h.warmup_steps, h.ramp_steps) if h.enabled else None
+        self.hitam = HiTAM(angle_grid, h.beta, h.top_k, h.warmup_steps, h.ramp_steps) if h.enabled else None
         self.scene: SceneInfo | None = None
         self.prior: PointPrior | None = None
         self.surfaces: SurfaceOrientation | None = None
