@@ -53,7 +53,7 @@ def time_finish(path: str, repeats: int) -> None:
         model._levels_step = model._pairs_step = None  # measure everything again
         start = time.perf_counter()
         model.finish_training()
-        post = model.posterior
+        post = model.corrections.posterior
         scores = {k: round(v, 4) for k, v in post.scores.items()} if post is not None else None
         print(f"finish {time.perf_counter() - start:.2f} s, λ {post.lam if post else None}, held-aside {scores}")
 

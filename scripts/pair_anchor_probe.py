@@ -56,7 +56,7 @@ def main() -> None:
     args = ap.parse_args()
     scenario = load_scenario(args.scenario)
     model = load_model(args.checkpoint, scenario)
-    model.anchors = None  # the model's own anchors (train.pair_anchors) off: the probe computes its own
+    model.corrections.anchors = None  # the model's own anchors (corrections.pair_anchors) off: the probe computes its own
     cache = APSCache(model)
     res = residuals(cache, scenario)
     grouped = res.groupby(["cell_id", "grid_id"])["resid"]
