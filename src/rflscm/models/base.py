@@ -304,7 +304,7 @@ def _first_non_finite(value: Any, where: str = "") -> str | None:
     return None
 
 
-def require_round1_reports(scenario: Any, model_name: str) -> int:
+def require_round1_reports(scenario: Scenario, model_name: str) -> int:
     """Number of reported (non-empty) round-1 RSRP values; none is a :class:`DataError` (every model learns
     from round 1, so fitting on nothing would give a model that answers nothing or noise)."""
     m = scenario.measurements

@@ -169,7 +169,7 @@ class RFLSCM(LSCMModel):
         )  # fmt: skip
         prior = make_prior(cfg, scenario, lo, hi)
         self.prior = prior.to(self.device) if prior is not None else None
-        surfaces = make_surfaces(cfg, scenario, lo, hi, seed=cfg.train.seed)
+        surfaces = make_surfaces(scenario, lo, hi, seed=cfg.train.seed)
         self.surfaces = surfaces.to(self.device) if surfaces is not None else None
         self._build_stages(self.scene.frame)
         targets = building_targets(cfg, scenario, prior, seed=cfg.train.seed) if prior is not None else None

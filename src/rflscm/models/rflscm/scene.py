@@ -172,9 +172,7 @@ def make_prior(cfg: RFLSCMConfig, scenario: Scenario, lo: np.ndarray, hi: np.nda
     return PointPrior(torch.from_numpy(density), torch.from_numpy(grid_lo), torch.from_numpy(grid_hi), threshold, beta)
 
 
-def make_surfaces(
-    cfg: Any, scenario: Scenario, lo: np.ndarray, hi: np.ndarray, seed: int = 0
-) -> SurfaceOrientation | None:
+def make_surfaces(scenario: Scenario, lo: np.ndarray, hi: np.ndarray, seed: int = 0) -> SurfaceOrientation | None:
     """The scan's surface orientation for the decoder's specular cue; ``None`` when the scenario has no point
     cloud (the cue is then 0)."""
     cloud = scenario.point_cloud
