@@ -55,7 +55,7 @@ from rflscm.models.rflscm.fields import (
 )
 from rflscm.models.rflscm.hitam import HiTAM
 from rflscm.models.rflscm.losses import lscm_loss, mae_db
-from rflscm.models.rflscm.renderer import APSRenderer, TrainContext
+from rflscm.models.rflscm.renderer import APSRenderer, RayKind, TrainContext
 from rflscm.models.rflscm.scene import (
     SceneInfo,
     building_targets,
@@ -324,7 +324,7 @@ class RFLSCM(LSCMModel):
         return bins[pairs], valid[pairs]
 
     @torch.no_grad()
-    def _median_error_db(self, stage: str, num_pairs: int = 64) -> float:
+    def _median_error_db(self, stage: RayKind, num_pairs: int = 64) -> float:
         """Median (prediction − measurement) [dB] of ``stage``'s APS over the observed beams of a few training pairs."""
         d = self._training().data
         pairs = torch.arange(d.num_pairs, device=self.device)[:: max(1, d.num_pairs // num_pairs)][:num_pairs]

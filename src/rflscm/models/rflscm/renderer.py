@@ -196,7 +196,7 @@ class APSRenderer:
         return self.coarse_as_fine(coarse)
 
     def stage_output(
-        self, cells: torch.Tensor, grid_xyz: torch.Tensor, stage: str, position: float
+        self, cells: torch.Tensor, grid_xyz: torch.Tensor, stage: RayKind, position: float
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Sparse APS ``(bins, values)`` of one stage: without HiTAM the output at ``position``; with it the coarse
         APS spread over its blocks (``stage`` "coarse") or the fine APS on the coarse selection ("fine")."""
