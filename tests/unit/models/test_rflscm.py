@@ -173,5 +173,3 @@ def test_coarse_model_is_frozen_once_alpha_is_one_and_its_selection_is_remembere
 def test_iterative_models_are_trained_by_the_trainer_not_by_model_fit(scenario) -> None:
     with pytest.raises(UnsupportedError, match="trained iteratively"):
         RFLSCM.build(tiny_config(), GRID).fit(scenario, progress=False)
-
-
