@@ -157,6 +157,16 @@ class DecoderConfig:
     relative to the ray's cone) and along the ray, and the specular cue of :data:`SPECULAR_POWERS`;
     ``offset+grid`` feeds both."""
 
+    @property
+    def grid_position_input(self) -> bool:
+        """The decoder reads the grid's normalised position (``paper``, ``offset+grid``)."""
+        return self.inputs in ("paper", "offset+grid")
+
+    @property
+    def pair_geometry_input(self) -> bool:
+        """The decoder reads the sample-to-grid geometry (``offset``, ``offset+grid``)."""
+        return self.inputs in ("offset", "offset+grid")
+
     def __post_init__(self) -> None:
         if self.hidden < 1 or self.layers < 1:
             raise ConfigError(f"`model.decoder` needs hidden >= 1 and layers >= 1 (got {self.hidden}, {self.layers}).")

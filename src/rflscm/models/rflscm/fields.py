@@ -201,12 +201,12 @@ class RadianceDecoder(nn.Module):
         super().__init__()
         self.cfg, self.frame, self.step_m = cfg, frame, step_m
         query_width = encoded_dim(3, DIR_FREQS) + encoded_dim(1, WAVELENGTH_FREQS) + feature_dim  # + 𝓜(p_l)
-        if cfg.inputs in ("paper", "offset+grid"):
+        if cfg.grid_position_input:
             query_width += encoded_dim(3, GRID_FREQS)
         self.sample_in = nn.Linear(feature_dim, cfg.hidden)
         self.query_in = nn.Linear(query_width, cfg.hidden, bias=False)
         self.pair_in = None
-        if cfg.inputs in ("offset", "offset+grid"):
+        if cfg.pair_geometry_input:
             width = 2 * encoded_dim(3, DIR_FREQS) + encoded_dim(3, POS_FREQS) + len(SPECULAR_POWERS)
             self.pair_in = nn.Linear(width, cfg.hidden, bias=False)
         self.mlp = MLP(cfg.hidden, 2, hidden=head_hidden or cfg.hidden, num_layers=cfg.layers - 1, out_scale=0.1)
@@ -221,7 +221,7 @@ class RadianceDecoder(nn.Module):
             positional_encoding(rays.direction[queries.ray], DIR_FREQS),
             positional_encoding(log_wl, WAVELENGTH_FREQS),
         ]
-        if self.cfg.inputs in ("paper", "offset+grid"):
+        if self.cfg.grid_position_input:
             unit = 2.0 * (queries.grid_xyz - self.box_lo) / (self.box_hi - self.box_lo) - 1.0
             parts.append(positional_encoding(unit, GRID_FREQS))
         parts.append(grid_features)
