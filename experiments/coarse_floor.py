@@ -16,7 +16,7 @@ import torch
 
 from rflscm.data import BEAM_TYPES, load_scenario
 from rflscm.geometry import AngleGrid
-from rflscm.models.hitam import HiTAM
+from rflscm.models.rflscm.hitam import HiTAM
 from rflscm.sim import default_scenario_path
 from rflscm.sim.truth import load_true_aps
 

@@ -106,12 +106,13 @@ def test_kill_during_save_then_resume_gives_identical_weights(tmp_path: Path) ->
     assert killed.returncode == -signal.SIGKILL, killed.stderr
     partial = tmp_path / "run.ckpt.tmp"
     assert partial.is_file() and run.is_file()
-    assert read_checkpoint(run)["state"]["step"] == 4  # the last complete save survived the kill
+    assert read_checkpoint(run)["train_state"]["step"] == 4  # the last complete save survived the kill
 
     assert train(scenario, config, run, "--resume") == 0
     assert not partial.exists()
-    ours, theirs = read_checkpoint(run)["state"], read_checkpoint(tmp_path / "reference.ckpt")["state"]
-    assert ours["step"] == theirs["step"] == 8
+    ours_payload, theirs_payload = read_checkpoint(run), read_checkpoint(tmp_path / "reference.ckpt")
+    assert ours_payload["train_state"]["step"] == theirs_payload["train_state"]["step"] == 8  # the trainer's count
+    ours, theirs = ours_payload["state"], theirs_payload["state"]
     assert ours["stages"].keys() == theirs["stages"].keys()
     for name, weight in theirs["stages"].items():
         assert torch.equal(ours["stages"][name], weight), name

@@ -3,7 +3,7 @@
 B9 (:mod:`rflscm.bench.b09_time_to_target`) runs this file *by path* in a subprocess, once with
 ``PYTHONPATH`` at an exported older commit's ``src`` and once at the current package's ``src``, so
 it uses only what both have: ``rflscm.data.load_scenario``, ``rflscm.geometry.AngleGrid``,
-``rflscm.models.MODEL_REGISTRY["rflscm"].build``, ``rflscm.models.rflscm_config.preset_path``,
+``rflscm.models.MODEL_REGISTRY["rflscm"].build``, ``rflscm.models.rflscm.config.preset_path``,
 ``rflscm.bench.harness.merge``,
 ``rflscm.eval.protocols.AdjustProtocol`` / ``fit_with_protocol`` (whose callback gets the metrics
 of every step) and ``rflscm.eval.run_evaluation``.  It is never imported as part of ``rflscm``.
@@ -49,7 +49,7 @@ def _config(spec: str, overrides: dict[str, Any]) -> Any:
     import yaml
 
     from rflscm.bench.harness import merge
-    from rflscm.models.rflscm_config import preset_path
+    from rflscm.models.rflscm.config import preset_path
 
     path = Path(spec) if Path(spec).is_file() else preset_path(spec, "rflscm")
     return merge(yaml.safe_load(path.read_text()) or {}, overrides)

@@ -143,7 +143,7 @@ def model_config(
 ) -> dict[str, Any]:
     """The config mapping of ``model`` at ``size``: preset YAML (if shipped) ← size overrides ← ``extra``
     ← ``train.seed``."""
-    from rflscm.models.rflscm_config import preset_path
+    from rflscm.models.rflscm.config import preset_path
 
     base: dict[str, Any] = {}
     if model in FIELD_MODELS and preset_path(size.preset, model).is_file():

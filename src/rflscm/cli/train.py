@@ -86,6 +86,7 @@ def train(
     from rflscm.eval.protocols import fit_with_protocol, make_protocol
     from rflscm.geometry import AngleGrid
     from rflscm.models import MODEL_REGISTRY
+    from rflscm.models.base import read_checkpoint
     from rflscm.train import Trainable
 
     console = Console(stderr=True)
@@ -117,7 +118,8 @@ def train(
     )
     elapsed = time.perf_counter() - t0
     fitted.run_info["fit"] = {**{k: float(v) for k, v in summary.items()}, "train_time_s": elapsed}
-    fitted.save(out)
+    kept = read_checkpoint(out).get("train_state") if out.is_file() else None  # the trainer's last save
+    fitted.save(out, train_state=kept)
     console.print(f"wrote {out} in {elapsed:.1f} s")
     if (line := budget_summary(summary)) is not None:
         console.print(line)

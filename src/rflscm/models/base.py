@@ -185,8 +185,9 @@ class LSCMModel(abc.ABC):
         subclasses check that what they read is consistent (index ranges, shapes) and raise
         :class:`CheckpointError` otherwise.  The default checks nothing."""
 
-    def save(self, path: str | Path) -> Path:
-        """Write a single checkpoint file atomically (temp file, fsync, rename); see the module docstring."""
+    def save(self, path: str | Path, train_state: dict[str, Any] | None = None) -> Path:
+        """Write a single checkpoint file atomically (temp file, fsync, rename); see the module docstring.
+        ``train_state``: the trainer's state (step, optimizer, generators), saved beside the model's."""
         from rflscm import __version__
 
         path = Path(path)
@@ -201,6 +202,7 @@ class LSCMModel(abc.ABC):
             "angle_grid": self.angle_grid.to_dict(),
             "run_info": self.run_info,
             "state": self.state_dict_for_checkpoint(),
+            "train_state": train_state,
         })  # fmt: skip
         tmp = partial_save_path(path)
         tmp.unlink(missing_ok=True)  # a partial file left by a save that was killed
@@ -302,7 +304,7 @@ def _first_non_finite(value: Any, where: str = "") -> str | None:
     return None
 
 
-def require_round1_reports(scenario: Any, model_name: str) -> int:
+def require_round1_reports(scenario: Scenario, model_name: str) -> int:
     """Number of reported (non-empty) round-1 RSRP values; none is a :class:`DataError` (every model learns
     from round 1, so fitting on nothing would give a model that answers nothing or noise)."""
     m = scenario.measurements

@@ -9,16 +9,16 @@ scene with two networks:
   through a linear *feature layer* 256 → 256, the features of the sample;
 * a **radiance head**: [features, conditioning] → 256 → 128 → complex R (2 outputs).  The
   conditioning (ray direction, grid position / offset, carrier) is RF-LSCM's decoder's
-  (:class:`~rflscm.models.radiance.RadianceDecoder`), so only the widths differ.
+  (:class:`~rflscm.models.rflscm.fields.RadianceDecoder`), so only the widths differ.
 
 NeRF²-LSCM *is* :class:`~rflscm.models.rflscm.RFLSCM` with :class:`MLPFieldFactory` plugged into
-its one field seam (:class:`~rflscm.models.radiance.FieldFactory`): ray sampling, the point-cloud
+its one field seam (:class:`~rflscm.models.rflscm.fields.FieldFactory`): ray sampling, the point-cloud
 prior, FDAM, the decoder's conditioning, the render integral, the loss, HiTAM, training and
 checkpoints are RF-LSCM's.  Presets: ``rflscm/configs/nerf2_{quick,full}.yaml`` (``full`` = the
 paper's sizes; ``quick`` shrinks the widths for 2 CPU cores).
 
 The attenuation and the features come from one trunk, evaluated once per stored sample: the
-trunk's last hidden layer is the :meth:`~rflscm.models.radiance.SceneFields.encode` code, from
+trunk's last hidden layer is the :meth:`~rflscm.models.rflscm.fields.SceneFields.encode` code, from
 which the δ head and the feature layer read.
 """
 
@@ -35,11 +35,11 @@ from rflscm.errors import ConfigError
 from rflscm.fields import MLP, encoded_dim, positional_encoding
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import register_model
-from rflscm.models.radiance import SceneFields, SceneFrame
 from rflscm.models.rflscm import RFLSCM
-from rflscm.models.rflscm_config import (
+from rflscm.models.rflscm.config import (
     INIT_LOSS_DB,
     LEARN_MU,
+    CorrectionsConfig,
     DecoderConfig,
     HiTAMConfig,
     LossConfig,
@@ -47,6 +47,7 @@ from rflscm.models.rflscm_config import (
     RenderConfig,
     TrainConfig,
 )
+from rflscm.models.rflscm.fields import SceneFields, SceneFrame
 
 
 @dataclass(frozen=True)
@@ -123,6 +124,7 @@ class NeRF2Config:
     hitam: HiTAMConfig = dataclasses.field(default_factory=HiTAMConfig)
     loss: LossConfig = dataclasses.field(default_factory=LossConfig)
     train: NeRF2TrainConfig = dataclasses.field(default_factory=NeRF2TrainConfig)
+    corrections: CorrectionsConfig = dataclasses.field(default_factory=CorrectionsConfig)
 
 
 class NeRF2Field(SceneFields):
@@ -171,7 +173,7 @@ class NeRF2Field(SceneFields):
 
 
 class MLPFieldFactory:
-    """The :class:`~rflscm.models.radiance.FieldFactory` of NeRF²-LSCM: one :class:`NeRF2Field` per stage, the
+    """The :class:`~rflscm.models.rflscm.fields.FieldFactory` of NeRF²-LSCM: one :class:`NeRF2Field` per stage, the
     decoder's head narrowed to ``head_hidden``, no resolution schedule."""
 
     upsample_at: tuple[int, ...] = ()

@@ -183,10 +183,6 @@ class WNOMPModel(LSCMModel):
         self.values = torch.as_tensor(np.clip(values[order], 0.0, None), dtype=torch.float32)
         self._lookup = pd.MultiIndex.from_arrays([self.cell_ids, self.grid_ids])
 
-    def fitted_pairs(self) -> pd.DataFrame:
-        """The (cell_id, grid_id) pairs this model can answer."""
-        return pd.DataFrame({"cell_id": self.cell_ids, "grid_id": self.grid_ids})
-
     # --- answering ----------------------------------------------------------------------------
     def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
         """Dense APS ``[num_pairs, num_bins]`` (float32, linear path gain) of fitted pairs only."""

@@ -10,13 +10,16 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 
 from rflscm.geometry import AngleGrid
 from rflscm.models.wnomp import WNOMPConfig, WNOMPModel
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
 
 CANDIDATES: dict[str, tuple[Any, ...]] = {
     "k_max": (2, 4, 8),
@@ -60,7 +63,7 @@ def candidate_configs(base: WNOMPConfig | None = None) -> list[tuple[dict[str, A
 
 
 def select_wnomp(
-    scenario: Any,
+    scenario: Scenario,
     angle_grid: AngleGrid,
     fraction: float = 0.2,
     seed: int = 0,
@@ -85,7 +88,7 @@ def select_wnomp(
     return candidate_configs(base)[best][1], table
 
 
-def _held_errors(model: WNOMPModel, scenario: Any, held: pd.DataFrame, beam_type: str) -> np.ndarray:
+def _held_errors(model: WNOMPModel, scenario: Scenario, held: pd.DataFrame, beam_type: str) -> np.ndarray:
     """|prediction − measurement| [dB] of the held-aside beams of one type (pairs the model never saw drop out)."""
     if len(held) == 0:
         return np.zeros(0)

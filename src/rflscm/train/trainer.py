@@ -32,7 +32,7 @@ from torch import nn
 
 from rflscm.errors import CheckpointError, ConfigError
 from rflscm.models.base import LSCMModel, TrainingPlan, discard_partial_save, read_checkpoint
-from rflscm.models.rflscm_config import TrainConfig
+from rflscm.train.config import LoopConfig
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
@@ -49,19 +49,19 @@ class Trainable(Protocol):
     * :meth:`on_step_begin` — per-step hooks (HiTAM hand-over, upsampling) at the step's schedule
       ``position`` (a float in units of ``train.steps``; in step mode exactly the step); True when the
       parameter objects changed and the optimizer must be rebuilt;
-    * :meth:`resume_from` — load weights and step from a checkpoint payload (refusing a foreign one)
-      and return the trainer state saved with it;
+    * :meth:`resume_from` — load weights and schedule position from a checkpoint payload (refusing a
+      foreign one); the trainer state saved beside them is the trainer's own (``payload["train_state"]``);
     * :meth:`finish_training` — once after the last step (before the final checkpoint): work that only the
       trained weights need (RF-LSCM's level correction and pair corrections; ``progress``: show a bar);
-    * ``step`` (steps done), ``train_state`` (the trainer state :meth:`save` writes along),
-      ``train_config`` and :meth:`decoder_evals` (a work counter for throughput).
+    * :meth:`save` — the checkpoint, with the trainer state written beside the model's;
+    * ``train_config`` (the loop's knobs) and :meth:`decoder_evals` (a work counter for throughput).
+
+    The trainer owns the step count, the optimizer and the schedule; the model sees only the schedule
+    ``position`` of each step (:meth:`on_step_begin`).
     """
 
-    step: int
-    train_state: dict[str, Any] | None
-
     @property
-    def train_config(self) -> TrainConfig: ...
+    def train_config(self) -> LoopConfig: ...
 
     def prepare(self, scenario: Scenario) -> TrainingPlan: ...
 
@@ -73,11 +73,11 @@ class Trainable(Protocol):
 
     def on_step_begin(self, step: int, position: float) -> bool: ...
 
-    def resume_from(self, payload: dict[str, Any], path: str | Path) -> dict[str, Any]: ...
+    def resume_from(self, payload: dict[str, Any], path: str | Path) -> None: ...
 
     def decoder_evals(self) -> int: ...
 
-    def save(self, path: str | Path) -> Path: ...
+    def save(self, path: str | Path, train_state: dict[str, Any] | None = None) -> Path: ...
 
     def finish_training(self, progress: bool = False) -> None: ...
 
@@ -115,7 +115,11 @@ def fit(
     plan = model.prepare(scenario)
     trainer = Trainer(model, model.train_config, plan.pairs, groups=plan.groups, budget_s=budget_s, clock=clock)
     if resume and checkpoint_path is not None and Path(checkpoint_path).is_file():
-        state = model.resume_from(read_checkpoint(checkpoint_path), checkpoint_path)
+        payload = read_checkpoint(checkpoint_path)
+        model.resume_from(payload, checkpoint_path)
+        state = payload.get("train_state")
+        if not isinstance(state, dict):
+            raise CheckpointError(f"{checkpoint_path}: cannot resume: the checkpoint holds no optimizer state.")
         trainer.check_budget(state, checkpoint_path)
         trainer.load_state_dict(state)
     evals0, time0 = model.decoder_evals(), clock()
@@ -151,7 +155,7 @@ class Trainer:
     def __init__(
         self,
         model: Trainable,
-        cfg: TrainConfig,
+        cfg: LoopConfig,
         train_pairs: torch.Tensor,
         groups: torch.Tensor | None = None,
         budget_s: float | None = None,
@@ -279,8 +283,7 @@ class Trainer:
         self.elapsed_s = float(state.get("elapsed_s", 0.0))
 
     def save(self, path: str | Path) -> None:
-        self.model.train_state = self.state_dict()
-        self.model.save(path)
+        self.model.save(path, train_state=self.state_dict())
 
     # --- the loop -------------------------------------------------------------------------------
     def train_step(self) -> dict[str, float]:
@@ -296,7 +299,6 @@ class Trainer:
         losses["total"].backward()
         self.optimizer.step()
         self.step += 1
-        self.model.step = self.step
         return {k: float(v.detach()) if isinstance(v, torch.Tensor) else float(v) for k, v in losses.items()}
 
     def run(

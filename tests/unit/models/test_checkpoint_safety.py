@@ -23,8 +23,8 @@ from rflscm.geometry import AngleGrid
 from rflscm.models import MODEL_REGISTRY, load_model
 from rflscm.models.base import NonFiniteError, content_hash, from_plain, read_checkpoint, to_plain
 from rflscm.models.rflscm import RFLSCM
-from rflscm.models.rflscm_config import RFLSCMConfig, from_dict
-from rflscm.models.rflscm_scene import check_scene_box
+from rflscm.models.rflscm.config import RFLSCMConfig, from_dict
+from rflscm.models.rflscm.scene import check_scene_box
 from rflscm.train import fit
 
 SMALL = AngleGrid.full_sphere(10, 12)

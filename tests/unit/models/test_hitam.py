@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import pytest
 import torch
 
 from rflscm.geometry import AngleGrid
-from rflscm.models.hitam import HiTAM, scatter_fine
+from rflscm.models.rflscm.hitam import HiTAM, scatter_fine
 
 GRID = AngleGrid(num_el=7, num_az=8, el_min_deg=-60.0, el_step_deg=20.0)  # β = 3: blocks 3,3,1 × 3,3,2
 
@@ -39,23 +38,19 @@ def test_topk_selects_exactly_the_largest_coarse_bins() -> None:
     assert parents.numel() == int(valid.sum())
 
 
-@pytest.mark.parametrize("mode", ["block", "representative"])
-def test_coarse_columns_and_directions(mode: str) -> None:
-    h = HiTAM(GRID, beta=3, top_k=2, coarse_bins=mode)
+def test_coarse_columns_and_directions_are_block_means_and_centres() -> None:
+    h = HiTAM(GRID, beta=3, top_k=2)
     a = torch.rand(2, 5, GRID.num_bins)
     cols = h.coarse_columns(a)
     assert cols.shape == (2, 5, 9)
     dirs = h.coarse_directions()
     assert torch.allclose(dirs.norm(dim=-1), torch.ones(9))
     fine = GRID.directions()
-    if mode == "representative":
-        rep = h.mapping.representative_bins()
-        assert torch.equal(cols, a[..., rep]) and torch.allclose(dirs, fine[rep])
-    else:  # block (2, 2) is fine bins (6, 6) and (6, 7)
-        assert torch.allclose(cols[..., 8], 0.5 * (a[..., 6 * 8 + 6] + a[..., 6 * 8 + 7]))
-        assert torch.allclose(cols[..., 4], a[..., [i * 8 + j for i in (3, 4, 5) for j in (3, 4, 5)]].mean(-1))
-        centre = fine[6 * 8 + 6] + fine[6 * 8 + 7]
-        assert torch.allclose(dirs[8], centre / centre.norm(), atol=1e-6)
+    # block (2, 2) is fine bins (6, 6) and (6, 7)
+    assert torch.allclose(cols[..., 8], 0.5 * (a[..., 6 * 8 + 6] + a[..., 6 * 8 + 7]))
+    assert torch.allclose(cols[..., 4], a[..., [i * 8 + j for i in (3, 4, 5) for j in (3, 4, 5)]].mean(-1))
+    centre = fine[6 * 8 + 6] + fine[6 * 8 + 7]
+    assert torch.allclose(dirs[8], centre / centre.norm(), atol=1e-6)
 
 
 def test_block_columns_make_spread_power_consistent() -> None:

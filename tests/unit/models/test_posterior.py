@@ -1,4 +1,4 @@
-"""The pair posterior: per-bin gains that fit a pair's reports under a ridge prior (rflscm.models.posterior),
+"""The pair posterior: per-bin gains that fit a pair's reports under a ridge prior (rflscm.models.rflscm.posterior),
 and RF-LSCM's use of it (``train.pair_posterior``)."""
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from rflscm.data.examples import tiny_scenario
 from rflscm.errors import CheckpointError
 from rflscm.geometry import AngleGrid
 from rflscm.models import load_model
-from rflscm.models.posterior import LambdaChoice, PairPosterior, fit_gains, predicted_change_db
 from rflscm.models.rflscm import RFLSCM
+from rflscm.models.rflscm.posterior import LambdaChoice, PairPosterior, fit_gains, predicted_change_db
 from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)
@@ -130,12 +130,12 @@ def test_the_posterior_fits_training_reports_leaves_training_alone_and_survives_
     runs = {}
     for on in (True, False):
         torch.manual_seed(0)
-        model = RFLSCM.build(tiny_config(train={"steps": 4, "pair_posterior": on}), GRID)
+        model = RFLSCM.build(tiny_config(train={"steps": 4}, corrections={"pair_posterior": on}), GRID)
         runs[on] = (model, fit(model, scenario, progress=False))
     model, summary = runs[True]
-    post = model.posterior
-    assert runs[False][0].posterior is None and runs[False][0].current_posterior() is None
-    assert post is not None and math.isfinite(post.lam) and len(post.index) == len(model.anchors)
+    post = model.corrections.posterior
+    assert runs[False][0].corrections.posterior is None
+    assert post is not None and math.isfinite(post.lam) and len(post.index) == len(model.corrections.anchors)
     assert post.scores[post.lam] < post.scores[math.inf]
     # training and the field's held-aside validation score do not change; the training reports fit better
     assert (
@@ -157,10 +157,9 @@ def test_the_pass_after_training_shows_a_progress_bar_only_when_asked(scenario, 
     model = RFLSCM.build(tiny_config(train={"steps": 2}), GRID)
     fit(model, scenario, progress=False)
     assert "pair corrections" not in capsys.readouterr().err
-    before = model.posterior
-    model.step += 1  # the weights "moved": the next finish measures again
+    before = model.corrections.posterior
     model.finish_training(progress=True)
-    assert "pair corrections" in capsys.readouterr().err and model.posterior is not before
+    assert "pair corrections" in capsys.readouterr().err and model.corrections.posterior is not before
 
 
 @pytest.mark.usefixtures("one_thread")
@@ -170,15 +169,13 @@ def test_the_pass_after_training_renders_each_training_pair_once_and_measures_th
     torch.manual_seed(0)
     model = RFLSCM.build(tiny_config(train={"steps": 3}), GRID)
     fit(model, scenario, progress=False)
-    levels, anchors = model.levels.clone(), model.anchors.copy()
+    levels, anchors = model.corrections.levels.clone(), model.corrections.anchors.copy()
     rendered: list[torch.Tensor] = []
     render = model._render_training
     monkeypatch.setattr(model, "_render_training", lambda pairs: (rendered.append(pairs.clone()), render(pairs))[1])
-    model.step += 1  # the weights "moved": measure everything again
     model.finish_training()
     seen = torch.cat(rendered)
-    assert seen.numel() == len(model.anchors) == seen.unique().numel()  # every pair with reports, once
+    assert seen.numel() == len(model.corrections.anchors) == seen.unique().numel()  # every pair with reports, once
     # the same corrections as a level correction measured on its own pairs
-    torch.testing.assert_close(model.levels, levels)
-    pd.testing.assert_series_equal(model.anchors, anchors)
-    torch.testing.assert_close(model._fit_levels(), levels)
+    torch.testing.assert_close(model.corrections.levels, levels)
+    pd.testing.assert_series_equal(model.corrections.anchors, anchors)

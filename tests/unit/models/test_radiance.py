@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 
 from rflscm.fields import PassiveMedium, TensorVM
-from rflscm.models.radiance import Queries, RadianceDecoder, RadianceStage, RayBatch, SceneFrame, VMFields
-from rflscm.models.rflscm_config import MIN_WEIGHT, DecoderConfig, RenderConfig
+from rflscm.models.rflscm.config import MIN_WEIGHT, DecoderConfig, RenderConfig
+from rflscm.models.rflscm.fields import Queries, RadianceDecoder, RadianceStage, RayBatch, SceneFrame, VMFields
 from rflscm.render import RaySamples, gather_samples, select_samples
 
 LO, HI = (-50.0, -50.0, 0.0), (50.0, 50.0, 30.0)
@@ -85,7 +85,7 @@ def test_early_termination_drops_only_negligible_samples() -> None:
 def test_the_pair_inputs_are_the_concatenated_encodings_and_the_decoder_still_learns() -> None:
     from rflscm.fields import positional_encoding
     from rflscm.fields.surfaces import specularity
-    from rflscm.models.rflscm_config import DIR_FREQS, POS_FREQS, SPECULAR_POWERS
+    from rflscm.models.rflscm.config import DIR_FREQS, POS_FREQS, SPECULAR_POWERS
 
     decoder = make_stage().decoder
     g = torch.Generator().manual_seed(3)

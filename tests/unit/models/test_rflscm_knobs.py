@@ -12,14 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-from rflscm.config import from_dict, to_dict
 from rflscm.data import load_scenario
 from rflscm.data.examples import tiny_scenario
 from rflscm.errors import CheckpointError, ConfigError
 from rflscm.geometry import AngleGrid
-from rflscm.models.nerf2 import NeRF2Config
-from rflscm.models.rflscm import RFLSCM, _without_removed_options
-from rflscm.models.rflscm_config import RFLSCMConfig, load_rflscm_config
+from rflscm.models.rflscm import RFLSCM
+from rflscm.models.rflscm.config import RFLSCMConfig, load_rflscm_config
 from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)
@@ -62,9 +60,9 @@ CHANGES = [
     ("train", "val_pairs", 1),
     ("train", "val_every", 3),
     ("train", "seed", 1),
-    ("train", "calibrate_levels", False),
-    ("train", "pair_anchors", False),
-    ("train", "pair_posterior", False),
+    ("corrections", "calibrate_levels", False),
+    ("corrections", "pair_anchors", False),
+    ("corrections", "pair_posterior", False),
 ]
 # options that bound memory or I/O only: the same results, by design
 NEUTRAL = [("render", "chunk_samples", 64), ("train", "checkpoint_every", 1)]
@@ -89,7 +87,8 @@ def run(scenario, section: str | None = None, key: str | None = None, value=None
     summary = fit(model, scenario, progress=False, callback=lambda m: history.append((m["total"], m["val_mae_db"])))
     aps = model.aps(np.array([11, 12]), np.array([100, 101])).double().sum(1).tolist()
     # the pair posterior's choice of λ on held-aside reports (it is applied only where it beats the field)
-    posterior = None if model.posterior is None else sorted(model.posterior.scores.items())
+    fitted = model.corrections.posterior
+    posterior = None if fitted is None else sorted(fitted.scores.items())
     return repr((tuple(history), summary["val_mae_db"], tuple(aps), posterior))  # repr: NaN compares equal
 
 
@@ -138,18 +137,6 @@ OLD_DEFAULTS = {  # the 30 removed options at their defaults before issue 11 (wr
     "loss": {"floor_db": -80.0},
     "train": {"val_beam_fraction": 0.25},
 }  # fmt: skip
-OTHER_VALUES = {  # a value each removed option could hold before issue 11 and that is no longer implemented
-    "field": {"max_resolution": 128, "delta_basis": "per_mode", "feature_basis": "per_channel", "init_scale": 0.3,
-              "delta_init_scale": 0.5, "learn_mu": False, "init_loss_db": 0.1},
-    "decoder": {"dir_freqs": 2, "pos_freqs": 2, "grid_freqs": 2, "grid_features": False, "specular_powers": [],
-                "specular_voxel_m": 8.0, "wavelength_freqs": 2, "output": "cartesian", "spreading_prior": False,
-                "source_decay": 0.0, "init_radiance_db": -10.0, "init_level_db": None},
-    "prior": {"radius_m": 2.0, "density_threshold": 1.0, "beta": 0.5, "skip_below": 0.05},
-    "render": {"num_samples": 2, "inclusive": False, "max_log_gain": None, "min_weight": 0.0},
-    "hitam": {"fine_init": "fresh"},
-    "loss": {"floor_db": -10.0},
-    "train": {"val_beam_fraction": 0.6},
-}  # fmt: skip
 REMOVED = [(s, k) for s, keys in OLD_DEFAULTS.items() for k in keys]
 
 
@@ -174,54 +161,22 @@ def test_a_removed_option_in_a_yaml_file_is_refused_in_one_line(tmp_path) -> Non
     assert str(info.value) == f"{path}: `decoder.output` was removed (issue 11: always polar); drop it."
 
 
-def test_an_old_checkpoint_config_with_the_removed_options_at_their_old_defaults_loads() -> None:
-    old = to_dict(RFLSCMConfig())
-    for section, values in OLD_DEFAULTS.items():
-        old[section].update(values)
-    old["decoder"].update(grid_code_dim=0, grid_code_neighbours=4)  # removed earlier in issue 11
-    old["render"]["coherent"] = True
-    old["hitam"]["coarse_bins"] = "block"
-    assert from_dict(RFLSCMConfig, _without_removed_options(old)) == RFLSCMConfig()
+def test_a_moved_correction_switch_in_the_train_section_names_its_new_section() -> None:
+    with pytest.raises(ConfigError, match=r"^`train\.pair_anchors` was removed \(issue 24: moved to `corrections\."):
+        RFLSCM.build({"train": {"pair_anchors": False}}, GRID)
 
 
-@pytest.mark.parametrize(("section", "key"), REMOVED, ids=[f"{s}.{k}" for s, k in REMOVED])
-def test_an_old_checkpoint_config_with_a_removed_option_away_from_its_default_is_refused(
-    section: str, key: str
-) -> None:
-    old = to_dict(RFLSCMConfig())
-    old[section][key] = OTHER_VALUES[section][key]
-    with pytest.raises(CheckpointError, match=rf"`{section}\.{key}: .*no longer has \(issue 11: ") as info:
-        _without_removed_options(old)
-    assert "\n" not in str(info.value)
-
-
-def test_an_old_nerf2_checkpoint_config_loads_and_keeps_its_own_field_options() -> None:
-    old = to_dict(NeRF2Config())
-    old["field"].update(learn_mu=True, init_loss_db=0.01)  # NeRF²'s field had RF-LSCM's medium options
-    for section in ("decoder", "prior", "render", "hitam", "loss", "train"):
-        old[section].update(OLD_DEFAULTS[section])
-    assert from_dict(NeRF2Config, _without_removed_options(old, NeRF2Config)) == NeRF2Config()
-    old["field"]["learn_mu"] = False
-    with pytest.raises(CheckpointError, match=r"field\.learn_mu"):
-        _without_removed_options(old, NeRF2Config)
-
-
-def test_a_checkpoint_with_removed_options_at_their_defaults_loads_and_resumes(scenario, tmp_path) -> None:
+def test_a_checkpoint_of_an_older_layout_is_refused_in_one_line(scenario, tmp_path) -> None:
     torch.manual_seed(0)
-    model = RFLSCM.build({**BASE, "train": {**BASE["train"], "steps": 4}}, GRID)
+    model = RFLSCM.build({**BASE, "train": {**BASE["train"], "steps": 2}}, GRID)
     fit(model, scenario, progress=False)
     state = model.state_dict_for_checkpoint()
-    for section, values in OLD_DEFAULTS.items():
-        state["config"][section].update(values)
-    loaded = RFLSCM.from_checkpoint(state)
-    assert loaded.config == model.config
-    ids, grids = np.array([11, 12]), np.array([100, 101])
-    assert torch.equal(loaded.aps(ids, grids), model.aps(ids, grids))
-    state["train_state"] = {"as": "saved"}  # resuming compares the configs without the removed options
-    payload = {"model": "rflscm", "fingerprint": model.fingerprint, "state": state}
-    assert model.resume_from(payload, tmp_path / "old.ckpt") == {"as": "saved"}
-    state["config"]["decoder"]["output"] = "cartesian"
-    with pytest.raises(CheckpointError, match=r"`decoder.output: cartesian`"):
-        RFLSCM.from_checkpoint(state)
-    with pytest.raises(CheckpointError, match=r"cannot resume: .*`decoder.output: cartesian`"):
-        model.resume_from({"model": "rflscm", "fingerprint": model.fingerprint, "state": state}, tmp_path / "old.ckpt")
+    assert RFLSCM.from_checkpoint(state).config == model.config
+    old = {k: v for k, v in state.items() if k != "version"}  # the layout before issue 24 had no version
+    old["config"] = {**state["config"], "decoder": {**state["config"]["decoder"], "output": "polar"}}
+    for refused in (old, {**state, "version": 1}):
+        with pytest.raises(CheckpointError, match=r"another version of rflscm .*retrain it") as info:
+            RFLSCM.from_checkpoint(refused)
+        assert "\n" not in str(info.value)
+        with pytest.raises(CheckpointError, match=r"cannot resume: the checkpoint was written by another version"):
+            model.resume_from({"model": "rflscm", "fingerprint": model.fingerprint, "state": refused}, tmp_path / "o")

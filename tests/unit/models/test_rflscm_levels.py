@@ -43,15 +43,15 @@ def corrected_residuals(model: RFLSCM, scenario) -> dict[tuple[int, str], np.nda
 def test_the_correction_centres_each_cells_round1_errors_and_survives_a_checkpoint(
     scenario, tmp_path, monkeypatch
 ) -> None:
-    import rflscm.models.rflscm as module
+    import rflscm.models.rflscm.corrections as module
 
     monkeypatch.setattr(module, "LEVEL_PAIRS_PER_CELL", 10**6)  # measure on every pair: exact medians
     torch.manual_seed(0)
     model = RFLSCM.build(
-        tiny_config(train={"val_pairs": 0, "pair_anchors": False, "pair_posterior": False}), GRID
+        tiny_config(train={"val_pairs": 0}, corrections={"pair_anchors": False, "pair_posterior": False}), GRID
     )  # cell levels alone
     fit(model, scenario, progress=False)
-    levels = model.levels
+    levels = model.corrections.levels
     assert levels is not None and levels.shape == (len(scenario.cell_ids()), 2)
     before = {k: v.copy() for k, v in corrected_residuals_without(model, scenario).items()}
     after = corrected_residuals(model, scenario)
@@ -62,7 +62,7 @@ def test_the_correction_centres_each_cells_round1_errors_and_survives_a_checkpoi
     assert max(abs(float(np.median(before[k]))) for k in centred) > 0.5
     model.save(tmp_path / "m.ckpt")
     loaded = load_model(tmp_path / "m.ckpt")
-    assert isinstance(loaded, RFLSCM) and torch.equal(loaded.levels, levels.cpu())
+    assert isinstance(loaded, RFLSCM) and torch.equal(loaded.corrections.levels, levels.cpu())
     pairs, _ = scenario.rsrp_table(1, "csi")
     pairs = pairs.reset_index(drop=True)
     np.testing.assert_allclose(
@@ -71,26 +71,27 @@ def test_the_correction_centres_each_cells_round1_errors_and_survives_a_checkpoi
 
 
 def corrected_residuals_without(model: RFLSCM, scenario) -> dict[tuple[int, str], np.ndarray]:
-    saved, model.levels = model.levels, torch.zeros_like(model.levels)
+    saved, model.corrections.levels = model.corrections.levels, torch.zeros_like(model.corrections.levels)
     try:
         return corrected_residuals(model, scenario)
     finally:
-        model.levels = saved
+        model.corrections.levels = saved
 
 
 def test_the_correction_follows_the_weights_and_can_be_switched_off(scenario) -> None:
     torch.manual_seed(0)
     model = RFLSCM.build(tiny_config(train={"val_pairs": 0, "steps": 4}), GRID)
     fit(model, scenario, progress=False)
-    first = model.current_levels().clone()
+    first = model.corrections.levels.clone()
     with torch.no_grad():
         for stage in model.all_stages():
             stage.decoder.scale_power(10.0)  # +10 dB everywhere: the correction must take it back
-    model.step += 1
-    assert torch.allclose(model.current_levels(), first - 10.0, atol=0.05)
-    off = RFLSCM.build(tiny_config(train={"val_pairs": 0, "steps": 4, "calibrate_levels": False}), GRID)
+    assert torch.equal(model.corrections.levels, first)  # fitted once: moved weights do not refit it in aps
+    model.finish_training()
+    assert torch.allclose(model.corrections.levels, first - 10.0, atol=0.05)
+    off = RFLSCM.build(tiny_config(train={"val_pairs": 0, "steps": 4}, corrections={"calibrate_levels": False}), GRID)
     fit(off, scenario, progress=False)
-    assert off.current_levels() is None and off.levels is None
+    assert off.corrections.levels is None
 
 
 def test_evaluation_through_the_aps_cache_sees_the_csi_rs_correction(scenario) -> None:
@@ -100,7 +101,7 @@ def test_evaluation_through_the_aps_cache_sees_the_csi_rs_correction(scenario) -
     torch.manual_seed(0)
     model = RFLSCM.build(tiny_config(train={"val_pairs": 0, "steps": 4}), GRID)
     fit(model, scenario, progress=False)
-    levels = model.current_levels()
+    levels = model.corrections.levels
     assert levels is not None and bool(((levels[:, 1] - levels[:, 0]).abs() > 0.1).any())
     for beam_type in ("ssb", "csi"):
         pairs = scenario.rsrp_table(1, beam_type)[0].reset_index(drop=True)
@@ -115,9 +116,9 @@ def test_pair_anchors_centre_each_training_pairs_errors_in_both_rounds_and_survi
     scenario, tmp_path
 ) -> None:
     torch.manual_seed(0)
-    model = RFLSCM.build(tiny_config(train={"val_pairs": 0, "steps": 4, "pair_posterior": False}), GRID)
+    model = RFLSCM.build(tiny_config(train={"val_pairs": 0, "steps": 4}, corrections={"pair_posterior": False}), GRID)
     fit(model, scenario, progress=False)
-    anchors = model.anchors
+    anchors = model.corrections.anchors
     assert anchors is not None and len(anchors) > 0 and float(anchors.abs().max()) > 0.5
     # round 1: each pair's median error over its reported beams (SSB and CSI-RS pooled) is now 0
     frames = []
@@ -135,11 +136,12 @@ def test_pair_anchors_centre_each_training_pairs_errors_in_both_rounds_and_survi
     pairs = pd.DataFrame(
         {"cell_id": anchors.index.get_level_values(0)[:5], "grid_id": anchors.index.get_level_values(1)[:5]}
     )
-    saved = model.anchors
+    saved = model.corrections.anchors
     with_anchor = model.predict_rsrp(scenario, 2, "ssb", pairs)
-    model.config = dataclasses.replace(model.config, train=dataclasses.replace(model.config.train, pair_anchors=False))
+    fitted = model.corrections
+    model.corrections = dataclasses.replace(fitted, anchors=None)
     without = model.predict_rsrp(scenario, 2, "ssb", pairs)
-    model.config = dataclasses.replace(model.config, train=dataclasses.replace(model.config.train, pair_anchors=True))
+    model.corrections = fitted
     np.testing.assert_allclose(with_anchor - without, np.repeat(anchors.to_numpy()[:5, None], without.shape[1], 1),
                                atol=1e-3)  # fmt: skip
     cell = int(pairs["cell_id"][0])
@@ -147,10 +149,10 @@ def test_pair_anchors_centre_each_training_pairs_errors_in_both_rounds_and_survi
     unmeasured = [g for g in scenario.grid_ids() if int(g) not in measured_grids][:1]
     if unmeasured:
         lone = pd.DataFrame({"cell_id": [cell], "grid_id": unmeasured})
-        assert model.anchors is saved and anchors.reindex(pd.MultiIndex.from_frame(lone)).isna().all()
+        assert model.corrections.anchors is saved and anchors.reindex(pd.MultiIndex.from_frame(lone)).isna().all()
     model.save(tmp_path / "a.ckpt")
     loaded = load_model(tmp_path / "a.ckpt")
-    pd.testing.assert_series_equal(loaded.anchors, anchors, check_exact=False, atol=1e-5)
+    pd.testing.assert_series_equal(loaded.corrections.anchors, anchors, check_exact=False, atol=1e-5)
     np.testing.assert_allclose(loaded.predict_rsrp(scenario, 2, "ssb", pairs), with_anchor, atol=1e-4)
 
 
@@ -158,11 +160,11 @@ def test_pair_anchors_can_be_switched_off_and_leave_validation_alone(scenario) -
     runs = {}
     for on in (True, False):
         torch.manual_seed(0)
-        model = RFLSCM.build(tiny_config(train={"steps": 4, "pair_anchors": on}), GRID)
+        model = RFLSCM.build(tiny_config(train={"steps": 4}, corrections={"pair_anchors": on}), GRID)
         summary = fit(model, scenario, progress=False)
         runs[on] = (model, summary)
-    assert runs[False][0].anchors is None and runs[False][0].current_anchors() is None
-    assert runs[True][0].anchors is not None
+    assert runs[False][0].corrections.anchors is None
+    assert runs[True][0].corrections.anchors is not None
     # training and the held-aside validation score (the field alone) are the same either way
     assert runs[True][1]["final_loss"] == runs[False][1]["final_loss"]
     assert runs[True][1]["val_mae_db"] == runs[False][1]["val_mae_db"]
@@ -170,7 +172,7 @@ def test_pair_anchors_can_be_switched_off_and_leave_validation_alone(scenario) -
 
 def test_damaged_pair_anchors_in_a_checkpoint_are_refused_in_one_line() -> None:
     from rflscm.errors import CheckpointError
-    from rflscm.models.rflscm import _anchors_from_state
+    from rflscm.models.rflscm.corrections import _anchors_from_state
 
     good = {"cell_id": torch.tensor([1, 2]), "grid_id": torch.tensor([5, 6]), "anchor_db": torch.tensor([0.5, -1.0])}
     assert _anchors_from_state(good).loc[(2, 6)] == -1.0 and _anchors_from_state(None) is None

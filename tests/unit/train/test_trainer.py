@@ -7,7 +7,7 @@ import torch
 from torch import nn
 
 from rflscm.errors import CheckpointError, ConfigError
-from rflscm.models.rflscm_config import TrainConfig
+from rflscm.models.rflscm.config import TrainConfig
 from rflscm.train import Trainer
 
 
@@ -17,8 +17,6 @@ class Quadratic:
     def __init__(self) -> None:
         self.w = nn.Parameter(torch.zeros(1))
         self.b = nn.Parameter(torch.zeros(1))
-        self.step = 0
-        self.train_state = None
         self.seen: list[list[int]] = []
 
     def parameter_groups(self):
@@ -67,7 +65,7 @@ def test_training_decays_lr_and_state_round_trips() -> None:
     model = Quadratic()
     trainer = Trainer(model, cfg, torch.arange(1, 9))
     summary = trainer.run(progress=False)
-    assert summary["steps"] == 200 and abs(model.w.item() - 3.0) < 0.2 and model.step == 200
+    assert summary["steps"] == 200 and abs(model.w.item() - 3.0) < 0.2 and trainer.step == 200
     assert summary["final_loss"] < 0.1
     assert summary["passes"] == 200 * 3 / 8  # steps × batch / pairs
     assert trainer.lr_factor(0.0) == 1.0 and abs(trainer.lr_factor(1.0) - 0.1) < 1e-12
@@ -124,7 +122,7 @@ def test_budget_mode_stops_after_the_first_step_that_ends_past_the_budget() -> N
     model, trainer = budget_trainer(budget_s=10.0, step_s=3.0, prep_s=1.0)
     summary = trainer.run(progress=False, started=0.0)
     # steps end at 4, 7, 10 s: the third ends at the budget; the nominal 1000 steps do not matter
-    assert summary["steps"] == 3.0 and model.step == 3 and [t for t, _, _ in model.at] == [1.0, 4.0, 7.0]
+    assert summary["steps"] == 3.0 and trainer.step == 3 and [t for t, _, _ in model.at] == [1.0, 4.0, 7.0]
     assert summary["train_time_s"] == 10.0 and summary["budget_s"] == 10.0 and summary["stopped_by_budget"] == 1.0
     assert summary["passes"] == 3 * 3 / 8
     _, longer = budget_trainer(budget_s=10.0, step_s=3.5, prep_s=1.0)

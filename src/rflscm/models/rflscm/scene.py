@@ -16,8 +16,8 @@ from rflscm.errors import ConfigError, DataError, UnsupportedError
 from rflscm.fields import PointPrior, density_grid
 from rflscm.fields.point_prior import grid_span
 from rflscm.fields.surfaces import SurfaceOrientation, structure_grid
-from rflscm.models.radiance import SceneFrame
-from rflscm.models.rflscm_config import SPECULAR_VOXEL_M, RFLSCMConfig
+from rflscm.models.rflscm.config import SPECULAR_VOXEL_M, RFLSCMConfig
+from rflscm.models.rflscm.fields import SceneFrame
 from rflscm.render import num_samples_for
 
 if TYPE_CHECKING:
@@ -173,9 +173,7 @@ def make_prior(cfg: RFLSCMConfig, scenario: Scenario, lo: np.ndarray, hi: np.nda
     return PointPrior(torch.from_numpy(density), torch.from_numpy(grid_lo), torch.from_numpy(grid_hi), threshold, beta)
 
 
-def make_surfaces(
-    cfg: Any, scenario: Scenario, lo: np.ndarray, hi: np.ndarray, seed: int = 0
-) -> SurfaceOrientation | None:
+def make_surfaces(scenario: Scenario, lo: np.ndarray, hi: np.ndarray, seed: int = 0) -> SurfaceOrientation | None:
     """The scan's surface orientation for the decoder's specular cue; ``None`` when the scenario has no point
     cloud (the cue is then 0)."""
     cloud = scenario.point_cloud

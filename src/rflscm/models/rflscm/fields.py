@@ -32,7 +32,7 @@ from rflscm.fields import (
     resolution_for,
 )
 from rflscm.fields.surfaces import specularity
-from rflscm.models.rflscm_config import (
+from rflscm.models.rflscm.config import (
     DELTA_BASIS,
     DELTA_INIT_SCALE,
     DIR_FREQS,
@@ -188,7 +188,7 @@ class RadianceDecoder(nn.Module):
     half-vector between it and −ω, of three log-distances (to the grid, along the ray, and to the grid
     relative to the ray's cone radius) and the specular cue.  The sum equals one linear layer over the
     concatenation, but each part is computed once.  Output: (log |R|, arg R), times the spreading factors
-    of :class:`~rflscm.models.rflscm_config.DecoderConfig`.
+    of :class:`~rflscm.models.rflscm.config.DecoderConfig`.
     """
 
     box_lo: torch.Tensor
@@ -201,12 +201,12 @@ class RadianceDecoder(nn.Module):
         super().__init__()
         self.cfg, self.frame, self.step_m = cfg, frame, step_m
         query_width = encoded_dim(3, DIR_FREQS) + encoded_dim(1, WAVELENGTH_FREQS) + feature_dim  # + 𝓜(p_l)
-        if cfg.inputs in ("paper", "offset+grid"):
+        if cfg.grid_position_input:
             query_width += encoded_dim(3, GRID_FREQS)
         self.sample_in = nn.Linear(feature_dim, cfg.hidden)
         self.query_in = nn.Linear(query_width, cfg.hidden, bias=False)
         self.pair_in = None
-        if cfg.inputs in ("offset", "offset+grid"):
+        if cfg.pair_geometry_input:
             width = 2 * encoded_dim(3, DIR_FREQS) + encoded_dim(3, POS_FREQS) + len(SPECULAR_POWERS)
             self.pair_in = nn.Linear(width, cfg.hidden, bias=False)
         self.mlp = MLP(cfg.hidden, 2, hidden=head_hidden or cfg.hidden, num_layers=cfg.layers - 1, out_scale=0.1)
@@ -221,7 +221,7 @@ class RadianceDecoder(nn.Module):
             positional_encoding(rays.direction[queries.ray], DIR_FREQS),
             positional_encoding(log_wl, WAVELENGTH_FREQS),
         ]
-        if self.cfg.inputs in ("paper", "offset+grid"):
+        if self.cfg.grid_position_input:
             unit = 2.0 * (queries.grid_xyz - self.box_lo) / (self.box_hi - self.box_lo) - 1.0
             parts.append(positional_encoding(unit, GRID_FREQS))
         parts.append(grid_features)
@@ -343,3 +343,17 @@ class RadianceStage(nn.Module):
             features, points[live], along[live], rays, queries, join_query, join_sample, grid_features, surface
         )
         return accumulate_power(weight.index_select(0, join_sample) * radiance, join_query, queries.ray.numel())
+
+
+def fit_loss_channel(
+    fields: SceneFields, points: torch.Tensor, target: torch.Tensor, keep: torch.Tensor, steps: int, lr: float
+) -> None:
+    """Adam on ``fields``' δ module so that its raw loss channel at ``points [n, 3]`` approaches ``target [n]``
+    while its other channels stay at ``keep [n, C_δ − 1]`` (mean squared errors, ``steps`` steps at ``lr``)."""
+    opt = torch.optim.Adam(fields.delta_module().parameters(), lr=lr)
+    for _ in range(steps):
+        out = fields.delta(fields.encode(points))
+        loss = (out[:, 0] - target).square().mean() + (out[:, 1:] - keep).square().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()

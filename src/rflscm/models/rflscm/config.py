@@ -1,14 +1,14 @@
 """Typed configuration of RF-LSCM (and of models that reuse its renderer, e.g. NeRF²-LSCM).
 
-``RFLSCMConfig(field, decoder, prior, render, hitam, loss, train)``; every default is visible
+``RFLSCMConfig(field, decoder, prior, render, hitam, loss, train, corrections)``; every default is visible
 here.  Presets ``quick`` and ``full`` live in ``rflscm/configs/rflscm_{quick,full}.yaml`` and list
 only what they change.
 
 Settings that used to be options and are fixed since issue 11 are the module constants below (why each is
 fixed: docs/DECISIONS.md, "Knobs removed (issue 11)").  Each section's ``REMOVED`` maps a removed key to the
-value now hard-wired and a note: a YAML config that sets it is refused naming the note
-(:func:`rflscm.config.from_dict`), a checkpoint that holds it loads when it holds that value
-(``rflscm.models.rflscm._without_removed_options``).
+value now hard-wired (None: none) and a note: a YAML config that sets it is refused naming the note
+(:func:`rflscm.config.from_dict`); a checkpoint of an older layout is refused as a whole
+(:mod:`rflscm.models.rflscm.checkpoint`).
 """
 
 from __future__ import annotations
@@ -73,15 +73,6 @@ FLOOR_DB = -80.0
 """Predictions are floored at this level relative to the median measured RSRP before logs [dB]."""
 VAL_BEAM_FRACTION = 0.25
 """Fraction of a validation pair's reported beams held aside (never trained on)."""
-
-
-class _AnyValue:
-    def __repr__(self) -> str:
-        return "any value"
-
-
-ANY = _AnyValue()
-"""In a ``REMOVED`` table: every value of the removed option loads (it no longer changes anything)."""
 
 
 def _positive(where: str, value: float, allow_zero: bool = False) -> None:
@@ -153,7 +144,7 @@ class DecoderConfig:
         "init_radiance_db": (INIT_RADIANCE_DB, "issue 11: fixed at -30 dB"),
         "init_level_db": (INIT_LEVEL_DB, "issue 11: fixed at -6 dB"),
         "grid_code_dim": (0, "issue 11: per-grid codes are gone"),
-        "grid_code_neighbours": (ANY, "issue 11: per-grid codes are gone"),
+        "grid_code_neighbours": (None, "issue 11: per-grid codes are gone"),
     }
     """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
 
@@ -165,6 +156,16 @@ class DecoderConfig:
     −ω (the surface normal of a specular reflection), the log-distances from the sample to the grid (also
     relative to the ray's cone) and along the ray, and the specular cue of :data:`SPECULAR_POWERS`;
     ``offset+grid`` feeds both."""
+
+    @property
+    def grid_position_input(self) -> bool:
+        """The decoder reads the grid's normalised position (``paper``, ``offset+grid``)."""
+        return self.inputs in ("paper", "offset+grid")
+
+    @property
+    def pair_geometry_input(self) -> bool:
+        """The decoder reads the sample-to-grid geometry (``offset``, ``offset+grid``)."""
+        return self.inputs in ("offset", "offset+grid")
 
     def __post_init__(self) -> None:
         if self.hidden < 1 or self.layers < 1:
@@ -278,6 +279,9 @@ class LossConfig:
 @dataclass(frozen=True)
 class TrainConfig:
     REMOVED: ClassVar[dict[str, tuple[Any, str]]] = {
+        "calibrate_levels": (True, "issue 24: moved to `corrections.calibrate_levels`"),
+        "pair_anchors": (True, "issue 24: moved to `corrections.pair_anchors`"),
+        "pair_posterior": (True, "issue 24: moved to `corrections.pair_posterior`"),
         "val_beam_fraction": (VAL_BEAM_FRACTION, "issue 11: fixed at 0.25"),
     }
     """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
@@ -301,19 +305,6 @@ class TrainConfig:
     val_every: int = 100
     checkpoint_every: int = 500
     seed: int = 0
-    calibrate_levels: bool = True
-    """Correct each cell's SSB and CSI-RS predictions by the median error on its reported round-1 beams, measured
-    after training (:meth:`~rflscm.models.rflscm.RFLSCM.current_levels`); the training itself is unchanged."""
-    pair_anchors: bool = True
-    """Move each training pair's (cell, grid) predictions, in every round, by the median error that remains on
-    its own reported round-1 beams (:meth:`~rflscm.models.rflscm.RFLSCM.current_anchors`): the field gives the
-    angular shape and what a changed antenna does, the pair's own reports its level.  Measured after training;
-    pairs without round-1 reports (unseen grids) keep the field's level."""
-    pair_posterior: bool = True
-    """Refine each training pair's APS on its own reported round-1 beams: per-bin gains on the field's strongest
-    bins under a ridge prior centred on the field, the ridge chosen on held-aside reports (off when no choice
-    beats the field there; :mod:`~rflscm.models.posterior`).  Measured after training, like the anchors; pairs
-    without round-1 reports keep the field's APS."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_pairs", "pairs_per_cell", "val_every", "checkpoint_every"):
@@ -330,6 +321,25 @@ class TrainConfig:
 
 
 @dataclass(frozen=True)
+class CorrectionsConfig:
+    """The post-training pair corrections (:mod:`~rflscm.models.rflscm.corrections`); training is unchanged."""
+
+    calibrate_levels: bool = True
+    """Correct each cell's SSB and CSI-RS predictions by the median error on its reported round-1 beams, measured
+    after training (:mod:`~rflscm.models.rflscm.corrections`); the training itself is unchanged."""
+    pair_anchors: bool = True
+    """Move each training pair's (cell, grid) predictions, in every round, by the median error that remains on
+    its own reported round-1 beams (:mod:`~rflscm.models.rflscm.corrections`): the field gives the
+    angular shape and what a changed antenna does, the pair's own reports its level.  Measured after training;
+    pairs without round-1 reports (unseen grids) keep the field's level."""
+    pair_posterior: bool = True
+    """Refine each training pair's APS on its own reported round-1 beams: per-bin gains on the field's strongest
+    bins under a ridge prior centred on the field, the ridge chosen on held-aside reports (off when no choice
+    beats the field there; :mod:`~rflscm.models.rflscm.posterior`).  Measured after training, like the anchors; pairs
+    without round-1 reports keep the field's APS."""
+
+
+@dataclass(frozen=True)
 class RFLSCMConfig:
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     decoder: DecoderConfig = dataclasses.field(default_factory=DecoderConfig)
@@ -338,6 +348,7 @@ class RFLSCMConfig:
     hitam: HiTAMConfig = dataclasses.field(default_factory=HiTAMConfig)
     loss: LossConfig = dataclasses.field(default_factory=LossConfig)
     train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
+    corrections: CorrectionsConfig = dataclasses.field(default_factory=CorrectionsConfig)
 
 
 def preset_path(name: str, family: str = "rflscm") -> Path:

@@ -17,10 +17,11 @@ import torch
 from torch import nn
 
 from rflscm.geometry import AngleGrid
-from rflscm.models.hitam import HiTAM
-from rflscm.models.radiance import Queries, RayBatch
-from rflscm.models.rflscm_config import RFLSCMConfig
-from rflscm.models.rflscm_scene import SceneInfo
+from rflscm.models.pairs import PairData
+from rflscm.models.rflscm.config import RFLSCMConfig
+from rflscm.models.rflscm.fields import Queries, RayBatch
+from rflscm.models.rflscm.hitam import HiTAM
+from rflscm.models.rflscm.scene import SceneInfo
 from rflscm.render import RaySamples, build_ray_samples, chunk_bounds, chunked, gather_samples
 
 RayKind = Literal["coarse", "fine"]
@@ -194,6 +195,19 @@ class APSRenderer:
             return bins, self.fine_power(cells, grid_xyz, bins, valid)
         return self.coarse_as_fine(coarse)
 
+    def stage_output(
+        self, cells: torch.Tensor, grid_xyz: torch.Tensor, stage: RayKind, position: float
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Sparse APS ``(bins, values)`` of one stage: without HiTAM the output at ``position``; with it the coarse
+        APS spread over its blocks (``stage`` "coarse") or the fine APS on the coarse selection ("fine")."""
+        if self.hitam is None:
+            return self.output(cells, grid_xyz, position)
+        coarse = self.coarse_power(cells, grid_xyz)
+        if stage == "coarse":
+            return self.coarse_as_fine(coarse)
+        bins, valid = self.expand(cells, coarse)
+        return bins, self.fine_power(cells, grid_xyz, bins, valid)
+
     def coarse_as_fine(self, coarse: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The coarse APS on fine bins (before the refinement model has trained): a block's power is spread
         evenly over its bins."""
@@ -203,3 +217,23 @@ class APSRenderer:
         share = valid / valid.sum(-1, keepdim=True)  # [Nc, β²]
         values = coarse[:, :, None] * share  # [B, Nc, β²]
         return children.flatten().expand(coarse.shape[0], -1), values.flatten(1)
+
+
+@dataclass
+class TrainContext:
+    """Training-only tensors: pair data, normalised A (full and coarse columns) and HiTAM's frozen selection."""
+
+    data: PairData
+    a_norm: torch.Tensor
+    a_coarse: torch.Tensor | None
+    num_ssb: int
+    """Columns ``0 … num_ssb−1`` of the stacked sensing matrix are SSB beams, the rest CSI-RS beams."""
+    selection: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+    """``(bins, valid, known)`` of every training pair once α = 1 (see :meth:`~rflscm.models.rflscm.RFLSCM._frozen_selection`)."""
+
+    def columns(self, cells: torch.Tensor, bins: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        """Normalised A columns ``[B, M, K]`` of fine ``bins [B, K]`` (zeroed where not ``valid``)."""
+        a = self.a_norm
+        beams = torch.arange(a.shape[1], device=a.device)
+        cols = a[cells[:, None, None], beams[None, :, None], bins[:, None, :]]
+        return cols if valid is None else cols * valid[:, None, :].to(cols.dtype)

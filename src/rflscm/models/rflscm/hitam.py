@@ -5,11 +5,11 @@ the top-K_C blocks of each (cell, grid) are expanded into their fine bins Ω′,
 refinement model renders.  L_total = (1 − α) L⁽¹⁾ + α L⁽²⁾, α rising from 0 to 1 after a
 coarse-only warm-up.  The fine APS (zeros outside Ω′) is the model's output.
 
-Coarse columns (A⁽¹⁾): with ``coarse_bins="block"`` (default) a coarse value x̃⁽¹⁾_J is read as
-the total power of block J spread over the block, so its column is the *mean* of the block's
-fine columns and its ray goes through the block's centre direction; the representative (first)
-bin sits at the block's corner, and its column alone would alias the beam pattern's slopes and
-nulls into the coarse fit.  ``coarse_bins="representative"`` is the paper's literal form.
+Coarse columns (A⁽¹⁾): a coarse value x̃⁽¹⁾_J is read as the total power of block J spread over the
+block, so its column is the *mean* of the block's fine columns and its ray goes through the block's
+centre direction.  (The paper's literal form, the representative (first) bin's column and direction,
+sits at the block's corner and aliases the beam pattern's slopes and nulls into the coarse fit; it
+was removed in issue 11.)
 """
 
 from __future__ import annotations
@@ -22,9 +22,8 @@ from rflscm.geometry import AngleGrid
 class HiTAM:
     """Coarse/fine bin bookkeeping for one :class:`AngleGrid` (no parameters)."""
 
-    def __init__(self, grid: AngleGrid, beta: int, top_k: int, coarse_bins: str = "block",
-                 warmup_steps: int = 1000, ramp_steps: int = 500) -> None:  # fmt: skip
-        self.grid, self.beta, self.coarse_bins = grid, beta, coarse_bins
+    def __init__(self, grid: AngleGrid, beta: int, top_k: int, warmup_steps: int = 1000, ramp_steps: int = 500) -> None:
+        self.grid, self.beta = grid, beta
         self.mapping = grid.coarse(beta)
         self.top_k = min(top_k, self.mapping.num_bins)
         self.warmup_steps, self.ramp_steps = warmup_steps, ramp_steps
@@ -42,16 +41,12 @@ class HiTAM:
     def coarse_directions(self) -> torch.Tensor:
         """Unit vectors ``[num_coarse, 3]`` of the coarse rays."""
         fine = self.grid.directions(dtype=torch.float64)
-        if self.coarse_bins == "representative":
-            return fine[self.mapping.representative_bins()].float()
         weights = self.valid.to(torch.float64)  # [Nc, β²]
         centre = (fine[self.children] * weights[..., None]).sum(1)
         return (centre / centre.norm(dim=-1, keepdim=True)).float()
 
     def coarse_columns(self, a_full: torch.Tensor) -> torch.Tensor:
         """A⁽¹⁾ ``[..., num_beams, num_coarse]`` from the full ``A [..., num_beams, num_bins]``."""
-        if self.coarse_bins == "representative":
-            return a_full[..., self.mapping.representative_bins().to(a_full.device)]
         children = self.children.to(a_full.device)
         weights = self.valid.to(a_full.device, a_full.dtype)
         block = a_full[..., children] * weights  # [..., M, Nc, β²]

@@ -1,0 +1,331 @@
+"""The post-training pair corrections of RF-LSCM (and NeRF²-LSCM): a value object fitted once, applied in ``aps``.
+
+After training, predictions carry (each switched in the config's ``corrections`` section):
+
+* a *level* per cell and beam type (``calibrate_levels``): the median (measured − predicted) [dB] over the
+  reported round-1 training beams of a few spread pairs per cell.  Under top-N or SINR reporting a model that
+  cannot yet resolve the beams keeps every beam low to respect the bounds of the unreported ones, so its
+  reported beams come out too weak; this removes that level error without touching the field;
+* an *anchor* per training pair (``pair_anchors``): the median error left on the pair's own reported round-1
+  beams (SSB and CSI-RS pooled, after the level).  An under-trained field gets the angular shape right long
+  before each grid's level; the pair's own reports pin that level;
+* a *posterior* per training pair (``pair_posterior``): per-bin gains on the anchored APS fitting the same
+  reports under a ridge prior centred on the field, λ chosen on held-aside reports (:mod:`.posterior`).
+
+Validation beams are used by none, so the trainer's validation MAE stays a held-aside score of the field alone.
+:func:`fit_corrections` renders every training pair with reports once; :class:`PairCorrections` holds the
+result, applies it and saves it on its own (tensors only).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+import torch
+
+from rflscm.errors import CheckpointError
+from rflscm.models.pairs import PairData
+from rflscm.models.rflscm.config import CorrectionsConfig
+from rflscm.models.rflscm.posterior import (
+    HOLDOUT,
+    LAMBDA_PAIRS,
+    POSTERIOR_BINS,
+    LambdaChoice,
+    PairPosterior,
+    fit_gains,
+)
+
+PAIR_CHUNK = 64
+"""Pairs per render chunk (A columns and APS rows stay small)."""
+LEVEL_PAIRS_PER_CELL = 16
+"""Training pairs per cell (evenly spaced) on which the level correction is measured."""
+LEVEL_MIN_BEAMS = 10
+"""A cell's own median needs this many reported beams of a type; fewer: the median over every cell."""
+
+RenderFn = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+"""Training pairs ``[B]`` → their sparse APS ``(bins [B, K], values [B, K])`` and predicted reports ``[B, M]``."""
+ColumnsFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+"""``(cells [B], bins [B, K])`` → normalised A columns ``[B, M, K]``."""
+
+
+@dataclass
+class PairCorrections:
+    """Fitted corrections: ``levels [C, 2]`` [dB] (SSB, CSI-RS per cell index), ``anchors`` [dB] indexed by
+    (cell_id, grid_id) and ``posterior`` gains; each None when switched off."""
+
+    levels: torch.Tensor | None = None
+    anchors: pd.Series | None = None
+    posterior: PairPosterior | None = None
+
+    def apply(
+        self, aps: torch.Tensor, cell_index: np.ndarray, cell_ids: np.ndarray, grid_ids: np.ndarray
+    ) -> torch.Tensor:
+        """``aps [N, K]`` (normalised) of pairs (``cell_index`` into the scene's cells, their ids and grid ids)
+        with the SSB level, the anchors and the posterior applied."""
+        cells = np.asarray(cell_ids, np.int64).reshape(-1)
+        grids = np.asarray(grid_ids, np.int64).reshape(-1)
+        out = aps
+        if self.levels is not None:
+            index = torch.as_tensor(np.asarray(cell_index), device=aps.device)
+            out = out * torch.pow(10.0, self.levels.to(aps.device)[index, 0] / 10.0)[:, None]
+        if self.anchors is not None and len(self.anchors) and len(cells):
+            at = pd.MultiIndex.from_arrays([cells, grids])
+            shift = self.anchors.reindex(at).fillna(0.0).to_numpy(np.float32, copy=True)
+            out = out * torch.pow(10.0, torch.as_tensor(shift, device=aps.device) / 10.0)[:, None]
+        if self.posterior is not None:
+            out = self.posterior.apply(out, cells, grids)
+        return out
+
+    def level_offset_db(self, cell_index: np.ndarray, beam_type: str) -> np.ndarray | None:
+        """CSI-RS predictions carry each cell's CSI-RS level relative to its SSB one (the APS carries the SSB one)."""
+        if self.levels is None or beam_type != "csi":
+            return None
+        relative = (self.levels[:, 1] - self.levels[:, 0]).cpu().double().numpy()
+        return relative[np.asarray(cell_index)]
+
+    def to_state(self) -> dict[str, object]:
+        """Tensors only (a checkpoint loads it with ``weights_only=True``)."""
+        return {
+            "levels": self.levels.detach().cpu().clone() if self.levels is not None else None,
+            "anchors": _anchors_state(self.anchors),
+            "posterior": self.posterior.to_state() if self.posterior is not None else None,
+        }
+
+    @classmethod
+    def from_state(
+        cls, state: dict[str, object] | None, num_bins: int, device: torch.device | str = "cpu"
+    ) -> PairCorrections:
+        """Inverse of :meth:`to_state`; damaged entries are a one-line :class:`CheckpointError`."""
+        if state is None:
+            return cls()
+        if not isinstance(state, dict):
+            raise CheckpointError("the checkpoint's pair corrections are damaged (not a mapping).")
+        levels = state.get("levels")
+        return cls(
+            torch.as_tensor(levels, dtype=torch.float32, device=device) if levels is not None else None,
+            _anchors_from_state(state.get("anchors")),
+            PairPosterior.from_state(state.get("posterior"), num_bins),  # type: ignore[arg-type]
+        )
+
+
+@torch.no_grad()
+def fit_corrections(
+    cfg: CorrectionsConfig,
+    data: PairData,
+    num_ssb: int,
+    cell_ids: np.ndarray,
+    render: RenderFn,
+    columns: ColumnsFn,
+    seed: int,
+    progress: bool = False,
+) -> PairCorrections:
+    """Fit the switched-on corrections of the training ``data`` (``num_ssb`` SSB beams first, ``cell_ids`` of its
+    cell indices) from one render of its pairs with reports (``render``, ``columns`` at the final weights;
+    ``seed`` draws the posterior's held-aside reports; ``progress``: a bar)."""
+    from tqdm.auto import tqdm
+
+    if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
+        return PairCorrections()
+    fit = _Fit(cfg, data, num_ssb, len(cell_ids), render, columns)
+    pairs = torch.nonzero(data.observed.any(1)).squeeze(1)
+    if not (cfg.pair_anchors or cfg.pair_posterior):  # the level alone: a few pairs per cell
+        return PairCorrections(fit.levels(fit.render_pairs(fit.level_picks(), top=False)))
+    bar = tqdm(total=pairs.numel() * (2 if cfg.pair_posterior else 1), desc="pair corrections", unit="pair",
+               disable=not progress, leave=False)  # fmt: skip
+    rendered = fit.render_pairs(pairs, top=cfg.pair_posterior, bar=bar)
+    levels = fit.levels(rendered) if cfg.calibrate_levels else None
+    lam, scores = math.inf, {}
+    if cfg.pair_posterior and pairs.numel():
+        # λ from held-aside reports of a spread subset of the pairs, then one fit per pair
+        held = torch.rand(data.rsrp.shape, generator=torch.Generator().manual_seed(seed)) < HOLDOUT
+        subset = pairs[torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), LAMBDA_PAIRS)).round().long()]
+        choice = LambdaChoice()
+        for chunk in fit.chunks(rendered, rendered.rows_of(subset.unique()), levels):
+            choice.add(*chunk.fit_inputs(), chunk.resid, chunk.mask, held[chunk.pairs.cpu()].to(chunk.resid.device))
+        lam, scores = choice.best(), choice.mae_db()
+    anchors, gains, bins_of = [], [], []
+    fitting = cfg.pair_posterior and math.isfinite(lam)
+    every = torch.arange(pairs.numel(), device=pairs.device)
+    for chunk in fit.chunks(rendered, every, levels, fitting):
+        anchors.append(chunk.anchor)
+        if chunk.top_bins is not None:
+            gains.append(fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, lam).cpu())
+            bins_of.append(chunk.top_bins.cpu())
+        bar.update(chunk.pairs.numel() if cfg.pair_posterior else 0)
+    bar.close()
+    ids = np.asarray(cell_ids, np.int64)[data.cell_index.cpu().numpy()[pairs.cpu().numpy()]]
+    index = pd.MultiIndex.from_arrays([ids, data.grid_ids[pairs.cpu().numpy()]], names=["cell_id", "grid_id"])
+    median = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)
+    anchor_series = pd.Series(median, index=index, name="anchor_db") if cfg.pair_anchors else None
+    if not cfg.pair_posterior:
+        return PairCorrections(levels, anchor_series, None)
+    if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
+        empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
+        posterior = PairPosterior(empty, torch.zeros(0, 0, dtype=torch.long), torch.zeros(0, 0), lam, scores)
+        return PairCorrections(levels, anchor_series, posterior)
+    gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
+    return PairCorrections(levels, anchor_series, PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores))
+
+
+@dataclass
+class _Rendered:
+    """Training pairs ``pairs [P]`` (sorted) rendered once: their predicted round-1 reports ``pred [P, M]``
+    (normalised, uncorrected) and optionally their strongest bins ``top_bins [P, n]`` (int32) with the APS there
+    ``top_x [P, n]``."""
+
+    pairs: torch.Tensor
+    pred: torch.Tensor
+    top_bins: torch.Tensor | None = None
+    top_x: torch.Tensor | None = None
+
+    def rows_of(self, pairs: torch.Tensor) -> torch.Tensor:
+        """Rows of ``pairs`` (each one of :attr:`pairs`)."""
+        rows = torch.searchsorted(self.pairs, pairs)
+        if not bool((self.pairs[rows.clamp_max(max(self.pairs.numel() - 1, 0))] == pairs).all()):
+            raise ValueError("pairs that were not rendered")
+        return rows
+
+
+@dataclass
+class _PairChunk:
+    """A chunk of training pairs ``pairs [B]`` as the corrections see them: ``anchor [B]`` [dB], ``resid [B, M]``
+    measured − predicted [dB] after the corrections, ``mask [B, M]`` the reported training beams; with columns,
+    the strongest bins ``top_bins [B, n]``, the APS there ``top_x [B, n]``, their columns ``cols [B, M, n]`` and
+    the other bins' ``rest [B, M]`` (normalised)."""
+
+    pairs: torch.Tensor
+    anchor: torch.Tensor
+    resid: torch.Tensor
+    mask: torch.Tensor
+    top_bins: torch.Tensor | None = None
+    top_x: torch.Tensor | None = None
+    cols: torch.Tensor | None = None
+    rest: torch.Tensor | None = None
+
+    def fit_inputs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(cols, top_x, rest)``, the posterior's view of the chunk (made ``with_columns``)."""
+        assert self.cols is not None and self.top_x is not None and self.rest is not None
+        return self.cols, self.top_x, self.rest
+
+
+@dataclass
+class _Fit:
+    """What the fit reads: the config, the training data and the model's render and columns."""
+
+    cfg: CorrectionsConfig
+    data: PairData
+    num_ssb: int
+    num_cells: int
+    render: RenderFn
+    columns: ColumnsFn
+
+    def render_pairs(self, pairs: torch.Tensor, top: bool, bar: object = None) -> _Rendered:
+        """Render ``pairs [P]`` (sorted) ``PAIR_CHUNK`` at a time: their predicted reports and, with ``top``, their
+        ``POSTERIOR_BINS`` strongest bins and the APS there (``bar``: a tqdm bar)."""
+        preds, tops, xs = [], [], []
+        for start in range(0, pairs.numel(), PAIR_CHUNK):
+            bins, values, pred = self.render(pairs[start : start + PAIR_CHUNK])
+            preds.append(pred)
+            if top:
+                best = torch.topk(values, min(POSTERIOR_BINS, values.shape[1]), dim=1).indices
+                tops.append(bins.gather(1, best).to(torch.int32))  # kept for every pair: half the memory
+                xs.append(values.gather(1, best))
+            if bar is not None:
+                bar.update(min(PAIR_CHUNK, pairs.numel() - start))  # type: ignore[attr-defined]
+        pred = torch.cat(preds) if preds else torch.zeros(0, self.data.rsrp.shape[1], device=pairs.device)
+        return _Rendered(pairs, pred, torch.cat(tops) if tops else None, torch.cat(xs) if xs else None)
+
+    def level_picks(self) -> torch.Tensor:
+        """Up to ``LEVEL_PAIRS_PER_CELL`` evenly spaced pairs with reports per cell (sorted)."""
+        d = self.data
+        reported = d.observed.any(1)
+        picks = []
+        for c in range(self.num_cells):
+            p = torch.nonzero(reported & (d.cell_index == c)).squeeze(1)
+            if p.numel():
+                picks.append(p[torch.linspace(0, p.numel() - 1, min(p.numel(), LEVEL_PAIRS_PER_CELL)).round().long()])
+        return torch.cat(picks).unique() if picks else torch.zeros(0, dtype=torch.long, device=d.rsrp.device)
+
+    def levels(self, rendered: _Rendered) -> torch.Tensor:
+        """Median (measured − predicted) [dB] over the reported beams of the :meth:`level_picks` per cell and beam
+        type (the median over every cell where a cell has fewer than ``LEVEL_MIN_BEAMS``; 0 where a type has none)."""
+        d = self.data
+        levels = torch.zeros(self.num_cells, 2)
+        picks = self.level_picks()
+        if not picks.numel():
+            return levels.to(d.rsrp.device)
+        pred = rendered.pred[rendered.rows_of(picks)]
+        resid = 10.0 * torch.log10(d.rsrp[picks] / pred.clamp_min(1e-30))
+        rows, beams = d.observed[picks].nonzero(as_tuple=True)
+        r = resid[rows, beams].cpu().double().numpy()
+        c = d.cell_index[picks][rows].cpu().numpy()
+        t = (beams >= self.num_ssb).cpu().numpy()
+        for beam_type in (0, 1):
+            of_type = t == beam_type
+            if not bool(of_type.any()):
+                continue
+            levels[:, beam_type] = float(np.median(r[of_type]))  # numpy: no size limit, mean of the middle pair
+            for cell in range(self.num_cells):
+                mine = of_type & (c == cell)
+                if int(mine.sum()) >= LEVEL_MIN_BEAMS:
+                    levels[cell, beam_type] = float(np.median(r[mine]))
+        return levels.to(d.rsrp.device)
+
+    def chunks(
+        self, rendered: _Rendered, rows: torch.Tensor, levels: torch.Tensor | None, with_columns: bool = True
+    ) -> Iterator[_PairChunk]:
+        """Rows ``rows`` of ``rendered``, ``PAIR_CHUNK`` at a time: each pair's anchor and, after ``levels`` and
+        anchor, its residuals and (``with_columns``) its strongest bins with their columns."""
+        d = self.data
+        beam_type = (torch.arange(d.rsrp.shape[1], device=d.rsrp.device) >= self.num_ssb).long()
+        for start in range(0, rows.numel(), PAIR_CHUNK):
+            at = rows[start : start + PAIR_CHUNK]
+            batch = rendered.pairs[at]
+            cells, pred = d.cell_index[batch], rendered.pred[at]
+            resid = 10.0 * torch.log10(d.rsrp[batch] / pred.clamp_min(1e-30))
+            if levels is not None:
+                resid = resid - levels[cells][:, beam_type]
+            mask = d.observed[batch]
+            median = np.nanmedian(torch.where(mask, resid, torch.nan).cpu().double().numpy(), axis=1)
+            anchor = torch.as_tensor(median, dtype=resid.dtype, device=resid.device)
+            if self.cfg.pair_anchors:
+                resid = resid - anchor[:, None]
+            chunk = _PairChunk(batch, anchor, resid, mask)
+            if with_columns:
+                assert rendered.top_bins is not None and rendered.top_x is not None
+                chunk.top_bins, chunk.top_x = rendered.top_bins[at].long(), rendered.top_x[at]
+                chunk.cols = self.columns(cells, chunk.top_bins)
+                chunk.rest = (pred - torch.einsum("bmk,bk->bm", chunk.cols, chunk.top_x)).clamp_min(0.0)
+            yield chunk
+
+
+def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:
+    if anchors is None:
+        return None
+    cells, grids = (
+        torch.as_tensor(anchors.index.get_level_values(k).to_numpy(np.int64, copy=True)) for k in ("cell_id", "grid_id")
+    )
+    return {"cell_id": cells, "grid_id": grids, "anchor_db": torch.as_tensor(anchors.to_numpy(np.float32))}
+
+
+def _anchors_from_state(state: object) -> pd.Series | None:
+    if state is None:
+        return None
+    keys = ("cell_id", "grid_id", "anchor_db")
+    if not isinstance(state, dict) or any(k not in state for k in keys):
+        raise CheckpointError(
+            "the checkpoint's pair anchors are damaged (expected columns cell_id, grid_id, anchor_db)."
+        )
+    cols = {k: torch.as_tensor(state[k]).reshape(-1).numpy() for k in keys}
+    if not len(cols["cell_id"]) == len(cols["grid_id"]) == len(cols["anchor_db"]):
+        raise CheckpointError("the checkpoint's pair anchors are damaged (columns of different lengths).")
+    if not np.isfinite(cols["anchor_db"]).all():
+        raise CheckpointError("the checkpoint's pair anchors are damaged (non-finite values); retrain the model.")
+    index = pd.MultiIndex.from_arrays(
+        [cols["cell_id"].astype(np.int64), cols["grid_id"].astype(np.int64)], names=["cell_id", "grid_id"]
+    )
+    return pd.Series(cols["anchor_db"].astype(np.float64), index=index, name="anchor_db")

@@ -1,0 +1,450 @@
+"""RF-LSCM: the radiance-field localized statistical channel model (paper §III–IV, SPEC §3).
+
+``RFLSCM`` implements the model contract (:mod:`rflscm.models.base`).  It owns HiTAM, the
+training data and the losses; it composes an :class:`~rflscm.models.rflscm.renderer.APSRenderer`
+(rays, visibility, HiTAM's selection; no parameters) over its rendering stages
+(:class:`~rflscm.models.rflscm.fields.RadianceStage`: fields and decoder).  The fields come from the
+:class:`~rflscm.models.rflscm.fields.FieldFactory` given at construction — the one seam through which
+NeRF²-LSCM plugs in MLP fields instead of VM tensors and reuses everything else.
+
+Units: the stages render the APS in the normalised unit x_ref = r_ref / a_ref (see
+:mod:`rflscm.models.pairs`); :meth:`aps` returns linear path gain.  Training is driven from above by
+the trainer's ``fit`` (package ``train``) through the trainer's ``Trainable``
+protocol (``prepare``, ``training_losses``, …); the trainer owns the step count, the optimizer and
+its state; the model sees each step's schedule ``position`` only.
+
+The decisions where the paper is silent are listed in the package docstring (:mod:`rflscm.models.rflscm`).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, cast
+
+import numpy as np
+import torch
+from torch import nn
+
+from rflscm.data import BEAM_TYPES
+from rflscm.fields import PassiveMedium, TensorVM
+from rflscm.fields.point_prior import PointPrior
+from rflscm.fields.surfaces import SurfaceOrientation
+from rflscm.geometry import AngleGrid
+from rflscm.models.base import LSCMModel, TrainingPlan, register_model
+from rflscm.models.pairs import build_pair_data, reference_power, stacked_sensing
+from rflscm.models.rflscm import checkpoint
+from rflscm.models.rflscm.config import (
+    FLOOR_DB,
+    INIT_LEVEL_DB,
+    INIT_LOSS_DB,
+    LEARN_MU,
+    VAL_BEAM_FRACTION,
+    RFLSCMConfig,
+    TrainConfig,
+    load_rflscm_config,
+)
+from rflscm.models.rflscm.corrections import PAIR_CHUNK, PairCorrections, fit_corrections
+from rflscm.models.rflscm.fields import (
+    FieldFactory,
+    RadianceDecoder,
+    RadianceStage,
+    SceneFrame,
+    VMFieldFactory,
+    fit_loss_channel,
+)
+from rflscm.models.rflscm.hitam import HiTAM
+from rflscm.models.rflscm.losses import lscm_loss, mae_db
+from rflscm.models.rflscm.renderer import APSRenderer, RayKind, TrainContext
+from rflscm.models.rflscm.scene import (
+    SceneInfo,
+    building_targets,
+    check_scene_box,
+    make_frame,
+    make_prior,
+    make_surfaces,
+    scene_box,
+    visible_bins,
+)
+
+if TYPE_CHECKING:
+    from rflscm.data.scenario import Scenario
+
+
+@register_model
+class RFLSCM(LSCMModel):
+    """RF-LSCM with VM-tensor fields, FDAM, the point-cloud prior and HiTAM."""
+
+    name: ClassVar[str] = "rflscm"
+    config_class: ClassVar[type] = RFLSCMConfig
+    config_family: ClassVar[str] = "rflscm"
+    init_fit: ClassVar[tuple[int, float]] = (50, 0.2)
+    """Adam steps and learning rate of the attenuation initialisation (:meth:`_init_attenuation`): for the VM
+    tensors a closer fit than 100 steps at 0.05 in half the time, on both scenes measured
+    (``scripts/attenuation_init_probe.py``)."""
+
+    def __init__(self, config: RFLSCMConfig, angle_grid: AngleGrid, device: torch.device | str = "cpu",
+                 fields: FieldFactory | None = None) -> None:  # fmt: skip
+        """``fields`` builds each stage's fields (default: RF-LSCM's VM tensors from ``config.field``)."""
+        super().__init__(angle_grid, device)
+        self.config = config
+        self.fields: FieldFactory = fields if fields is not None else VMFieldFactory(config.field)
+        h = config.hitam
+        self.hitam = HiTAM(angle_grid, h.beta, h.top_k, h.warmup_steps, h.ramp_steps) if h.enabled else None
+        self.scene: SceneInfo | None = None
+        self.prior: PointPrior | None = None
+        self.surfaces: SurfaceOrientation | None = None
+        """The scan's surface orientation (decoder's specular cue), or None."""
+        self.stages = nn.ModuleDict()
+        self.position = -1.0
+        """Schedule position of the latest training step begun (units of ``train.steps``, see the trainer's
+        ``Trainable``, which owns the step count; −1 before the first).  HiTAM and upsampling follow it."""
+        self.renderer: APSRenderer | None = None
+        """Built with the stages (fit or checkpoint)."""
+        self.corrections = PairCorrections()
+        """The post-training pair corrections (fitted in :meth:`finish_training`, applied in :meth:`aps`)."""
+        self._train: TrainContext | None = None
+
+    @classmethod
+    def build(cls, config: str | Path | dict[str, Any] | None = None, angle_grid: AngleGrid | None = None,
+              device: torch.device | str = "cpu") -> RFLSCM:  # fmt: skip
+        """A fresh model from a preset (``"quick"``, ``"full"``), a YAML path, a mapping or ``None``."""
+        return cls(load_rflscm_config(config, cls.config_class, cls.config_family), angle_grid or AngleGrid(), device)
+
+    # --- construction ---------------------------------------------------------------------------
+    def medium(self, frame: SceneFrame) -> PassiveMedium:
+        return PassiveMedium(frame.reference_wavelength_m, self.config.render.step_m, LEARN_MU, INIT_LOSS_DB)
+
+    def _build_stages(self, frame: SceneFrame) -> None:
+        """Fresh stages (``coarse`` and ``fine`` with HiTAM, else ``fine``) and the renderer over them."""
+
+        def stage() -> RadianceStage:
+            fields = self.fields(frame, self.medium(frame).num_channels)
+            cfg = self.config
+            decoder = RadianceDecoder(
+                cfg.decoder, fields.feature_dim, frame, cfg.render.step_m, self.fields.head_hidden
+            )
+            return RadianceStage(fields, self.medium(frame), decoder, cfg.render, self.surfaces)
+
+        names = ("coarse", "fine") if self.hitam is not None else ("fine",)
+        self.stages = nn.ModuleDict({n: stage() for n in names}).to(self.device)
+        assert self.scene is not None
+        self.renderer = APSRenderer(
+            self.config, self.angle_grid, self.hitam, self.scene, self.prior, self.stages, self.device
+        )
+
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
+        """``{"tensors": VM vectors, matrices and basis vectors, "networks": the decoders}``
+        (empty groups dropped)."""
+        groups: dict[str, list[nn.Parameter]] = {"tensors": [], "networks": []}
+        for module in self.stages.modules():
+            if isinstance(module, TensorVM):
+                groups["tensors"].extend(module.parameters())
+        tensor_ids = {id(p) for p in groups["tensors"]}
+        groups["networks"] = [p for p in self.stages.parameters() if id(p) not in tensor_ids]
+        return {k: v for k, v in groups.items() if v}
+
+    # --- fitting ------------------------------------------------------------------------------
+    def _prepare(self, scenario: Scenario) -> None:
+        """Scene facts, normalisation, prior, fresh stages and training data for ``scenario``."""
+        cfg = self.config
+        torch.manual_seed(cfg.train.seed)
+        cell_ids = scenario.cell_ids()
+        a_mw, num_ssb = stacked_sensing(scenario, cell_ids, self.angle_grid, device=self.device)
+        a_ref = float(a_mw.flatten(1).max(1).values.median())
+        r_ref = reference_power(np.concatenate([scenario.rsrp_table(1, t)[1].ravel() for t in BEAM_TYPES]))
+        a_norm = a_mw / a_ref
+        data = build_pair_data(
+            scenario, cell_ids, a_norm, num_ssb, r_ref, cfg.train.val_pairs, VAL_BEAM_FRACTION, cfg.train.seed
+        )
+        cell_xyz = np.stack([scenario.cell_position(int(c)) for c in cell_ids])
+        wavelengths = np.array([scenario.wavelength_m(int(c)) for c in cell_ids])
+        dist = np.linalg.norm(data.grid_xyz.double().numpy() - cell_xyz[data.cell_index.numpy()], axis=1)
+        lo, hi = scene_box(scenario, cfg.render.step_m)
+        check_scene_box(cfg, lo, hi)
+        grids = scenario.grids
+        self.scene = SceneInfo(
+            cell_ids, cell_xyz, wavelengths, grids["grid_id"].to_numpy(np.int64), grids[["x", "y", "z"]].to_numpy(np.float64),
+            r_ref, a_ref, make_frame(cfg, lo, hi, cell_xyz, wavelengths, dist), visible_bins(a_mw, cfg.render.min_gain_db),
+        )  # fmt: skip
+        prior = make_prior(cfg, scenario, lo, hi)
+        self.prior = prior.to(self.device) if prior is not None else None
+        surfaces = make_surfaces(scenario, lo, hi, seed=cfg.train.seed)
+        self.surfaces = surfaces.to(self.device) if surfaces is not None else None
+        self._build_stages(self.scene.frame)
+        targets = building_targets(cfg, scenario, prior, seed=cfg.train.seed) if prior is not None else None
+        if targets is not None:
+            self._init_attenuation(*targets)
+        a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
+        self._train = TrainContext(data.to(self.device), a_norm, a_coarse, num_ssb)
+        self.corrections = PairCorrections()
+        self.position = -1.0
+        self._calibrate_level(INIT_LEVEL_DB)
+
+    @property
+    def train_config(self) -> TrainConfig:
+        return self.config.train
+
+    def prepare(self, scenario: Scenario) -> TrainingPlan:
+        """Fresh weights and training data for ``scenario``; the training pairs (those with a training beam),
+        grouped by cell (see the trainer's ``Trainable`` protocol)."""
+        self._prepare(scenario)
+        d = self._training().data
+        self.run_info["num_pairs"] = d.num_pairs
+        pairs = torch.nonzero(d.beam_mask.any(1)).squeeze(1).cpu()
+        return TrainingPlan(pairs, d.cell_index.cpu()[pairs])
+
+    def resume_from(self, payload: dict[str, Any], path: str | Path) -> None:
+        """Load weights and schedule position from the checkpoint ``payload`` of ``path`` (see
+        :func:`~rflscm.models.rflscm.checkpoint.check_resume`)."""
+        state = checkpoint.check_resume(self, payload, path)
+        self._load_stage_weights(state["stages"])
+        self.position = float(state["position"])
+
+    def _init_attenuation(self, points: torch.Tensor, share: torch.Tensor) -> None:
+        """Fit the δ field so that its per-voxel loss is ``building_loss_db`` to the power ``share`` times
+        ``INIT_LOSS_DB`` to the power 1 − ``share`` (log-linear: free space where ``share`` = 0), other
+        channels unchanged; every stage starts from the same fit."""
+        f = self.config.field
+        points, share = points.to(self.device), share.to(self.device)
+        assert f.building_loss_db is not None
+        target = share * math.log(f.building_loss_db / INIT_LOSS_DB)  # raw loss channel
+        stages = self.all_stages()
+        fields = stages[0].fields
+        with torch.no_grad():
+            keep = fields.delta(fields.encode(points))[:, 1:]
+        fit_loss_channel(fields, points, target, keep, *self.init_fit)
+        for stage in stages[1:]:
+            stage.fields.delta_module().load_state_dict(fields.delta_module().state_dict())
+
+    def on_step_begin(self, step: int, position: float) -> bool:
+        """Begin step ``step`` at schedule ``position``: upsample the tensors when the position crosses an
+        ``upsample_at`` step, hand the coarse model to the refinement model when it crosses the end of the
+        HiTAM warm-up (previous step's position < threshold <= ``position``; in step mode: ``step`` equals the
+        threshold).  True when parameters were replaced."""
+        before, self.position = self.position, position
+        h = self.config.hitam
+        if self.hitam is not None and before < float(h.warmup_steps) <= position and position > 0:
+            self.stages["fine"].load_state_dict(self.stages["coarse"].state_dict())
+            self._match_fine_to_coarse()
+        levels = [i + 1 for i, at in enumerate(self.fields.upsample_at) if before < at <= position]
+        if not levels:
+            return False
+        assert self.scene is not None and self._train is not None
+        self._train.selection = None
+        for level in levels:  # a budget step may cross several
+            res = self.fields.resolution(self.scene.frame, level)
+            for module in self.stages.modules():
+                if isinstance(module, TensorVM) and res is not None:
+                    module.upsample(res)
+        return True
+
+    def decoder_evals(self) -> int:
+        """Radiance-decoder evaluations so far (all stages)."""
+        return sum(s.decoder_evals for s in self.all_stages())
+
+    def stage(self, name: str) -> RadianceStage:
+        """The rendering stage ``name`` (``"coarse"`` or ``"fine"``)."""
+        return cast(RadianceStage, self.stages[name])
+
+    def all_stages(self) -> list[RadianceStage]:
+        return [cast(RadianceStage, s) for s in self.stages.values()]
+
+    def _training(self) -> TrainContext:
+        if self._train is None:
+            raise RuntimeError("the model has no training data; fit it first.")
+        return self._train
+
+    def _renderer(self) -> APSRenderer:
+        if self.renderer is None:
+            raise RuntimeError("the model has not been fitted")
+        return self.renderer
+
+    # --- losses ---------------------------------------------------------------------------------
+    def _loss(self, a_sel: torch.Tensor, x: torch.Tensor, pairs: torch.Tensor) -> dict[str, torch.Tensor]:
+        d, c = self._training().data, self.config.loss
+        pred = torch.einsum("bmk,bk->bm", a_sel, x)
+        return lscm_loss(
+            pred, d.rsrp[pairs], d.beam_mask[pairs], x, d.x_scale[pairs], d.bound[pairs],
+            c.fidelity, c.sparsity, c.missing_penalty, floor=10.0 ** (FLOOR_DB / 10.0),
+        )  # fmt: skip
+
+    def training_losses(self, pairs: torch.Tensor, position: float) -> dict[str, Any]:
+        """HiTAM loss (1 − α) L⁽¹⁾ + α L⁽²⁾ of a batch of pair indices ``pairs [B]``, α at schedule ``position``."""
+        d = self._training().data
+        pairs = pairs.to(self.device)
+        cells, xyz = d.cell_index[pairs], d.grid_xyz[pairs]
+        if self.hitam is None:
+            return self._loss(self._training().a_norm[cells], self._renderer().full_power(cells, xyz), pairs)
+        alpha = self.hitam.alpha(position)
+        out: dict[str, Any] = {"alpha": alpha}
+        total: torch.Tensor | float = 0.0
+        if alpha < 1.0:
+            coarse = self._renderer().coarse_power(cells, xyz)
+            a_coarse = self._training().a_coarse
+            assert a_coarse is not None
+            l1 = self._loss(a_coarse[cells], coarse, pairs)
+            total = total + (1.0 - alpha) * l1["total"]
+            out.update({"coarse": l1["total"], **{k: v for k, v in l1.items() if k != "total"}})
+            bins, valid = self._renderer().expand(cells, coarse.detach())
+        else:
+            bins, valid = self._frozen_selection(pairs)
+        if alpha > 0.0:
+            l2 = self._loss(
+                self._training().columns(cells, bins, valid),
+                self._renderer().fine_power(cells, xyz, bins, valid),
+                pairs,
+            )
+            total = total + alpha * l2["total"]
+            out.update({"fine": l2["total"], **{k: v for k, v in l2.items() if k != "total"}})
+        out["total"] = total
+        return out
+
+    @torch.no_grad()
+    def _frozen_selection(self, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """HiTAM's Ω′ of training ``pairs [B]`` once α = 1: the coarse model no longer trains, so each pair's
+        selection is rendered once and remembered (until the weights are replaced)."""
+        train, hitam = self._training(), self.hitam
+        assert hitam is not None
+        d, memo = train.data, train.selection
+        if memo is None:
+            width = hitam.top_k * hitam.beta**2
+            memo = (torch.zeros(d.num_pairs, width, dtype=torch.long, device=self.device),
+                    torch.zeros(d.num_pairs, width, dtype=torch.bool, device=self.device),
+                    torch.zeros(d.num_pairs, dtype=torch.bool, device=self.device))  # fmt: skip
+            train.selection = memo
+        bins, valid, known = memo
+        todo = pairs[~known[pairs]].unique()
+        if todo.numel():
+            cells = d.cell_index[todo]
+            bins[todo], valid[todo] = self._renderer().expand(
+                cells, self._renderer().coarse_power(cells, d.grid_xyz[todo])
+            )
+            known[todo] = True
+        return bins[pairs], valid[pairs]
+
+    @torch.no_grad()
+    def _median_error_db(self, stage: RayKind, num_pairs: int = 64) -> float:
+        """Median (prediction − measurement) [dB] of ``stage``'s APS over the observed beams of a few training pairs."""
+        d = self._training().data
+        pairs = torch.arange(d.num_pairs, device=self.device)[:: max(1, d.num_pairs // num_pairs)][:num_pairs]
+        cells, xyz = d.cell_index[pairs], d.grid_xyz[pairs]
+        bins, values = self._renderer().stage_output(cells, xyz, stage, self.position)
+        pred = torch.einsum("bmk,bk->bm", self._training().columns(cells, bins), values)
+        observed = d.observed[pairs]
+        diff = 10.0 * torch.log10(pred[observed].clamp_min(1e-30) / d.rsrp[pairs][observed])
+        return float(diff.median())
+
+    @torch.no_grad()
+    def _calibrate_level(self, target_db: float) -> float:
+        """Rescale every stage's radiance so that the median (prediction − measurement) is ``target_db``;
+        returns the shift applied [dB]."""
+        shift = target_db - self._median_error_db("coarse" if self.hitam is not None else "fine")
+        for stage in self.all_stages():
+            stage.decoder.scale_power(10.0 ** (shift / 10.0))
+        return shift
+
+    @torch.no_grad()
+    def _match_fine_to_coarse(self) -> float:
+        """Rescale the refinement model so that its median error equals the coarse model's (the hand-over
+        after a copy: fine rays have narrower cones, so β² children do not sum to their block); returns dB."""
+        shift = self._median_error_db("coarse") - self._median_error_db("fine")
+        self.stage("fine").decoder.scale_power(10.0 ** (shift / 10.0))
+        return shift
+
+    @torch.no_grad()
+    def validation_mae(self) -> float:
+        """MAE [dB] on the held-aside round-1 beams (NaN without any)."""
+        d = self._training().data
+        if d.val_pairs.numel() == 0:
+            return float("nan")
+        errs, counts = [], []
+        for start in range(0, d.val_pairs.numel(), PAIR_CHUNK):
+            pairs = d.val_pairs[start : start + PAIR_CHUNK]
+            cells = d.cell_index[pairs]
+            bins, values = self._renderer().output(cells, d.grid_xyz[pairs], self.position)
+            pred = torch.einsum("bmk,bk->bm", self._training().columns(cells, bins), values)
+            mask = d.val_mask[pairs]
+            count = int((mask & ~torch.isnan(d.rsrp[pairs])).sum())
+            if count:
+                errs.append(float(mae_db(pred, d.rsrp[pairs], mask)) * count)
+                counts.append(count)
+        return sum(errs) / sum(counts) if counts else float("nan")
+
+    # --- the contract's APS ---------------------------------------------------------------------
+    @torch.no_grad()
+    def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
+        """APS ``[num_pairs, num_bins]`` [linear path gain] (see :meth:`LSCMModel.aps`).
+
+        Each distinct (cell, grid position) of the call is rendered once; evaluation and the benchmarks
+        remember rendered APS across calls (:class:`rflscm.eval.cache.APSCache`)."""
+        if self.scene is None or self.renderer is None:
+            raise RuntimeError("the model has not been fitted")
+        R = self.renderer
+        cells = self.scene.cell_index(cell_ids)
+        xyz = (
+            self.scene.grid_positions(grid_ids) if grid_xyz is None else np.asarray(grid_xyz, np.float64).reshape(-1, 3)
+        )
+        keys = [(int(c), *np.round(p, 3).tolist()) for c, p in zip(cells, xyz)]
+        first: dict[tuple, int] = {}
+        for i, key in enumerate(keys):
+            first.setdefault(key, i)
+        todo = sorted(first.values(), key=lambda i: (keys[i][0], i))
+        out = torch.zeros(len(keys), self.angle_grid.num_bins, device=self.device)
+        rendered = torch.zeros(len(todo), self.angle_grid.num_bins, device=self.device)
+        for start in range(0, len(todo), PAIR_CHUNK):
+            rows = todo[start : start + PAIR_CHUNK]
+            c = torch.as_tensor(cells[rows], device=self.device)
+            g = torch.as_tensor(xyz[rows], dtype=torch.float32, device=self.device)
+            bins, values = R.output(c, g, self.position)
+            rendered[start : start + len(rows)].scatter_add_(1, bins, values)
+        if keys:
+            slot = {keys[i]: j for j, i in enumerate(todo)}
+            out = rendered[torch.as_tensor([slot[k] for k in keys], dtype=torch.long, device=self.device)]
+        out = self.corrections.apply(out, cells, cell_ids, grid_ids)
+        return out * self.scene.x_ref
+
+    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
+        """CSI-RS predictions carry each cell's CSI-RS level correction relative to its SSB one (the APS carries
+        the SSB one; :mod:`~rflscm.models.rflscm.corrections`)."""
+        if self.scene is None:
+            return None
+        return self.corrections.level_offset_db(self.scene.cell_index(np.asarray(cell_ids)), beam_type)
+
+    def finish_training(self, progress: bool = False) -> None:
+        """After the last step: fit the pair corrections that predictions and the checkpoint carry, once (one
+        render of every training pair; ``progress``: a bar)."""
+        train = self._training()
+        assert self.scene is not None
+        self.corrections = fit_corrections(
+            self.config.corrections, train.data, train.num_ssb, np.asarray(self.scene.cell_ids), self._render_training,
+            self._training().columns, self.config.train.seed, progress,
+        )  # fmt: skip
+
+    @torch.no_grad()
+    def _render_training(self, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The current APS of training ``pairs [B]`` in sparse form ``(fine bins [B, K], values [B, K])`` and their
+        predicted round-1 reports ``[B, M]`` (normalised); during HiTAM's warm-up through the coarse columns, which
+        give the same A x as the coarse APS spread over its blocks, on ~β² fewer columns."""
+        d, R = self._training().data, self._renderer()
+        cells, xyz = d.cell_index[pairs], d.grid_xyz[pairs]
+        a_coarse = self._training().a_coarse
+        if self.hitam is not None and a_coarse is not None and self.position < self.hitam.warmup_steps:
+            coarse = R.coarse_power(cells, xyz)
+            bins, values = R.coarse_as_fine(coarse)
+            return bins, values, torch.einsum("bmk,bk->bm", a_coarse[cells], coarse)
+        bins, values = R.output(cells, xyz, self.position)
+        return bins, values, torch.einsum("bmk,bk->bm", self._training().columns(cells, bins), values)
+
+    # --- persistence (:mod:`~rflscm.models.rflscm.checkpoint`) ---------------------------------------
+    def state_dict_for_checkpoint(self) -> dict[str, Any]:
+        return checkpoint.model_state(self)
+
+    @classmethod
+    def from_checkpoint(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> RFLSCM:
+        return checkpoint.restore(cls, state, device)
+
+    def _load_stage_weights(self, weights: dict[str, torch.Tensor]) -> None:
+        checkpoint.load_stage_weights(self, weights)
+        if self._train is not None:
+            self._train.selection = None

@@ -1,0 +1,98 @@
+"""PairCorrections on tiny tensors, without training: fitted once from a fake render, applied, saved and loaded."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from rflscm.errors import CheckpointError
+from rflscm.models.pairs import PairData
+from rflscm.models.rflscm.config import CorrectionsConfig
+from rflscm.models.rflscm.corrections import PairCorrections, fit_corrections
+from rflscm.models.rflscm.posterior import PairPosterior
+
+K = 4  # bins; every beam sees every bin with gain 1, so a pair's prediction is the sum of its APS
+
+
+def data(rsrp: list[list[float]], cells: list[int]) -> PairData:
+    r = torch.tensor(rsrp, dtype=torch.float32)
+    p, m = r.shape
+    return PairData(
+        cell_index=torch.tensor(cells), grid_ids=np.arange(100, 100 + p, dtype=np.int64),
+        grid_xyz=torch.zeros(p, 3), rsrp=r, beam_mask=torch.ones(p, m, dtype=torch.bool),
+        val_mask=torch.zeros(p, m, dtype=torch.bool), x_scale=torch.ones(p), bound=torch.full((p, m), float("nan")),
+        val_pairs=torch.zeros(0, dtype=torch.long),
+    )  # fmt: skip
+
+
+def render(aps: torch.Tensor, calls: list[torch.Tensor]):
+    def fn(pairs: torch.Tensor):
+        calls.append(pairs.clone())
+        x = aps[pairs]
+        bins = torch.arange(K).expand(len(pairs), K)
+        return bins, x, x.sum(1, keepdim=True).expand(-1, 2).clone()  # two beams: SSB (0), CSI-RS (1)
+
+    return fn
+
+
+def columns(cells: torch.Tensor, bins: torch.Tensor) -> torch.Tensor:
+    return torch.ones(len(cells), 2, bins.shape[1])
+
+
+# pair 0: measured 10x the prediction on both beams (+10 dB); pair 1: exact; both in cell 0; pair 2 in cell 1 at +3 dB
+APS = torch.full((3, K), 0.25)
+RSRP = [[10.0, 10.0], [1.0, 1.0], [10**0.3, 10**0.3]]
+
+
+def test_levels_and_anchors_are_fitted_from_one_render_and_centre_each_pair() -> None:
+    calls: list[torch.Tensor] = []
+    cfg = CorrectionsConfig(pair_posterior=False)
+    fitted = fit_corrections(cfg, data(RSRP, [0, 0, 1]), 1, np.array([7, 8]), render(APS, calls), columns, seed=0)
+    assert len(calls) == 1 and calls[0].tolist() == [0, 1, 2]  # one render of every pair with reports
+    assert fitted.levels is not None and fitted.posterior is None
+    # fewer than LEVEL_MIN_BEAMS beams per cell: every cell takes the median over all cells (pairs at 10, 0, 3 dB)
+    torch.testing.assert_close(fitted.levels, torch.full((2, 2), 3.0), atol=1e-4, rtol=0)
+    anchors = fitted.anchors
+    assert anchors is not None
+    np.testing.assert_allclose(anchors.loc[[(7, 100), (7, 101), (8, 102)]].to_numpy(), [7.0, -3.0, 0.0], atol=1e-4)
+    out = fitted.apply(
+        torch.full((4, K), 0.25), np.array([0, 0, 1, 1]), np.array([7, 7, 8, 8]), np.array([100, 101, 102, 999])
+    )
+    # level and anchor together restore each pair's measured power; an unmeasured grid gets the level alone
+    np.testing.assert_allclose(out.sum(1).numpy(), [10.0, 1.0, 10**0.3, 10**0.3], rtol=1e-4)
+
+
+def test_switches_off_fit_nothing_and_change_nothing() -> None:
+    calls: list[torch.Tensor] = []
+    off = CorrectionsConfig(calibrate_levels=False, pair_anchors=False, pair_posterior=False)
+    fitted = fit_corrections(off, data(RSRP, [0, 0, 1]), 1, np.array([7, 8]), render(APS, calls), columns, seed=0)
+    assert not calls and fitted == PairCorrections()
+    assert torch.equal(fitted.apply(APS, np.array([0]), np.array([7]), np.array([100])), APS)
+    assert fitted.level_offset_db(np.array([0]), "csi") is None
+
+
+def test_the_csi_offset_is_relative_to_the_ssb_level() -> None:
+    fitted = PairCorrections(levels=torch.tensor([[1.0, 4.0], [2.0, 0.5]]))
+    np.testing.assert_allclose(fitted.level_offset_db(np.array([1, 0]), "csi"), [-1.5, 3.0])
+    assert fitted.level_offset_db(np.array([1, 0]), "ssb") is None
+
+
+def test_a_round_trip_through_torch_save_with_weights_only_keeps_every_part() -> None:
+    index = pd.MultiIndex.from_arrays([np.array([7, 8]), np.array([100, 102])], names=["cell_id", "grid_id"])
+    posterior = PairPosterior(index, torch.tensor([[0, 1], [2, 3]]), torch.tensor([[1.0, -2.0], [0.5, 0.0]]), 1.0,
+                              {1.0: 0.5})  # fmt: skip
+    fitted = PairCorrections(torch.tensor([[1.0, 2.0], [3.0, 4.0]]), pd.Series([0.5, -1.0], index=index), posterior)
+    buffer = io.BytesIO()
+    torch.save(fitted.to_state(), buffer)
+    buffer.seek(0)
+    loaded = PairCorrections.from_state(torch.load(buffer, weights_only=True), num_bins=K)
+    aps = torch.rand(3, K)
+    args = (np.array([0, 1, 1]), np.array([7, 8, 8]), np.array([100, 102, 5]))
+    torch.testing.assert_close(loaded.apply(aps, *args), fitted.apply(aps, *args))
+    assert PairCorrections.from_state(None, K) == PairCorrections()
+    with pytest.raises(CheckpointError, match="pair corrections are damaged"):
+        PairCorrections.from_state([1, 2], K)  # type: ignore[arg-type]
