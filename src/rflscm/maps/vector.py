@@ -237,3 +237,15 @@ def grid_table(scenario: Scenario, frame: MapFrame) -> pd.DataFrame:
     lon, lat = frame.lonlat(g[["x", "y"]].to_numpy())
     g["lat"], g["lon"] = lat, lon
     return g
+
+
+def with_grid_positions(table: pd.DataFrame, scenario: Scenario) -> pd.DataFrame:
+    """``table`` with each row's grid position beside its ``grid_id``: ``x``, ``y`` [m] in the scenario's frame
+    and, when scenario.yaml has an ``origin``, ``lat``, ``lon`` [deg, WGS84] (:mod:`rflscm.maps.crs`)."""
+    frame = MapFrame.of(scenario.meta.origin)
+    grids = grid_table(scenario, frame)
+    keep = ["grid_id", "x", "y"] + ([] if frame.nominal else ["lat", "lon"])
+    pos = grids[keep].set_index("grid_id").loc[table["grid_id"].to_numpy()].reset_index(drop=True)
+    at = list(table.columns).index("grid_id") + 1
+    out = table.reset_index(drop=True)
+    return pd.concat([out.iloc[:, :at], pos, out.iloc[:, at:]], axis=1)
