@@ -249,7 +249,7 @@ def write_html(path: Path, cache: APSCache, scenario: Scenario, outputs: MapOutp
                cells: list[Props], radius: list[float], measured: list[Props], title: str) -> Path:  # fmt: skip
     """Write the self-contained interactive map (see the module docstring)."""
     import folium
-    from branca.element import Element, MacroElement
+    from branca.element import Element, Figure, MacroElement
     from jinja2 import Template
 
     data = page_data(cache, scenario, outputs, grids, cells, radius, measured, title)
@@ -257,9 +257,12 @@ def write_html(path: Path, cache: APSCache, scenario: Scenario, outputs: MapOutp
     fmap = folium.Map(location=[o.lat, o.lon], zoom_start=16, tiles=None, control_scale=True)
     fmap.default_js, fmap.default_css = [], []  # folium links CDNs; Leaflet is inlined below instead
     root = fmap.get_root()
-    root.header.add_child(Element(f"<style>{_vendor('leaflet.css')}</style>\n<style>{_CSS}</style>"), name="leaflet_css")  # type: ignore[attr-defined]
-    root.header.add_child(Element(f"<script>{_vendor('leaflet.js')}</script>"), name="leaflet_js")  # type: ignore[attr-defined]
-    root.header.add_child(Element(f"<title>{html.escape(title)}</title>"), name="title")  # type: ignore[attr-defined]
+    assert isinstance(root, Figure)
+    root.header.add_child(
+        Element(f"<style>{_vendor('leaflet.css')}</style>\n<style>{_CSS}</style>"), name="leaflet_css"
+    )
+    root.header.add_child(Element(f"<script>{_vendor('leaflet.js')}</script>"), name="leaflet_js")
+    root.header.add_child(Element(f"<title>{html.escape(title)}</title>"), name="title")
     payload = json.dumps(data, allow_nan=False, separators=(",", ":"))
     script = _SCRIPT % {
         "map": fmap.get_name(),
@@ -275,7 +278,10 @@ def write_html(path: Path, cache: APSCache, scenario: Scenario, outputs: MapOutp
     macro._template = Template("{% macro script(this, kwargs) %}{% raw %}" + script + "{% endraw %}{% endmacro %}")
     fmap.add_child(macro)
     text = root.render()
-    loads = re.search(r"<(?:script|img|iframe)[^>]+src=[\"']?(?:https?:)?//|<link[^>]+href=[\"']?(?:https?:)?//|url\((?:[\"']?)(?:https?:)?//|@import", text)
+    loads = re.search(
+        r"<(?:script|img|iframe)[^>]+src=[\"']?(?:https?:)?//|<link[^>]+href=[\"']?(?:https?:)?//|url\((?:[\"']?)(?:https?:)?//|@import",
+        text,
+    )
     if loads is not None:
         raise DataError(f"the HTML map would load {loads.group(0)!r}: a network asset slipped in; nothing was written.")
     path.parent.mkdir(parents=True, exist_ok=True)

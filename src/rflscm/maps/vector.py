@@ -148,7 +148,7 @@ def measured_rows(scenario: Scenario, round: int) -> list[Props]:
     rows: list[Props] = []
     best = reported.sort_values("rsrp_dbm", ascending=False).drop_duplicates("grid_id").set_index("grid_id")
     for gid, group in m.groupby("grid_id", sort=True):
-        g = int(gid)  # type: ignore[call-overload]
+        g = int(gid)
         rows.append(
             {
                 "grid_id": g,

@@ -112,8 +112,8 @@ def write_layers(source: APSSource, scenario: Scenario, out: Path, round: int, c
     ``source`` is a fitted model (or an :class:`APSCache` of one, to share rendered APS with other work)."""
     for r, option in ((round, "--round"), (compare_round, "--compare-round")):
         if r is not None and r not in scenario.cells:
-            rounds = ", ".join(map(str, scenario.rounds()))
-            raise ConfigError(f"{option} {r}: scenario {scenario.meta.name!r} has rounds {rounds}.")
+            known = ", ".join(map(str, scenario.rounds()))
+            raise ConfigError(f"{option} {r}: scenario {scenario.meta.name!r} has rounds {known}.")
     if compare_round == round:
         raise ConfigError(f"--compare-round {compare_round} is --round itself; give another round to compare with.")
     kpi = kpi or KPIConfig()
@@ -151,7 +151,10 @@ def write_layers(source: APSSource, scenario: Scenario, out: Path, round: int, c
     for lay in layers:
         for c in lay.carriers:
             p = f"r{lay.round}_{c.key}_"
-            rows = [dict(row, **{k[len(p):]: v[i] for k, v in cols.items() if k.startswith(p)}) for i, row in enumerate(base)]
+            rows = [
+                dict(row, **{k[len(p) :]: v[i] for k, v in cols.items() if k.startswith(p)})
+                for i, row in enumerate(base)
+            ]
             folders.append((f"round {lay.round} · {c.label} · best-server SSB RSRP (dBm)", rows, c.rsrp_dbm, p))
     title = title or f"{scenario.meta.name}: round {' vs '.join(map(str, rounds))}"
     files.append(write_kml(out / "map.kml", frame, title, folders, lattice.size_m, cells, radius, measured))

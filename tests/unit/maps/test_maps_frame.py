@@ -87,5 +87,7 @@ def test_with_grid_positions_puts_x_y_lat_lon_beside_grid_ids(tmp_path) -> None:
     assert out["x"].tolist() == [10.0, 50.0, 50.0] and out["y"].tolist() == [-95.0, 80.0, 80.0]
     back = geodetic_to_enu(out["lat"].to_numpy(), out["lon"].to_numpy(), np.zeros(3), MUNICH)
     np.testing.assert_allclose(back[:, :2], out[["x", "y"]].to_numpy(), atol=1e-6)
-    plain = with_grid_positions(table, dataclasses.replace(scenario, meta=dataclasses.replace(scenario.meta, origin=None)))
+    plain = with_grid_positions(
+        table, dataclasses.replace(scenario, meta=dataclasses.replace(scenario.meta, origin=None))
+    )
     assert "lat" not in plain.columns and "x" in plain.columns  # no real place: metres only
