@@ -235,3 +235,24 @@ def test_html_map_works_offline_in_a_real_browser(mapped, tmp_path) -> None:
             ctx.close()
     pixels = np.asarray(Image.open(io.BytesIO(shot.tobytes())).convert("L"), np.float64)
     assert pixels.std() > 10.0  # not a blank page
+
+
+def test_optimize_maps_writes_the_before_after_layers(mapped, tmp_path) -> None:
+    import rasterio
+
+    scenario, out, _, _ = mapped
+    opt = tmp_path / "opt"
+    run = rflscm("optimize", str(out.parent / "w.ckpt"), str(scenario.root), "--out", str(opt), "--tilt-range",
+                 "0:6:2", "--azimuth-range", "-5:5:5", "--max-changed", "2", "--restarts", "0", "--no-verify",
+                 "--maps", "--device", "cpu")  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    maps = opt / "maps"
+    for name in ("rsrp_round1.tif", "rsrp_round3.tif", "rsrp_diff_round3_minus_round1.tif", "grids.geojson",
+                 "cells.geojson", "map.kml", "map.html"):  # fmt: skip
+        assert (maps / name).is_file(), name
+    changes = pd.read_csv(opt / "changes.csv")
+    cells = json.loads((maps / "cells.geojson").read_text())["features"]
+    flagged = {c["properties"]["cell_id"] for c in cells if c["properties"]["changed"]}
+    assert flagged == set(changes["cell_id"].tolist())
+    with rasterio.open(maps / "rsrp_round3.tif") as ds:
+        assert ds.crs.to_dict()["lat_0"] == ORIGIN.lat

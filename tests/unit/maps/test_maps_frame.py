@@ -91,3 +91,16 @@ def test_with_grid_positions_puts_x_y_lat_lon_beside_grid_ids(tmp_path) -> None:
         table, dataclasses.replace(scenario, meta=dataclasses.replace(scenario.meta, origin=None))
     )
     assert "lat" not in plain.columns and "x" in plain.columns  # no real place: metres only
+
+
+def test_maps_sit_above_eval_and_network_and_below_the_cli() -> None:
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, rflscm.eval, rflscm.network; assert 'rflscm.maps' not in sys.modules; "
+        "import rflscm.maps; print(sorted({m.split('.')[1] for m in sys.modules if m.startswith('rflscm.')}))"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert "'cli'" not in run.stdout and "'bench'" not in run.stdout and "'maps'" in run.stdout
