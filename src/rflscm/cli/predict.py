@@ -133,7 +133,8 @@ def predict(
         help="Round to predict (integer; its antenna configuration); add a round to scenario.yaml for a what-if.",
     ),
     out: Path = typer.Option(
-        Path("prediction.parquet"), "--out",
+        Path("prediction.parquet"),
+        "--out",
         help="Predicted RSRP table (.parquet or .csv); grid x/y (m) and, with an origin, lat/lon (deg) beside grid ids.",
     ),
     pairs_choice: Pairs = typer.Option(
