@@ -71,10 +71,10 @@ def write_geotiff(path: Path, lattice: Lattice, frame: MapFrame, bands: list[Ban
     """One GeoTIFF (one band per carrier) in the scenario's local projected CRS, with its note as a tag."""
     import rasterio
     from rasterio.crs import CRS
-    from rasterio.transform import from_origin
+    from rasterio.transform import Affine
 
     half = lattice.size_m / 2.0
-    transform = from_origin(lattice.x_min - half, lattice.y_max + half, lattice.size_m, lattice.size_m)
+    transform = Affine(lattice.size_m, 0.0, lattice.x_min - half, 0.0, -lattice.size_m, lattice.y_max + half)
     profile = {
         "driver": "GTiff",
         "width": lattice.width,
