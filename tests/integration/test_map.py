@@ -257,3 +257,35 @@ def test_optimize_maps_writes_the_before_after_layers(mapped, tmp_path) -> None:
     assert flagged == set(changes["cell_id"].tolist())
     with rasterio.open(maps / "rsrp_round3.tif") as ds:
         assert ds.crs.to_dict()["lat_0"] == ORIGIN.lat
+
+
+def test_map_of_the_shipped_scenario_is_in_munich_and_equals_predict(tmp_path) -> None:
+    import rasterio
+
+    from rflscm.sim import default_scenario_path
+
+    root = default_scenario_path()
+    ckpt = tmp_path / "w.ckpt"
+    assert rflscm("train", str(root), "--model", "wnomp", "--out", str(ckpt), "--no-progress").returncode == 0
+    run = rflscm(
+        "map", str(ckpt), str(root), "--round", "2", "--out", str(tmp_path / "m"), "--no-html", "--device", "cpu"
+    )
+    assert run.returncode == 0, run.stderr
+    pred = tmp_path / "p.parquet"
+    run = rflscm("predict", str(ckpt), str(root), "--round", "2", "--out", str(pred), "--device", "cpu")
+    assert run.returncode == 0, run.stderr
+    scenario = load_scenario(root)
+    expected = best_server(scenario, pd.read_parquet(pred))
+    grids = scenario.grids.set_index("grid_id")
+    with rasterio.open(tmp_path / "m" / "rsrp_round2.tif") as ds:
+        crs = ds.crs.to_dict()
+        assert crs["proj"] == "tmerc" and (crs["lat_0"], crs["lon_0"]) == (48.14, 11.57) and ds.res == (10.0, 10.0)
+        image = ds.read()
+        for band, f in enumerate(sorted(expected)):
+            top = expected[f]
+            rows, cols = rasterio.transform.rowcol(ds.transform, grids.loc[top.index, "x"], grids.loc[top.index, "y"])
+            np.testing.assert_allclose(image[band, rows, cols], top["rsrp_dbm"].to_numpy(), atol=1e-3)
+    lon, lat = json.loads((tmp_path / "m" / "grids.geojson").read_text())["features"][0]["geometry"]["coordinates"][0][
+        0
+    ]
+    assert 48.13 < lat < 48.15 and 11.56 < lon < 11.58  # central Munich
