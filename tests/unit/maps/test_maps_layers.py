@@ -69,3 +69,38 @@ def test_files_of_a_scenario_without_origin_say_the_position_is_nominal(fitted, 
         assert "NOMINAL" in ds.tags()["CRS_NOTE"] and ds.crs.to_dict()["lat_0"] == 0.0
     with pytest.raises(ConfigError, match="--compare-round 1 is --round itself"):
         write_layers(cache, scenario, tmp_path / "x", 1, 1)
+
+
+def test_a_field_model_maps_every_pair_and_its_html_has_an_aps_per_served_grid(fitted, tmp_path: Path) -> None:
+    import torch
+
+    scenario, _ = fitted
+    config = {
+        "prior": {"enabled": False},
+        "field": {"voxel_m": 20.0, "delta_rank": 2, "feature_rank": 2, "feature_dim": 4},
+        "decoder": {"hidden": 16},
+        "render": {"step_m": 8.0},
+        "hitam": {"top_k": 3, "warmup_steps": 4, "ramp_steps": 2},
+        "train": {"steps": 4, "batch_pairs": 4, "pairs_per_cell": 2, "val_pairs": 2, "val_every": 2},
+    }
+    torch.manual_seed(0)
+    model = MODEL_REGISTRY["rflscm"].build(
+        config, AngleGrid(num_el=16, num_az=18, el_min_deg=-90.0, el_step_deg=12.0), "cpu"
+    )
+    fit_with_protocol(model, scenario, None, progress=False)
+    out = write_layers(model, scenario, tmp_path / "m", 1, 2)
+    assert out.layers[0].pairs == "every (cell, grid) pair"
+    served = {
+        (int(s), int(g))
+        for lay in out.layers
+        for c in lay.carriers
+        for s, g in zip(c.serving, scenario.grid_ids())
+        if s >= 0
+    }
+    html = (tmp_path / "m" / "map.html").read_text()
+    start = html.index("const D = ") + len("const D = ")
+    data = json.loads(html[start : html.index(";\n", start)])
+    assert set(data["aps"]) == {f"{s}:{g}" for s, g in served} and all(
+        v.startswith("data:image/png;base64,") for v in data["aps"].values()
+    )
+    assert len(data["overlays"]) == 2 * 2 * 4 + 2 * 3 and all(len(o["colours"]) == 3 for o in data["overlays"])
