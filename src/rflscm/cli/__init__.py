@@ -70,7 +70,7 @@ def _root(
 
 def _register_commands() -> None:
     # Imported for their side effect of adding commands to `app`.
-    from rflscm.cli import bench, check, demo, evaluate, import_, optimize, predict, simulate, train  # noqa: F401
+    from rflscm.cli import bench, check, demo, evaluate, import_, map, optimize, predict, simulate, train  # noqa: F401
 
 
 def main() -> None:

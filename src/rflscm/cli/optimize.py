@@ -107,6 +107,9 @@ def optimize(
         help="True KPIs from truth/ (default: if the scenario has it).",
     ),
     aps_cache: Path | None = typer.Option(None, "--aps-cache", help="Reuse or write the rendered APS here (.pt file)."),
+    maps: bool = typer.Option(
+        False, "--maps", help="Also write map layers before/after (GeoTIFF, GeoJSON, KML, HTML) into OUT/maps."
+    ),
     device: Device = DeviceOption,
     seed: int = SeedOption,
     workers: int = WorkersOption,
@@ -165,6 +168,12 @@ def optimize(
     folder, rnd = write_round(scen, result.cells_after, out)
     report = write_report(result, scen, out, kpi, rnd, folder, command="rflscm " + " ".join(sys.argv[1:]))
     _print(console, result, folder, rnd, report)
+    if maps:
+        from rflscm.maps import write_layers
+
+        with console.status("writing map layers before/after…"):
+            layers = write_layers(model, load_scenario(folder), out / "maps", base_round, rnd, kpi)
+        console.print(f"wrote {len(layers.files)} map files to {out / 'maps'} (docs/maps.md)")
 
 
 def _print(console: Console, result, folder: Path, rnd: int, report: Path) -> None:

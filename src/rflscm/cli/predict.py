@@ -133,7 +133,11 @@ def predict(
         "--round",
         help="Round to predict (integer; its antenna configuration); add a round to scenario.yaml for a what-if.",
     ),
-    out: Path = typer.Option(Path("prediction.parquet"), "--out", help="Predicted RSRP table (.parquet or .csv)."),
+    out: Path = typer.Option(
+        Path("prediction.parquet"),
+        "--out",
+        help="Predicted RSRP table (.parquet or .csv); grid x/y (m) and, with an origin, lat/lon (deg) beside grid ids.",
+    ),
     pairs_choice: Pairs = typer.Option(
         Pairs.measured, "--pairs", help="measured: pairs with measurements; all: every cell × grid."
     ),
@@ -195,7 +199,9 @@ def predict(
             for bt in ("ssb", "csi")
         ]
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_table(pd.concat(tables, ignore_index=True), out)
+    from rflscm.maps.vector import with_grid_positions
+
+    write_table(with_grid_positions(pd.concat(tables, ignore_index=True), scen), out)  # x/y (lat/lon) beside grid_id
     console.print(f"wrote {out} ({sum(len(t) for t in tables)} beams)")
     if kpi or kpi_json is not None:
         _print_kpis(scen, model, selected, tables[0], threshold, kpi_json, console)

@@ -217,13 +217,16 @@ class Scenario:
         """SHA-256 (hex) of round-1 cells, grids, round-1 measurements (and round-1 ``outside_ssb``, where a
         cut-out part has it) and the data-relevant meta.
 
-        The meta part is origin, threshold, carriers and codebooks (names, descriptions and file
-        names are not data).  Only the standard columns are hashed, in canonical dtypes, so the value
+        The meta part is threshold, carriers and codebooks (names, descriptions, file names and the
+        geographic origin, which only places the frame on Earth, are not data).  Only the standard columns are hashed, in canonical dtypes, so the value
         is the same after save/load and for CSV and Parquet files.
         """
         digest = hashlib.sha256()
         meta = self.meta.to_dict()
-        meta_part = {k: meta[k] for k in ("origin", "rsrp_threshold_dbm", "frequencies_hz", "codebooks")}
+        meta_part = {k: meta[k] for k in ("rsrp_threshold_dbm", "frequencies_hz", "codebooks")}
+        # The origin only places the frame on Earth; the tables are hashed in the frame (lat/lon inputs projected
+        # already), so a georeference added later (maps) keeps checkpoints valid.  Hashed as null, as before.
+        meta_part["origin"] = None
         if "reporting" in meta:
             meta_part["reporting"] = meta["reporting"]
         digest.update(json.dumps(meta_part, sort_keys=True).encode())
