@@ -13,10 +13,9 @@ from rflscm.cli import app
 from rflscm.cli.common import (
     Device,
     DeviceOption,
+    ForceOption,
     SeedOption,
     json_text,
-    output_file,
-    output_folder,
     resolve_device,
     seed_everything,
 )
@@ -40,6 +39,7 @@ def evaluate(
     ),
     device: Device = DeviceOption,
     seed: int = SeedOption,
+    force: bool = ForceOption,
 ) -> None:
     """Compare a trained model's predictions with measurements: MAE per beam type, changed cells, per cell,
     beside the oracle floor and the trivial baseline; APS recovery where ground truth exists."""
@@ -51,14 +51,24 @@ def evaluate(
 
     if protocol is not None and protocol not in PROTOCOLS:
         raise ConfigError(f"--protocol {protocol!r} is unknown; choose one of: {', '.join(PROTOCOLS)}.")
-    json_out = None if json_out is None else output_file(json_out, "--json")
-    report = None if report is None else output_folder(report, "--report")
+    from rflscm.data.loader import scenario_inputs
+    from rflscm.data.safe_io import guard_outputs, write_text_atomic
+
+    if json_out is not None and json_out.suffix.lower() != ".json":
+        raise ConfigError(f"--json {json_out}: the file name must end in .json.")
+    inputs = [*scenario_inputs(scenario), checkpoint]
+    guard_outputs({"--json": json_out, "--report": report}, inputs, force=force, folders=("--report",))
     seed_everything(seed)
     dev = resolve_device(device)
     sc = load_scenario(scenario)
     model = load_model(checkpoint, sc, device=dev)
     chosen = resolve_protocol(model, protocol)
     console = Console()
+    if model.run_info.get("interrupted"):
+        console.print(
+            "[yellow]note:[/yellow] this checkpoint was saved by a training run that was interrupted (or is still "
+            "running); it is not fully trained — continue it with `rflscm train … --resume`."
+        )
     with console.status(f"evaluating {model.name} ({chosen.name} protocol)…"):
         evaluation = run_evaluation(model, sc, chosen, oracle="auto" if oracle else None)
     metrics = evaluation.metrics
@@ -72,7 +82,7 @@ def evaluate(
     if metrics["unsupported"]:
         console.print(f"[yellow]note:[/yellow] {escape(metrics['unsupported'])}")
     if json_out is not None:
-        json_out.write_text(json_text(metrics))
+        write_text_atomic(json_out, json_text(metrics), "metrics JSON")
         console.print(f"wrote {json_out}")
     if report is not None:
         path = write_report(evaluation, sc, model, report)

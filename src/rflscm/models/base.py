@@ -24,7 +24,6 @@ from __future__ import annotations
 import abc
 import hashlib
 import json
-import os
 import pickle
 import zipfile
 from collections.abc import Callable
@@ -36,6 +35,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from rflscm.data.safe_io import atomic_write, discard_stale_temps
 from rflscm.errors import CheckpointError, DataError, RflscmError, UnsupportedError
 from rflscm.geometry import AngleGrid
 
@@ -202,13 +202,13 @@ class LSCMModel(abc.ABC):
             "run_info": self.run_info,
             "state": self.state_dict_for_checkpoint(),
         })  # fmt: skip
-        tmp = partial_save_path(path)
-        tmp.unlink(missing_ok=True)  # a partial file left by a save that was killed
-        with open(tmp, "wb") as f:
-            torch.save({"format": CHECKPOINT_FORMAT, "sha256": content_hash(payload), "payload": payload}, f)
-            f.flush()
-            os.fsync(f.fileno())
-        tmp.replace(path)
+        checkpoint = {"format": CHECKPOINT_FORMAT, "sha256": content_hash(payload), "payload": payload}
+
+        def write(tmp: Path) -> None:
+            with open(tmp, "wb") as f:
+                torch.save(checkpoint, f)
+
+        atomic_write(path, write, "checkpoint")  # a unique temporary name: concurrent saves never collide
         return path
 
 
@@ -220,8 +220,7 @@ def partial_save_path(path: str | Path) -> Path:
 
 def discard_partial_save(path: str | Path | None) -> None:
     """Remove the temporary file of a save that was interrupted (kill -9, full disk) before it was renamed."""
-    if path is not None:
-        partial_save_path(path).unlink(missing_ok=True)
+    discard_stale_temps(path)
 
 
 def to_plain(value: Any) -> Any:
