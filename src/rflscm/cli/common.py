@@ -98,6 +98,17 @@ SEED_MAX = 2**63 - 1
 """The largest ``--seed`` (torch's generator takes a 64-bit integer)."""
 
 
+def refuse_inputs_inside(out: Path, inputs: list[Path | None], option: str = "--out") -> None:
+    """A folder a command replaces (``--force``) must not hold one of its inputs."""
+    root = os.path.realpath(out).rstrip(os.sep) + os.sep
+    for source in inputs:
+        if source is not None and os.path.realpath(source).startswith(root):
+            raise ConfigError(
+                f"{option} {out}: holds an input of this command ({source}); replacing the folder would destroy "
+                f"that input — choose another {option}."
+            )
+
+
 def json_text(value: object) -> str:
     """JSON with every NaN or ±inf written as ``null`` (``json.dumps`` would write ``NaN``, which is not JSON)."""
 

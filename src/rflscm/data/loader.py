@@ -24,7 +24,7 @@ from rflscm.data.columns import TableRef
 from rflscm.data.io import LINE_NUMBERS, read_table, table_kind, write_table
 from rflscm.data.measurements import empty_measurements, normalise_measurements
 from rflscm.data.meta import ScenarioMeta, meta_from_dict
-from rflscm.data.plausibility import check_overlap
+from rflscm.data.plausibility import UE_KINDS, check_grid_heights, check_overlap
 from rflscm.data.pointcloud import read_point_cloud, write_point_cloud
 from rflscm.data.positions import XYZ, normalise_grids
 from rflscm.data.safe_io import write_text_atomic
@@ -75,9 +75,22 @@ def load_meta(yaml_path: Path) -> ScenarioMeta:
     """Read and validate ``scenario.yaml`` (``allow_outside`` is read by :func:`allows_outside`)."""
     data = _read_meta_dict(yaml_path)
     allows_outside(data, yaml_path.name)
+    ue_kind(data, yaml_path.name)
     data.pop(ALLOW_OUTSIDE, None)
+    data.pop(UE_KEY, None)
     check_declared_beams(data.get("codebooks"), yaml_path.name)
     return meta_from_dict(data, where=yaml_path.name)
+
+
+UE_KEY = "ue"
+"""``scenario.yaml`` key: ``ground`` (default) or ``aerial``: which grid heights are plausible."""
+
+
+def ue_kind(data: dict[str, Any], yaml_name: str) -> str:
+    value = data.get(UE_KEY, "ground")
+    if value not in UE_KINDS:
+        raise ConfigError(f"{yaml_name}: `{UE_KEY}` must be one of {', '.join(UE_KINDS)} (got {value!r}).")
+    return str(value)
 
 
 def allows_outside(data: dict[str, Any], yaml_name: str) -> bool:
@@ -166,7 +179,8 @@ def load_scenario(path: str | Path) -> Scenario:
     root, yaml_path = locate_scenario(path)
     meta = load_meta(yaml_path)
     yaml_name = yaml_path.name
-    outside = allows_outside(_read_meta_dict(yaml_path), yaml_name)
+    raw = _read_meta_dict(yaml_path)
+    outside, ue = allows_outside(raw, yaml_name), ue_kind(raw, yaml_name)
     cells: dict[int, pd.DataFrame] = {}
     elements: dict[str, Any] = {}
     for rnd, name in meta.rounds.items():
@@ -194,6 +208,7 @@ def load_scenario(path: str | Path) -> Scenario:
     if point_cloud is not None:
         parts.append((meta.point_cloud, point_cloud.xyz))
     check_overlap(parts)
+    check_grid_heights(parts[1][1], [p[1] for p in parts[:1] + parts[2:]], ue, meta.grids)
     scenario = Scenario(root, meta, cells, grids, measurements, point_cloud)
     scenario._elements.update(elements)
     return scenario

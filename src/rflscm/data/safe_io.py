@@ -190,18 +190,19 @@ def _check_file(path: Path, option: str, replace: bool) -> None:
 def _check_folder(path: Path, option: str) -> None:
     if path.exists() and not path.is_dir():
         raise ConfigError(f"{option} {path}: is a file; give a folder.")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"{option} {path}: cannot create the folder ({_reason(exc)}).") from None
     _probe(path, f"{option} {path}")
 
 
 def _probe(folder: Path, label: str) -> None:
-    """Create and remove a temporary file in ``folder`` (created if needed): the write that will come works."""
+    """Create and remove a temporary file in ``folder``, or in its nearest existing ancestor when it does not
+    exist yet (nothing is created for good): the writes that come later can succeed."""
+    existing = Path(os.path.abspath(folder))
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(f"{label}: {existing} is not a folder.")
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd, tmp = temp_name(folder / "probe")
+        fd, tmp = temp_name(existing / "probe")
         os.close(fd)
         tmp.unlink()
     except OSError as exc:
