@@ -60,6 +60,7 @@ import yaml
 from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import tiny_size
 from rflscm.bench.report import new_figure, save_figure, seeds_of
+from rflscm.config import load_yaml
 from rflscm.data import BEAM_TYPES
 from rflscm.errors import ConfigError
 from rflscm.runtime import MALLOC_ENV
@@ -226,7 +227,7 @@ def without_reporting(source: Path, out: Path) -> Path:
     for item in Path(source).iterdir():
         if item.name != "scenario.yaml":
             (out / item.name).symlink_to(item.resolve())
-    meta = yaml.safe_load((Path(source) / "scenario.yaml").read_text())
+    meta = load_yaml(Path(source) / "scenario.yaml")  # strict keys, bounded aliases, regular files only
     meta.pop("reporting", None)
     (out / "scenario.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
     return out.resolve()

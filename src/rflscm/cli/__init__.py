@@ -92,7 +92,7 @@ def _report_interrupted(exc: Interrupted) -> None:
 def main() -> None:
     """Console-script entry point."""
     _register_commands()
-    previous: dict[int, object] = {}
+    previous: dict[signal.Signals, signal._HANDLER] = {}
     for signum in (signal.SIGINT, signal.SIGTERM):  # both are failures, never a silent exit 0
         with contextlib.suppress(ValueError):  # not the main thread (an embedding program): keep its handlers
             previous[signum] = signal.signal(signum, _raise_interrupted)
@@ -120,8 +120,8 @@ def main() -> None:
             sys.exit(exc.exit_code)  # type: ignore[attr-defined]
         raise
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
+        for number, handler in previous.items():
+            signal.signal(number, handler)
     if isinstance(code, int) and code:  # typer returns the code of an Exit raised inside a command
         sys.exit(code)
 
