@@ -462,3 +462,12 @@ def test_a_planted_pickle_payload_in_a_checkpoint_never_runs(tmp_path) -> None:
         with pytest.raises(CheckpointError):
             read_checkpoint(tmp_path / name)
         assert not marker.exists()
+
+
+def test_check_lists_every_file_it_read(scenario_dir, capsys) -> None:
+    code, err, out = cli("check", str(scenario_dir), capsys=capsys)
+    assert code == 0, err
+    listed = " ".join(out.split()).split("files read: ", 1)[1]
+    data = _yaml(scenario_dir)
+    for name in ("scenario.yaml", data["grids"], data["measurements"], *(r["cells"] for r in data["rounds"].values())):
+        assert os.path.realpath(scenario_dir / name) in listed, name
