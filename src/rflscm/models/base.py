@@ -258,6 +258,10 @@ def from_plain(value: Any) -> Any:
     return value
 
 
+MAX_EXPANDED_BYTES = 256 * 2**20
+"""A tensor whose shape claims more bytes than its storage holds (stride 0) is refused above this size [bytes]."""
+
+
 def content_hash(value: Any) -> str:
     """SHA-256 (hex) of a plain value: every key, number, text, and every tensor's dtype, shape and bytes, in a
     fixed order, so it does not depend on how pickle lays the file out."""
@@ -268,6 +272,12 @@ def content_hash(value: Any) -> str:
 
 def _hash_into(h: Any, value: Any) -> None:
     if isinstance(value, torch.Tensor):
+        claimed = value.numel() * value.element_size()
+        if claimed > MAX_EXPANDED_BYTES and claimed > value.untyped_storage().nbytes():  # stride 0 in a small file
+            raise CheckpointError(
+                f"a tensor of shape {tuple(value.shape)} claims {claimed:,} bytes but stores "
+                f"{value.untyped_storage().nbytes():,}; refused before expanding it (limit {MAX_EXPANDED_BYTES:,} bytes)."
+            )
         t = value.detach().cpu().contiguous()
         h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
         h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
@@ -370,7 +380,11 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     if archive["format"] != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path}: written by an older rflscm (format 1); retrain it with the `train` command.")
     payload = archive.get("payload")
-    if not isinstance(payload, dict) or archive.get("sha256") != content_hash(payload):
+    try:
+        digest = content_hash(payload) if isinstance(payload, dict) else None
+    except CheckpointError as exc:
+        raise CheckpointError(f"{path}: {exc}") from None
+    if digest is None or archive.get("sha256") != digest:
         raise CheckpointError(
             f"{path}: the content does not match the SHA-256 written when it was saved (the file is damaged or was "
             "edited); restore it or retrain with the `train` command."
