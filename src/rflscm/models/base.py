@@ -384,7 +384,7 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         digest = content_hash(payload) if isinstance(payload, dict) else None
     except CheckpointError as exc:
         raise CheckpointError(f"{path}: {exc}") from None
-    if digest is None or archive.get("sha256") != digest:
+    if not isinstance(payload, dict) or archive.get("sha256") != digest:
         raise CheckpointError(
             f"{path}: the content does not match the SHA-256 written when it was saved (the file is damaged or was "
             "edited); restore it or retrain with the `train` command."
