@@ -521,3 +521,18 @@ def test_a_stride_0_tensor_is_refused_before_it_is_expanded(tmp_path) -> None:
     with pytest.raises(CheckpointError, match="refused before expanding it") as exc:
         read_checkpoint(tmp_path / "s.ckpt")
     assert "\n" not in str(exc.value)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("--carriers", "nan"), "not a carrier frequency"),
+        (("--carriers", "3.5e9,inf"), "not a carrier frequency"),
+        (("--seed", "-5"), "--seed must be between 0 and 9223372036854775807"),
+        (("--raw-fading", "nan"), "--raw-fading"),
+    ],
+)
+def test_simulate_values_are_checked_before_work(tmp_path, capsys, args, message) -> None:
+    code, err, _ = cli("simulate", "--out", str(tmp_path / "s"), *args, capsys=capsys)
+    assert code == 2 and message in one_line(err), err
+    assert not (tmp_path / "s").exists()

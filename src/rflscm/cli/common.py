@@ -91,7 +91,11 @@ def check_numbers(**values: tuple[float | int | None, float, float]) -> None:
         if not math.isfinite(number):
             raise ConfigError(f"{option} must be a finite number (got {value}).")
         if not low <= number <= high:
-            raise ConfigError(f"{option} must be between {low:g} and {high:g} (got {value:g}).")
+            raise ConfigError(f"{option} must be between {_shown(low)} and {_shown(high)} (got {_shown(value)}).")
+
+
+def _shown(value: float) -> str:
+    return str(value) if isinstance(value, int) else f"{value:g}"
 
 
 SEED_MAX = 2**63 - 1

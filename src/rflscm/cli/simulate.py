@@ -28,6 +28,8 @@ def parse_carriers(text: str) -> tuple[float, ...]:
             value = float(item)
         except ValueError:
             raise ConfigError(f"--carriers: {item!r} is not a number; give carriers in Hz, e.g. 3.5e9,2.1e9.") from None
+        if not 0 < value < 1e12:  # NaN fails too
+            raise ConfigError(f"--carriers: {item} is not a carrier frequency; give finite carriers in Hz below 1e12.")
         if value < 1e8:
             unit, scale = ("GHz", 1e9) if value < 1e3 else ("MHz", 1e6)
             raise ConfigError(
