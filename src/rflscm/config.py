@@ -9,6 +9,8 @@ message that lists the valid ones; :func:`to_dict` is its inverse.
 from __future__ import annotations
 
 import dataclasses
+import os
+import stat
 import types
 import typing
 from pathlib import Path
@@ -129,12 +131,28 @@ def to_dict(obj: Any) -> Any:
     return obj
 
 
+YAML_MAX_NODES = 1_000_000
+"""The most values a YAML document may expand to, aliases counted each time they are used (a "billion
+laughs" document — aliases of aliases — is refused before it is built)."""
+
+MAX_FILE_BYTES = {"YAML file": 16 * 2**20, "file": 4 * 2**30}
+"""Largest file [bytes] read per kind (``what`` of :func:`read_file_bytes`); ``RFLSCM_MAX_FILE_BYTES`` in the
+environment raises (or lowers) every limit at once."""
+
+
 class StrictLoader(yaml.SafeLoader):
-    """PyYAML's safe loader that refuses a key given twice in one mapping (PyYAML keeps the last silently)."""
+    """PyYAML's safe loader that refuses a key given twice in one mapping (PyYAML keeps the last silently) and a
+    document whose aliases expand to more than :data:`YAML_MAX_NODES` values; merge keys (``<<: *base``) work."""
+
+    def construct_document(self, node: yaml.Node) -> Any:
+        expanded_size(node, YAML_MAX_NODES)
+        return super().construct_document(node)
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
         seen: dict[Any, int] = {}
         for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue  # `<<: *base` — merged keys may be overridden by the mapping's own
             key = self.construct_object(key_node, deep=True)
             try:
                 hash(key)
@@ -150,24 +168,97 @@ class StrictLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+def expanded_size(root: yaml.Node, limit: int) -> int:
+    """The number of values ``root`` stands for once every alias is expanded; more than ``limit`` (or an alias
+    that contains itself) is a :class:`ConfigError`.  Linear in the number of distinct nodes."""
+    sizes: dict[int, int] = {}
+    active: set[int] = set()
+
+    def size(node: yaml.Node) -> int:
+        key = id(node)
+        if key in sizes:
+            return sizes[key]
+        if key in active:
+            raise ConfigError(f"line {node.start_mark.line + 1}: an alias refers to a value that contains it.")
+        active.add(key)
+        total = 1
+        if isinstance(node, yaml.SequenceNode):
+            total += sum(size(child) for child in node.value)
+        elif isinstance(node, yaml.MappingNode):
+            total += sum(size(k) + size(v) for k, v in node.value)
+        active.discard(key)
+        if total > limit:
+            raise ConfigError(
+                f"line {node.start_mark.line + 1}: the document expands to more than {limit:,} values "
+                "(aliases of aliases?); expand fewer aliases."
+            )
+        sizes[key] = total
+        return total
+
+    try:
+        return size(root)
+    except RecursionError:
+        raise ConfigError("the document nests too deeply to be read.") from None
+
+
 def parse_yaml(text: str) -> Any:
-    """YAML text → Python values, with :class:`StrictLoader` (safe tags only, no duplicate keys)."""
+    """YAML text → Python values, with :class:`StrictLoader` (safe tags only, no duplicate keys, a bounded
+    alias expansion)."""
     return yaml.load(text, Loader=StrictLoader)
 
 
-def read_file_bytes(path: str | Path, what: str = "file", error: type[RflscmError] = ConfigError) -> bytes:
-    """The bytes of ``path``; a missing file, a folder or an unreadable file raises ``error`` in one line."""
+def max_file_bytes(what: str) -> int:
+    """The size limit [bytes] of a file kind (:data:`MAX_FILE_BYTES`, ``$RFLSCM_MAX_FILE_BYTES`` overrides)."""
+    raw = os.environ.get("RFLSCM_MAX_FILE_BYTES", "").strip()
+    if raw:
+        try:
+            return int(float(raw))
+        except (ValueError, OverflowError):
+            raise ConfigError(f"RFLSCM_MAX_FILE_BYTES must be a number of bytes (got {raw!r}).") from None
+    return MAX_FILE_BYTES.get(what, MAX_FILE_BYTES["file"])
+
+
+def regular_file_size(path: str | Path, what: str = "file", error: type[RflscmError] = ConfigError) -> int:
+    """``os.stat`` of ``path`` (symlinks followed) without opening it: a missing file, a folder, a FIFO, a device
+    or a file above its kind's size limit raises ``error`` in one line.  Returns the size [bytes]."""
     path = Path(path)
-    if path.is_dir():
-        raise error(f"{path}: is a folder, not a {what}; give the {what} itself.")
-    if not path.exists():
-        raise error(f"{path}: {what} not found.")
     try:
-        return path.read_bytes()
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise error(f"{path}: {what} not found.") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read the {what} ({exc.strerror or type(exc).__name__}).") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise error(f"{path}: is a folder, not a {what}; give the {what} itself.")
+    if not stat.S_ISREG(st.st_mode):
+        raise error(f"{path}: is not a regular file (a pipe, a device or a socket); give the {what} itself.")
+    limit = max_file_bytes(what)
+    if st.st_size > limit:
+        raise error(
+            f"{path}: {st.st_size:,} bytes, above the {limit:,}-byte limit for a {what} "
+            "(set RFLSCM_MAX_FILE_BYTES to raise it)."
+        )
+    return int(st.st_size)
+
+
+def read_file_bytes(path: str | Path, what: str = "file", error: type[RflscmError] = ConfigError) -> bytes:
+    """The bytes of ``path``; a missing file, a folder, a special file (FIFO, device), a file above its size
+    limit or an unreadable file raises ``error`` in one line.  Never opens anything but a regular file."""
+    path = Path(path)
+    size = regular_file_size(path, what, error)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))  # never blocks, even if swapped for a FIFO
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise error(f"{path}: is not a regular file (a pipe, a device or a socket); give the {what} itself.")
+            data = f.read(size + 1)
     except PermissionError:
         raise error(f"{path}: cannot read the {what} (permission denied); make it readable.") from None
     except OSError as exc:
         raise error(f"{path}: cannot read the {what} ({exc.strerror or type(exc).__name__}).") from None
+    if len(data) > size:
+        raise error(f"{path}: the {what} grew while it was read; read it again when it is complete.")
+    return data
 
 
 def read_text_file(path: str | Path, what: str = "file") -> str:

@@ -104,7 +104,7 @@ def test_kill_during_save_then_resume_gives_identical_weights(tmp_path: Path) ->
     run = tmp_path / "run.ckpt"
     killed = train_killed(scenario, config, run, kill_at=3)  # saves at steps 2, 4, then killed inside the one at 6
     assert killed.returncode == -signal.SIGKILL, killed.stderr
-    partial = tmp_path / "run.ckpt.tmp"
+    (partial,) = tmp_path.glob(".run.ckpt.*.tmp")  # the killed save's own temporary file (unique name)
     assert partial.is_file() and run.is_file()
     assert read_checkpoint(run)["train_state"]["step"] == 4  # the last complete save survived the kill
 

@@ -291,14 +291,16 @@ def test_blank_lines_keep_line_numbers_right(scenario_dir: Path, monkeypatch, ca
 
 
 def test_unreadable_file(scenario_dir: Path, monkeypatch, capsys) -> None:
-    real = Path.read_bytes
+    import os
 
-    def deny(self: Path) -> bytes:
-        if self.name == G:
+    real = os.open
+
+    def deny(path, flags, *args, **kwargs):  # files are opened with os.open (non-blocking, regular files only)
+        if Path(path).name == G:
             raise PermissionError(13, "Permission denied")
-        return real(self)
+        return real(path, flags, *args, **kwargs)
 
-    monkeypatch.setattr(Path, "read_bytes", deny)
+    monkeypatch.setattr(os, "open", deny)
     code, _, err = run_check(scenario_dir, monkeypatch, capsys)
     assert code == 2 and "grids.csv: cannot read the table file (permission denied)" in err, err
 

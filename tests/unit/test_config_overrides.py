@@ -75,7 +75,9 @@ def test_a_config_yaml_overrides_the_chosen_preset_not_the_bare_defaults(tmp_pat
     assert full.field == RFLSCM.build("full").config.field and full.train.steps == 123
     assert model_config("rflscm", "quick", None, []) == "quick"  # nothing to override: the preset as before
     user.write_text("model: {prior: {enabled: false}}\n")
-    with pytest.raises(ConfigError, match=r"mine.yaml: unknown key\(s\) 'model'.*valid keys: corrections, decoder, field"):
+    with pytest.raises(
+        ConfigError, match=r"mine.yaml: unknown key\(s\) 'model'.*valid keys: corrections, decoder, field"
+    ):
         model_config("rflscm", str(user), None, [])
     with pytest.raises(ConfigError, match="name two presets"):
         model_config("rflscm", "quick", "full", [])

@@ -60,6 +60,7 @@ import yaml
 from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import tiny_size
 from rflscm.bench.report import new_figure, save_figure, seeds_of
+from rflscm.config import load_yaml
 from rflscm.data import BEAM_TYPES
 from rflscm.errors import ConfigError
 from rflscm.runtime import MALLOC_ENV
@@ -223,13 +224,24 @@ def without_reporting(source: Path, out: Path) -> Path:
     ``reporting`` (remade on every run)."""
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
-    for item in Path(source).iterdir():
-        if item.name != "scenario.yaml":
-            (out / item.name).symlink_to(item.resolve())
-    meta = yaml.safe_load((Path(source) / "scenario.yaml").read_text())
+    for item in Path(source).iterdir():  # hard links: they stay inside the folder (reads may not leave it)
+        if item.name == "scenario.yaml":
+            continue
+        if item.is_dir():
+            shutil.copytree(item.resolve(), out / item.name, copy_function=_link_or_copy)
+        else:
+            _link_or_copy(str(item.resolve()), str(out / item.name))
+    meta = load_yaml(Path(source) / "scenario.yaml")  # strict keys, bounded aliases, regular files only
     meta.pop("reporting", None)
     (out / "scenario.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
     return out.resolve()
+
+
+def _link_or_copy(source: str, target: str) -> None:
+    try:
+        os.link(source, target)
+    except OSError:  # another file system
+        shutil.copy2(source, target)
 
 
 def baseline_src(path: str | Path | None) -> Path:

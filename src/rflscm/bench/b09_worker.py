@@ -46,13 +46,12 @@ def _config(spec: str, overrides: dict[str, Any]) -> Any:
     """The preset name or YAML path as given, or (with overrides) its mapping with the overrides laid over."""
     if not overrides:
         return spec
-    import yaml
-
     from rflscm.bench.harness import merge
+    from rflscm.config import load_yaml
     from rflscm.models.rflscm.config import preset_path
 
     path = Path(spec) if Path(spec).is_file() else preset_path(spec, "rflscm")
-    return merge(yaml.safe_load(path.read_text()) or {}, overrides)
+    return merge(load_yaml(path), overrides)  # strict keys, bounded aliases, regular files only
 
 
 def _number(value: Any) -> float | None:

@@ -7,7 +7,9 @@ catches them once, prints one line to stderr and exits with code 2.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import sys
 
 # OpenMP threads that spin while idle make torch's many small CPU ops several times slower as soon as
@@ -18,7 +20,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import typer
 
 from rflscm import __version__
-from rflscm.cli.common import ThreadsOption, set_threads
+from rflscm.cli.common import Interrupted, ThreadsOption, set_threads
 from rflscm.errors import RflscmError
 from rflscm.runtime import keep_freed_memory
 
@@ -73,11 +75,33 @@ def _register_commands() -> None:
     from rflscm.cli import bench, check, demo, evaluate, import_, map, optimize, predict, simulate, train  # noqa: F401
 
 
+def _raise_interrupted(signum: int, frame: object) -> None:
+    raise Interrupted(signum)
+
+
+def _report_interrupted(exc: Interrupted) -> None:
+    """One line on stderr (what was saved, how to resume), then exit 128 + the signal number (130, 143)."""
+    name = signal.Signals(exc.signum).name
+    saved = exc.saved or (
+        "no output was left half-written (every file is written to a temporary name and renamed when complete)"
+    )
+    print(f"Interrupted: {name} stopped the run; {saved}", file=sys.stderr)
+    sys.exit(128 + exc.signum)
+
+
 def main() -> None:
     """Console-script entry point."""
     _register_commands()
+    previous: dict[signal.Signals, signal._HANDLER] = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):  # both are failures, never a silent exit 0
+        with contextlib.suppress(ValueError):  # not the main thread (an embedding program): keep its handlers
+            previous[signum] = signal.signal(signum, _raise_interrupted)
     try:
-        app(standalone_mode=False)
+        code = app(standalone_mode=False)
+    except Interrupted as exc:
+        _report_interrupted(exc)
+    except KeyboardInterrupt:  # a SIGINT before our handler was in place
+        _report_interrupted(Interrupted(signal.SIGINT))
     except RflscmError as exc:
         message = " ".join(str(exc).split())  # one line, whatever text from a file the message quotes
         print(f"{type(exc).__name__}: {message}", file=sys.stderr)
@@ -95,6 +119,11 @@ def main() -> None:
             print(f"Error: {message}{hint}", file=sys.stderr)
             sys.exit(exc.exit_code)  # type: ignore[attr-defined]
         raise
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+    if isinstance(code, int) and code:  # typer returns the code of an Exit raised inside a command
+        sys.exit(code)
 
 
 def _click_exceptions() -> tuple[type[Exception], ...]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import typer
@@ -25,6 +26,21 @@ def check(
     _print_summary(loaded, Console())
 
 
+def files_read(sc: Scenario) -> list[str]:
+    """Every file the scenario's loading read (symlinks resolved): scenario.yaml, its tables, the point cloud,
+    the element pattern files of the cells tables; the truth folder is named, its files are read on demand."""
+    from rflscm.data.cells import DEFAULT_ELEMENT
+    from rflscm.data.loader import scenario_inputs
+
+    paths = [p for p in scenario_inputs(sc.root) if p.exists()]
+    names = {str(n) for t in sc.cells.values() if "element" in t.columns for n in t["element"].dropna().unique()}
+    paths += [sc.root / n for n in sorted(names - {DEFAULT_ELEMENT, ""})]
+    shown = []
+    for path in dict.fromkeys(os.path.realpath(p) for p in paths):
+        shown.append(path + ("/ (folder)" if os.path.isdir(path) else ""))
+    return shown
+
+
 def _ghz(freq_hz: float) -> str:
     return f"{freq_hz / 1e9:g} GHz"
 
@@ -46,6 +62,7 @@ def _print_summary(sc: Scenario, console: Console) -> None:
     console.print(f"  codebooks: {books}")
     rows = ", ".join(f"{name} {n:,}" for name, n in table_rows(sc).items())
     console.print(f"  rows read: {rows} (none rejected)", soft_wrap=True)
+    console.print(f"  files read: {', '.join(files_read(sc))}", soft_wrap=True)
     _print_measurements(sc, console)
     _print_point_cloud(sc, console)
     for note in notes(sc):

@@ -24,6 +24,19 @@ class Device(StrEnum):
     cuda = "cuda"
 
 
+class Interrupted(BaseException):
+    """SIGINT or SIGTERM arrived (raised by the handler :func:`rflscm.cli.main` installs).  A command that knows
+    what it saved re-raises it with ``saved`` (one clause: what is on disk, how to resume); ``main`` prints one
+    line and exits 128 + the signal number.  A ``BaseException`` so that no ``except Exception`` swallows it."""
+
+    def __init__(self, signum: int, saved: str | None = None) -> None:
+        super().__init__(signum, saved)
+        self.signum, self.saved = int(signum), saved
+
+
+ForceOption = typer.Option(
+    False, "--force", help="Replace output files that exist already (never an input of the command)."
+)
 DeviceOption = typer.Option(Device.auto, "--device", help="Compute device: auto (CUDA if present), cpu or cuda.")
 SeedOption = typer.Option(0, "--seed", help="Random seed (integer; runs are repeatable for a given seed).")
 THREADS_ENV = "RFLSCM_THREADS"
@@ -63,6 +76,43 @@ def output_folder(path: Path, option: str) -> Path:
     return path
 
 
+def check_numbers(**values: tuple[float | int | None, float, float]) -> None:
+    """One validator for numeric options, called at the top of a command body: each ``name=(value, low, high)``
+    must be finite and within ``[low, high]`` (None: not given).  The name is the option (``seed`` →
+    ``--seed``).  Raises :class:`ConfigError` naming the option, the value and the range."""
+    for name, (value, low, high) in values.items():
+        if value is None:
+            continue
+        option = "--" + name.replace("_", "-")
+        try:
+            number = float(value)
+        except (TypeError, ValueError, OverflowError):
+            raise ConfigError(f"{option} must be a number (got {value!r}).") from None
+        if not math.isfinite(number):
+            raise ConfigError(f"{option} must be a finite number (got {value}).")
+        if not low <= number <= high:
+            raise ConfigError(f"{option} must be between {_shown(low)} and {_shown(high)} (got {_shown(value)}).")
+
+
+def _shown(value: float) -> str:
+    return str(value) if isinstance(value, int) else f"{value:g}"
+
+
+SEED_MAX = 2**63 - 1
+"""The largest ``--seed`` (torch's generator takes a 64-bit integer)."""
+
+
+def refuse_inputs_inside(out: Path, inputs: list[Path | None], option: str = "--out") -> None:
+    """A folder a command replaces (``--force``) must not hold one of its inputs."""
+    root = os.path.realpath(out).rstrip(os.sep) + os.sep
+    for source in inputs:
+        if source is not None and os.path.realpath(source).startswith(root):
+            raise ConfigError(
+                f"{option} {out}: holds an input of this command ({source}); replacing the folder would destroy "
+                f"that input — choose another {option}."
+            )
+
+
 def json_text(value: object) -> str:
     """JSON with every NaN or ±inf written as ``null`` (``json.dumps`` would write ``NaN``, which is not JSON)."""
 
@@ -93,6 +143,8 @@ def resolve_device(name: str | Device) -> torch.device:
 
 
 def seed_everything(seed: int) -> None:
+    """Seed Python, numpy and torch; a seed outside 0 … 2^63 − 1 is a :class:`ConfigError`."""
+    check_numbers(seed=(seed, 0, SEED_MAX))
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)

@@ -12,12 +12,15 @@ from rich.table import Table
 
 from rflscm.cli import app
 from rflscm.cli.common import (
+    SEED_MAX,
     Device,
     DeviceOption,
+    ForceOption,
     SeedOption,
     budget_note,
     budget_seconds,
     budget_summary,
+    check_numbers,
     json_text,
     output_folder,
     resolve_device,
@@ -82,12 +85,17 @@ def save_comparison(results: dict[str, dict], title: str, out: Path) -> list[Pat
            "RSRP through the real antenna against the measurements; trivial: each pair's mean round-1 RSRP. "
            "— marks a value that does not apply."]  # fmt: skip
     paths = [out / "comparison.md", out / "comparison.csv", out / "comparison.json"]
-    paths[0].write_text("\n".join(md) + "\n")
-    with paths[1].open("w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(columns)
-        writer.writerows(rows)
-    paths[2].write_text(json_text({"title": title, "columns": columns, "rows": rows}))
+    from rflscm.data.safe_io import atomic_write, write_text_atomic
+
+    def write_csv(tmp: Path) -> None:
+        with tmp.open("w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(columns)
+            writer.writerows(rows)
+
+    write_text_atomic(paths[0], "\n".join(md) + "\n", "comparison table")
+    atomic_write(paths[1], write_csv, "comparison table")
+    write_text_atomic(paths[2], json_text({"title": title, "columns": columns, "rows": rows}), "comparison table")
     return paths
 
 
@@ -112,11 +120,15 @@ def demo(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
     device: Device = DeviceOption,
     seed: int = SeedOption,
+    force: bool = ForceOption,
 ) -> None:
     """Train WNOMP (settings chosen on held-aside round-1 beams) and RF-LSCM on the shipped scenario, print the
     antenna-adjustment MAE table beside both floors and the trivial baseline, save it (comparison.md, .csv, .json)
     and write reports."""
-    from rflscm.data import load_scenario
+    from rflscm.cli.train import config_inputs
+    from rflscm.data import load_scenario, write_table
+    from rflscm.data.loader import scenario_inputs
+    from rflscm.data.safe_io import guard_outputs, write_text_atomic
     from rflscm.eval import run_evaluation
     from rflscm.eval.protocols import AdjustProtocol, fit_with_protocol
     from rflscm.eval.report import write_report
@@ -124,6 +136,12 @@ def demo(
     from rflscm.models import MODEL_REGISTRY
     from rflscm.sim import default_scenario_path
 
+    check_numbers(seed=(seed, 0, SEED_MAX))
+    inputs = [*(scenario_inputs(scenario) if scenario is not None else []), *config_inputs(config)]
+    guard_outputs({"--out": out}, inputs, force=True, folders=("--out",))
+    names = ["wnomp_selection.csv", "wnomp.ckpt", "rflscm.ckpt", "wnomp.json", "rflscm.json", "comparison.md",
+             "comparison.csv", "comparison.json"]  # fmt: skip
+    guard_outputs({f"--out (its {n})": out / n for n in names}, inputs, force=force)
     console = Console()
     budget_s = budget_seconds(minutes)
     rflscm_cfg = model_config("rflscm", config, preset, sets)  # a wrong key stops the demo before any work
@@ -139,7 +157,7 @@ def demo(
 
     with console.status("choosing WNOMP's settings on held-aside round-1 beams…"):
         wnomp_cfg, choice = select_wnomp(scen, AngleGrid(), seed=seed, device=str(dev))
-    choice.to_csv(out / "wnomp_selection.csv", index=False)
+    write_table(choice, out / "wnomp_selection.csv")
     console.print(f"WNOMP settings chosen on held-aside round-1 beams ({int(choice['beams'].iloc[0])} beams): "
                   f"k_max {wnomp_cfg.k_max}, weighting {wnomp_cfg.weighting}, tolerance {wnomp_cfg.tolerance}, "
                   f"residual floor {wnomp_cfg.residual_floor} (all candidates: {out / 'wnomp_selection.csv'})")  # fmt: skip
@@ -162,7 +180,7 @@ def demo(
         with console.status(f"evaluating {name}…"):
             evaluation = run_evaluation(model, scen, AdjustProtocol(), oracle="auto")
         metrics = evaluation.metrics
-        (out / f"{name}.json").write_text(json_text(metrics))
+        write_text_atomic(out / f"{name}.json", json_text(metrics), "metrics JSON")
         write_report(evaluation, scen, model, out / f"report-{name}")
         results[name] = metrics
     title = f"Antenna adjustment on {scen.meta.name}: round-2 RSRP predicted from round 1"

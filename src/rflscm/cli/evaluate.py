@@ -13,10 +13,9 @@ from rflscm.cli import app
 from rflscm.cli.common import (
     Device,
     DeviceOption,
+    ForceOption,
     SeedOption,
     json_text,
-    output_file,
-    output_folder,
     resolve_device,
     seed_everything,
 )
@@ -43,6 +42,7 @@ def evaluate(
     seed: int = SeedOption,
     workers: int = WorkersOption,
     ray_address: str | None = RayAddressOption,
+    force: bool = ForceOption,
 ) -> None:
     """Compare a trained model's predictions with measurements: MAE per beam type, changed cells, per cell,
     beside the oracle floor and the trivial baseline; APS recovery where ground truth exists."""
@@ -55,8 +55,13 @@ def evaluate(
 
     if protocol is not None and protocol not in PROTOCOLS:
         raise ConfigError(f"--protocol {protocol!r} is unknown; choose one of: {', '.join(PROTOCOLS)}.")
-    json_out = None if json_out is None else output_file(json_out, "--json")
-    report = None if report is None else output_folder(report, "--report")
+    from rflscm.data.loader import scenario_inputs
+    from rflscm.data.safe_io import guard_outputs, write_text_atomic
+
+    if json_out is not None and json_out.suffix.lower() != ".json":
+        raise ConfigError(f"--json {json_out}: the file name must end in .json.")
+    inputs = [*scenario_inputs(scenario), checkpoint]
+    guard_outputs({"--json": json_out, "--report": report}, inputs, force=force, folders=("--report",))
     seed_everything(seed)
     dev = resolve_device(device)
     sc = load_scenario(scenario)
@@ -65,6 +70,11 @@ def evaluate(
     engine = Engine(workers, ray_address)  # > 1 worker: the test pairs' APS are computed by Ray workers first
     source = evaluation_cache(model, sc, chosen, engine, checkpoint_loader(checkpoint, scenario, dev))
     console = Console()
+    if model.run_info.get("interrupted"):
+        console.print(
+            "[yellow]note:[/yellow] this checkpoint was saved by a training run that was interrupted (or is still "
+            "running); it is not fully trained — continue it with `rflscm train … --resume`."
+        )
     with console.status(f"evaluating {model.name} ({chosen.name} protocol)…"):
         evaluation = run_evaluation(source, sc, chosen, oracle="auto" if oracle else None)
     metrics = evaluation.metrics
@@ -78,7 +88,7 @@ def evaluate(
     if metrics["unsupported"]:
         console.print(f"[yellow]note:[/yellow] {escape(metrics['unsupported'])}")
     if json_out is not None:
-        json_out.write_text(json_text(metrics))
+        write_text_atomic(json_out, json_text(metrics), "metrics JSON")
         console.print(f"wrote {json_out}")
     if report is not None:
         path = write_report(evaluation, sc, model, report)

@@ -13,6 +13,7 @@ from rich.console import Console
 from rich.table import Table
 
 from rflscm.cli import app
+from rflscm.cli.common import check_numbers, refuse_inputs_inside
 from rflscm.errors import ConfigError
 
 
@@ -129,7 +130,14 @@ def import_(
     from rflscm.data import load_scenario
     from rflscm.data.ingest import import_raw, load_spec
     from rflscm.data.ingest.spec import CELL_LIST_COLUMNS, SAMPLE_COLUMNS
+    from rflscm.data.safe_io import guard_outputs
 
+    check_numbers(grid_size=(grid_size, 1e-3, 1e5), min_samples=(min_samples, 1, 2**31 - 1),
+                  outlier_k=(outlier_k, 0.0, 1e6), max_distance=(max_distance, 0.0, 1e8),
+                  threshold=(threshold, -300.0, 100.0))  # fmt: skip
+    inputs: list[Path | None] = [spec, *samples, *cells, codebooks, columns, point_cloud]
+    refuse_inputs_inside(out, inputs)
+    guard_outputs({"--out": out}, inputs, force=True, folders=("--out",))
     overrides: dict[str, Any] = {
         "samples": [str(p) for p in samples] or None,
         "cells": [str(p) for p in cells] or None,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 from enum import StrEnum
 from pathlib import Path
@@ -17,7 +18,16 @@ from rich.progress import (
 )
 
 from rflscm.cli import app
-from rflscm.cli.common import Device, DeviceOption, SeedOption, resolve_device, seed_everything
+from rflscm.cli.common import (
+    SEED_MAX,
+    Device,
+    DeviceOption,
+    ForceOption,
+    SeedOption,
+    check_numbers,
+    resolve_device,
+    seed_everything,
+)
 from rflscm.errors import ConfigError
 from rflscm.parallel import Engine, RayAddressOption, WorkersOption
 
@@ -48,6 +58,7 @@ def search_spec(search: Path | None, tilt: str | None, elec: str | None, azimuth
     if codebooks is not None:
         defaults["ssb_codebooks"] = [c.strip() for c in codebooks.split(",") if c.strip()]
     spec["defaults"] = defaults
+    check_ranges(spec, "search spec")
     if freeze is not None:
         try:
             spec["frozen"] = [int(v) for v in freeze.split(",") if v.strip()]
@@ -56,6 +67,37 @@ def search_spec(search: Path | None, tilt: str | None, elec: str | None, azimuth
     if max_changed is not None:
         spec["max_changed_cells"] = max_changed
     return spec
+
+
+MAX_RANGE_POINTS = 100_000
+"""The most values one searched range (MIN:MAX:STEP) may hold."""
+
+
+def check_ranges(value: object, where: str) -> None:
+    """Every range (a mapping with ``min`` and ``max``) in a search spec: finite numbers, a positive step and at most
+    :data:`MAX_RANGE_POINTS` values, checked before any search space is built."""
+    if isinstance(value, dict):
+        if "min" in value and "max" in value:
+            low, high, step = value.get("min"), value.get("max"), value.get("step", 1.0)
+            try:
+                numbers = [float(v) for v in (low, high, step)]  # type: ignore[arg-type]
+            except (TypeError, ValueError, OverflowError):
+                return  # not numbers: build_space names the key
+            if not all(math.isfinite(v) for v in numbers):
+                raise ConfigError(f"{where}: a range {low}:{high}:{step} must be finite numbers of degrees.")
+            if numbers[2] <= 0:
+                raise ConfigError(f"{where}: the step of the range {low}:{high}:{step} must be positive.")
+            points = abs(numbers[1] - numbers[0]) / numbers[2] + 1
+            if points > MAX_RANGE_POINTS:
+                raise ConfigError(
+                    f"{where}: the range {low}:{high}:{step} holds {points:.3g} values, above the limit of "
+                    f"{MAX_RANGE_POINTS:,}; use a larger step."
+                )
+        for key, item in value.items():
+            check_ranges(item, f"{where}: {key}")
+    elif isinstance(value, list):
+        for item in value:
+            check_ranges(item, where)
 
 
 @app.command()
@@ -114,9 +156,12 @@ def optimize(
     seed: int = SeedOption,
     workers: int = WorkersOption,
     ray_address: str | None = RayAddressOption,
+    force: bool = ForceOption,
 ) -> None:  # fmt: skip
     """Search antenna settings that maximise a coverage/SINR objective; write them as a new round."""
     from rflscm.data import load_scenario
+    from rflscm.data.loader import scenario_inputs
+    from rflscm.data.safe_io import guard_outputs
     from rflscm.models import load_model
     from rflscm.models.source import APSSource
     from rflscm.network.kpi import KPIConfig
@@ -124,6 +169,17 @@ def optimize(
     from rflscm.network.report import write_report
     from rflscm.network.space import build_space
 
+    check_numbers(round=(base_round, 1, 2**31 - 1), restarts=(restarts, 0, 1000), time_budget=(time_budget, 0.0, 1e7),
+                  threshold=(threshold, -300.0, 100.0), noise_figure=(noise_figure, -50.0, 100.0),
+                  max_changed=(max_changed, 1, 2**31 - 1), seed=(seed, 0, SEED_MAX))  # fmt: skip
+    if aps_cache is not None and aps_cache.suffix.lower() != ".pt":
+        raise ConfigError(f"--aps-cache {aps_cache}: the file name must end in .pt.")
+    inputs = [*scenario_inputs(scenario), checkpoint, search]
+    guard_outputs({"--out": out}, inputs, force=force, folders=("--out",))
+    written = {"--out (its scenario.yaml)": out / "scenario" / "scenario.yaml", "--out (its report)": out / "report.md"}
+    guard_outputs(written, [*inputs, aps_cache], force=force)
+    if aps_cache is not None:  # read when it fits the checkpoint, else written: never one of the other inputs
+        guard_outputs({"--aps-cache": aps_cache}, inputs, force=True)
     seed_everything(seed)
     console = Console(stderr=True)
     scen = load_scenario(scenario)

@@ -12,8 +12,18 @@ import typer
 from rich.console import Console
 
 from rflscm.cli import app
-from rflscm.cli.common import Device, DeviceOption, SeedOption, output_file, resolve_device, seed_everything
-from rflscm.errors import ConfigError
+from rflscm.cli.common import (
+    SEED_MAX,
+    Device,
+    DeviceOption,
+    ForceOption,
+    SeedOption,
+    check_numbers,
+    json_text,
+    resolve_device,
+    seed_everything,
+)
+from rflscm.errors import ConfigError, RflscmError
 from rflscm.geometry.angles import internal_to_engineering
 from rflscm.parallel import Engine, RayAddressOption, WorkersOption
 
@@ -69,7 +79,8 @@ def long_form(round: int, beam_type: str, pairs: pd.DataFrame, rsrp_dbm: np.ndar
     )
 
 
-def _export_aps(model: LSCMModel, scenario: Scenario, cells: np.ndarray, grids: np.ndarray, path: Path) -> int:
+def _check_aps_ids(scenario: Scenario, cells: np.ndarray, grids: np.ndarray) -> None:
+    """``--aps-cells`` / ``--aps-grids`` name known ids (checked before any prediction is made)."""
     options = (("--aps-cells", cells, scenario.cell_ids()), ("--aps-grids", grids, scenario.grid_ids()))
     for option, ids, known in options:
         unknown = np.setdiff1d(ids, known)
@@ -77,6 +88,10 @@ def _export_aps(model: LSCMModel, scenario: Scenario, cells: np.ndarray, grids: 
             shown = ", ".join(map(str, known[:10])) + (", …" if len(known) > 10 else "")
             what = f"has unknown id(s) {', '.join(map(str, unknown[:5]))}" if unknown.size else "is empty"
             raise ConfigError(f"{option} {what}; ids of scenario {scenario.meta.name!r}: {shown}.")
+
+
+def _export_aps(model: LSCMModel, scenario: Scenario, cells: np.ndarray, grids: np.ndarray, path: Path) -> int:
+    _check_aps_ids(scenario, cells, grids)
     cell_ids, grid_ids = (a.ravel() for a in np.meshgrid(cells, grids, indexing="ij"))
     xyz = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
     aps = model.checked_aps(cell_ids, grid_ids, xyz).detach().cpu().double().numpy()
@@ -102,7 +117,6 @@ def _export_aps(model: LSCMModel, scenario: Scenario, cells: np.ndarray, grids: 
 def _print_kpis(scen, model, selected: pd.DataFrame, ssb: pd.DataFrame, threshold: float, path: Path | None,
                 console: Console) -> None:  # fmt: skip
     """Network KPIs (rflscm.network) of the predicted SSB RSRP, printed and optionally written as JSON."""
-    import json
 
     from rflscm.network.kpi import KPIConfig, best_beam_power_from_rsrp, network_kpis
 
@@ -113,8 +127,9 @@ def _print_kpis(scen, model, selected: pd.DataFrame, ssb: pd.DataFrame, threshol
     kpis = network_kpis(power, freqs, KPIConfig(threshold_dbm=threshold), None if known.all() else known)
     kpis["pairs"] = "every (cell, grid) pair" if known.all() else f"{int(known.sum())} (cell, grid) pairs only"
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(kpis, indent=2))
+        from rflscm.data.safe_io import write_text_atomic
+
+        write_text_atomic(path, json_text(kpis), "KPI JSON")
     console.print(f"network KPIs on {kpis['pairs']}: coverage {100 * kpis['coverage']:.2f} %, mean SS-SINR "
                   f"{kpis['mean_sinr_db']:.2f} dB, 5th percentile SS-SINR {kpis['p5_sinr_db']:.2f} dB, overlap "
                   f"{100 * kpis['overlap']:.2f} %, mean best-server RSRP {kpis['mean_rsrp_dbm']:.2f} dBm "
@@ -162,21 +177,36 @@ def predict(
     seed: int = SeedOption,
     workers: int = WorkersOption,
     ray_address: str | None = RayAddressOption,
+    force: bool = ForceOption,
 ) -> None:
     """Predict RSRP of every beam for a round's antenna configuration (also for grids without measurements)."""
     pairs = pairs_choice.value
     from rflscm.data import load_scenario, write_table
+    from rflscm.data.io import table_kind
+    from rflscm.data.loader import scenario_inputs
+    from rflscm.data.safe_io import guard_outputs
     from rflscm.models import load_model
     from rflscm.parallel.aps import checkpoint_loader, prediction_cache
 
-    output_file(out, "--out")
+    check_numbers(round=(round, 1, 2**31 - 1), threshold=(threshold, -300.0, 100.0), seed=(seed, 0, SEED_MAX))
     cells, grids = _id_list(aps_cells, "--aps-cells"), _id_list(aps_grids, "--aps-grids")
     if (cells is None) != (grids is None):
         raise ConfigError("--aps-cells and --aps-grids go together.")
-    if cells is not None:
-        output_file(aps_out, "--aps-out")
-    if attenuation_map is not None:
-        output_file(attenuation_map, "--attenuation-map")
+    for option, path, suffixes in (("--out", out, None), ("--aps-out", aps_out if cells is not None else None, None),
+                                   ("--attenuation-map", attenuation_map, (".png",)),
+                                   ("--kpi-json", kpi_json, (".json",))):  # fmt: skip
+        if path is None:
+            continue
+        if suffixes is None:
+            try:
+                table_kind(path)
+            except RflscmError:
+                raise ConfigError(f"{option} {path}: unknown table format; use .parquet or .csv.") from None
+        elif path.suffix.lower() not in suffixes:
+            raise ConfigError(f"{option} {path}: the file name must end in {' or '.join(suffixes)}.")
+    outputs = {"--out": out, "--aps-out": aps_out if cells is not None else None,
+               "--attenuation-map": attenuation_map, "--kpi-json": kpi_json}  # fmt: skip
+    guard_outputs(outputs, [*scenario_inputs(scenario), checkpoint], force=force)
     seed_everything(seed)
     dev = resolve_device(device)
     console = Console(stderr=True)
@@ -185,6 +215,8 @@ def predict(
         raise ConfigError(
             f"--round {round}: scenario {scen.meta.name!r} has rounds {', '.join(map(str, scen.rounds()))}."
         )
+    if cells is not None and grids is not None:
+        _check_aps_ids(scen, cells, grids)
     model = load_model(checkpoint, scen, device=dev)
     if attenuation_map is not None and not hasattr(model, "all_stages"):
         raise ConfigError(f"{model.name} has no attenuation field; --attenuation-map needs an rflscm or nerf2 model.")
@@ -205,9 +237,6 @@ def predict(
     console.print(f"wrote {out} ({sum(len(t) for t in tables)} beams)")
     if kpi or kpi_json is not None:
         _print_kpis(scen, model, selected, tables[0], threshold, kpi_json, console)
-    cells, grids = _id_list(aps_cells, "--aps-cells"), _id_list(aps_grids, "--aps-grids")
-    if (cells is None) != (grids is None):
-        raise ConfigError("--aps-cells and --aps-grids go together.")
     if cells is not None and grids is not None:
         n = _export_aps(model, scen, cells, grids, aps_out)
         console.print(f"wrote {aps_out} ({n} non-zero bins)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import shutil
 import tempfile
 from enum import StrEnum
@@ -27,6 +28,8 @@ def parse_carriers(text: str) -> tuple[float, ...]:
             value = float(item)
         except ValueError:
             raise ConfigError(f"--carriers: {item!r} is not a number; give carriers in Hz, e.g. 3.5e9,2.1e9.") from None
+        if not 0 < value < 1e12:  # NaN fails too
+            raise ConfigError(f"--carriers: {item} is not a carrier frequency; give finite carriers in Hz below 1e12.")
         if value < 1e8:
             unit, scale = ("GHz", 1e9) if value < 1e3 else ("MHz", 1e6)
             raise ConfigError(
@@ -133,6 +136,15 @@ def simulate(
 ) -> None:
     """Trace a scene once per (site, carrier) and write a complete scenario with ground truth (truth/)."""
     backend, measurements = backend_choice.value, None if regime is None else regime.value
+    from rflscm.cli.common import SEED_MAX, check_numbers, refuse_inputs_inside
+    from rflscm.data.safe_io import guard_outputs
+
+    check_numbers(seed=(seed, 0, SEED_MAX), raw_fading=(raw_fading, 0.0, 100.0))
+    inputs = [config, from_trace]
+    refuse_inputs_inside(out, inputs)
+    if raw_out is not None and os.path.realpath(raw_out).startswith(os.path.realpath(out).rstrip(os.sep) + os.sep):
+        raise ConfigError(f"--raw-out {raw_out}: is inside --out {out}, which is replaced; choose a folder beside it.")
+    guard_outputs({"--out": out, "--raw-out": raw_out}, inputs, force=True, folders=("--out", "--raw-out"))
     from rflscm.sim import SimulationConfig, build_scenario, make_backend
     from rflscm.sim.builder import grow_procedural
 
@@ -201,15 +213,13 @@ def _write_raw(scenario: Path, raw_out: Path | None, samples: int, fading_db: fl
 def _remeasure(source: Path, out: Path, config: Path | None, measurements: str | None, seed: int | None,
                force: bool) -> None:  # fmt: skip
     """``--from-trace``: the trace's recorded config, overridden by the measurement keys of --config and the flags."""
-    import yaml
-
-    from rflscm.config import from_dict, to_dict
+    from rflscm.config import from_dict, load_yaml, to_dict
     from rflscm.sim import SimulationConfig
     from rflscm.sim.remeasure import remeasure, trace_config
 
     merged = to_dict(trace_config(source))
     if config is not None:
-        merged.update(yaml.safe_load(Path(config).read_text()) or {})
+        merged.update(load_yaml(config))  # strict keys, bounded aliases, regular files only
     for key, value in (("measurements", measurements), ("seed", seed)):
         if value is not None:
             merged[key] = value

@@ -11,18 +11,21 @@ from rich.console import Console
 
 from rflscm.cli import app
 from rflscm.cli.common import (
+    SEED_MAX,
     Device,
     DeviceOption,
+    ForceOption,
+    Interrupted,
     SeedOption,
     budget_note,
     budget_seconds,
     budget_summary,
-    output_file,
+    check_numbers,
     resolve_device,
     seed_everything,
 )
 from rflscm.cli.overrides import PresetOption, SetOption, model_config
-from rflscm.errors import ConfigError
+from rflscm.errors import ConfigError, RflscmError
 
 
 def protocol_options(
@@ -34,6 +37,29 @@ def protocol_options(
     if protocol == "multifreq":
         return {"train_percent": train_percent, "with_other_carriers": other_carriers, "seed": split_seed}
     return {}
+
+
+def config_inputs(config: str) -> list[Path]:
+    """The YAML file ``--config`` names (a preset name is no file)."""
+    return [Path(config)] if config.lower().endswith((".yaml", ".yml")) else []
+
+
+def interrupted_note(out: Path, scenario: Path) -> str:
+    """What an interrupted ``train`` left at ``out`` and how to continue it."""
+    from rflscm.models.base import read_checkpoint
+
+    try:
+        state = read_checkpoint(out)["state"] if out.is_file() else None
+    except RflscmError:
+        state = None
+    if state is None:
+        return f"no checkpoint was saved at {out}; run the same `rflscm train` command again."
+    step = state.get("step") if isinstance(state, dict) else None
+    at = f" (step {step})" if step is not None else ""
+    return (
+        f"the last checkpoint{at} at {out} is kept and marked interrupted; continue it with "
+        f"`rflscm train {scenario} --out {out} --resume` and the same options."
+    )
 
 
 class ModelName(StrEnum):
@@ -79,22 +105,27 @@ def train(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
     device: Device = DeviceOption,
     seed: int = SeedOption,
+    force: bool = ForceOption,
 ) -> None:
     """Fit a model on round-1 measurements and save a checkpoint (config, weights, data fingerprint)."""
     model, protocol = model_choice.value, protocol_choice.value
     from rflscm.data import load_scenario
+    from rflscm.data.loader import scenario_inputs
+    from rflscm.data.safe_io import guard_outputs
     from rflscm.eval.protocols import fit_with_protocol, make_protocol
     from rflscm.geometry import AngleGrid
     from rflscm.models import MODEL_REGISTRY
     from rflscm.models.base import read_checkpoint
     from rflscm.train import Trainable
 
+    check_numbers(holdout=(holdout, 0.0, 1.0), train_percent=(train_percent, 0.0, 100.0), seed=(seed, 0, SEED_MAX),
+                  split_seed=(split_seed, 0, SEED_MAX))  # fmt: skip
+    guard_outputs({"--out": out}, [*scenario_inputs(scenario), *config_inputs(config)], force=force, resume=resume)
     console = Console(stderr=True)
     if model not in MODEL_REGISTRY:
         valid = ", ".join(sorted(MODEL_REGISTRY))
         raise ConfigError(f"unknown model {model!r}; choose one of: {valid}.")
     budget_s = budget_seconds(minutes)
-    output_file(out, "--out")
     if resume and not out.is_file():
         raise ConfigError(f"--resume needs an existing checkpoint at {out}; train without --resume first.")
     seed_everything(seed)
@@ -113,9 +144,14 @@ def train(
     elif budget_s is not None:
         console.print(f"time budget: {minutes:g} min (data preparation included)")
     t0 = time.perf_counter()
-    summary = fit_with_protocol(
-        fitted, scen, proto, progress=progress, checkpoint_path=out, resume=resume, budget_s=budget_s
-    )
+    fitted.run_info["interrupted"] = True  # every checkpoint saved during training says so, until the last one
+    try:
+        summary = fit_with_protocol(
+            fitted, scen, proto, progress=progress, checkpoint_path=out, resume=resume, budget_s=budget_s
+        )
+    except Interrupted as exc:
+        raise Interrupted(exc.signum, interrupted_note(out, scenario)) from None
+    fitted.run_info.pop("interrupted")
     elapsed = time.perf_counter() - t0
     fitted.run_info["fit"] = {**{k: float(v) for k, v in summary.items()}, "train_time_s": elapsed}
     kept = read_checkpoint(out).get("train_state") if out.is_file() else None  # the trainer's last save

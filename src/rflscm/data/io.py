@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from rflscm.config import read_file_bytes
+from rflscm.data.safe_io import atomic_write
 from rflscm.errors import DataError
 
 TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
@@ -85,7 +86,9 @@ def read_table(path: str | Path) -> pd.DataFrame:
     if kind == "csv":
         return _read_csv(data, path.name)
     try:
-        df = pd.read_parquet(io.BytesIO(data))
+        # Page checksums verified (a flipped value in a file that has them is an error, not data); one thread:
+        # a threaded read of a corrupted page can abort the process (exit 134) instead of raising.
+        df = pd.read_parquet(io.BytesIO(data), page_checksum_verification=True, use_threads=False)
     except Exception as exc:
         raise DataError(f"{path.name}: not a readable Parquet file ({_first_line(exc)}).") from None
     names = [str(c) for c in df.columns]
@@ -164,19 +167,20 @@ def _check_field_counts(text: str, name: str, num_columns: int, lines: np.ndarra
 
 
 def write_table(df: pd.DataFrame, path: str | Path) -> None:
-    """Write ``df`` (without its index) as CSV or Parquet, by extension; NaN is an empty CSV field."""
+    """Write ``df`` (without its index) as CSV or Parquet (with page checksums), by extension; NaN is an empty CSV
+    field.  Atomic (:func:`rflscm.data.safe_io.atomic_write`): a failure leaves the previous file as it was."""
     path = Path(path)
     kind = table_kind(path)
     if path.is_dir():
         raise DataError(f"{path}: is a folder; give a file name to write the table to.")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+
+    def write(tmp: Path) -> None:
         if kind == "csv":
-            df.to_csv(path, index=False)
+            df.to_csv(tmp, index=False)
         else:
-            df.to_parquet(path, index=False)
-    except (PermissionError, NotADirectoryError, FileExistsError) as exc:
-        raise DataError(f"{path}: cannot write the table ({exc.strerror or type(exc).__name__}).") from None
+            df.to_parquet(tmp, index=False, write_page_checksum=True)
+
+    atomic_write(path, write, "table")  # a unique temporary file, renamed when complete: never a fragment
 
 
 def _first_line(exc: BaseException) -> str:

@@ -9,6 +9,7 @@ messages; :func:`save_scenario` writes normalised tables, so that
 from __future__ import annotations
 
 import dataclasses
+import os
 import shutil
 from pathlib import Path
 from typing import Any
@@ -17,15 +18,16 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from rflscm.config import load_yaml
+from rflscm.config import load_yaml, regular_file_size
 from rflscm.data.cells import DEFAULT_ELEMENT, normalise_cells
 from rflscm.data.columns import TableRef
 from rflscm.data.io import LINE_NUMBERS, read_table, table_kind, write_table
 from rflscm.data.measurements import empty_measurements, normalise_measurements
 from rflscm.data.meta import ScenarioMeta, meta_from_dict
-from rflscm.data.plausibility import check_overlap
+from rflscm.data.plausibility import UE_KINDS, check_grid_heights, check_overlap
 from rflscm.data.pointcloud import read_point_cloud, write_point_cloud
 from rflscm.data.positions import XYZ, normalise_grids
+from rflscm.data.safe_io import write_text_atomic
 from rflscm.data.scenario import Scenario
 from rflscm.errors import ConfigError, DataError
 
@@ -51,19 +53,104 @@ def locate_scenario(path: str | Path) -> tuple[Path, Path]:
     raise DataError(f"{path}: no such scenario folder or file.")
 
 
-def load_meta(yaml_path: Path) -> ScenarioMeta:
-    """Read and validate ``scenario.yaml``."""
+ALLOW_OUTSIDE = "allow_outside"
+"""``scenario.yaml`` key: ``true`` lets file names point outside the scenario folder (absolute, ``..``, symlinks)."""
+
+MAX_BEAMS = 4096
+"""The most beams one codebook may declare (5G NR: at most 64 SSB beams; a 32-port DFT codebook with 4×4
+oversampling has 512)."""
+
+
+def _read_meta_dict(yaml_path: Path) -> dict[str, Any]:
     try:
         data = load_yaml(yaml_path)
     except ConfigError as exc:  # YAML syntax errors span several lines: keep the CLI's one line
         raise ConfigError(" ".join(str(exc).split())) from None
     if not data:
         raise ConfigError(f"{yaml_path.name} is empty; it needs name, frequencies_hz, codebooks, rounds and grids.")
+    return data
+
+
+def load_meta(yaml_path: Path) -> ScenarioMeta:
+    """Read and validate ``scenario.yaml`` (``allow_outside`` is read by :func:`allows_outside`)."""
+    data = _read_meta_dict(yaml_path)
+    allows_outside(data, yaml_path.name)
+    ue_kind(data, yaml_path.name)
+    data.pop(ALLOW_OUTSIDE, None)
+    data.pop(UE_KEY, None)
+    check_declared_beams(data.get("codebooks"), yaml_path.name)
     return meta_from_dict(data, where=yaml_path.name, root=yaml_path.parent)
 
 
-def _referenced(root: Path, name: str, key: str, yaml_name: str) -> Path:
+UE_KEY = "ue"
+"""``scenario.yaml`` key: ``ground`` (default) or ``aerial``: which grid heights are plausible."""
+
+
+def ue_kind(data: dict[str, Any], yaml_name: str) -> str:
+    value = data.get(UE_KEY, "ground")
+    if value not in UE_KINDS:
+        raise ConfigError(f"{yaml_name}: `{UE_KEY}` must be one of {', '.join(UE_KINDS)} (got {value!r}).")
+    return str(value)
+
+
+def allows_outside(data: dict[str, Any], yaml_name: str) -> bool:
+    value = data.get(ALLOW_OUTSIDE, False)
+    if not isinstance(value, bool):
+        raise ConfigError(f"{yaml_name}: `{ALLOW_OUTSIDE}` must be true or false (got {value!r}).")
+    return value
+
+
+def check_declared_beams(codebooks: object, yaml_name: str) -> None:
+    """Refuse a codebook declaring more than :data:`MAX_BEAMS` beams before it is built (its checks are quadratic)."""
+    if not isinstance(codebooks, dict):
+        return
+    for name, spec in codebooks.items():
+        if not isinstance(spec, dict):
+            continue
+        axes = [("azimuths_deg", "tilts_deg"), ("beams_h", "beams_v")]
+        for a, b in axes:
+            if a in spec or b in spec:
+                na, nb = (len(spec[k]) if isinstance(spec.get(k), (list, tuple)) else 1 for k in (a, b))
+                if na * nb > MAX_BEAMS:
+                    raise ConfigError(
+                        f"{yaml_name}: `codebooks.{name}` declares {na} × {nb} = {na * nb:,} beams, above the "
+                        f"{MAX_BEAMS:,}-beam limit of a codebook."
+                    )
+
+
+def inside_scenario(root: Path, name: str, key: str, yaml_name: str, allow_outside: bool) -> Path:
+    """``root / name`` once symlinks are resolved; a place outside the scenario folder is a :class:`DataError`
+    unless the scenario says ``allow_outside: true``."""
     path = root / name
+    if allow_outside:
+        return path
+    real, base = os.path.realpath(path), os.path.realpath(root)
+    if real != base and not real.startswith(base.rstrip(os.sep) + os.sep):
+        raise DataError(
+            f"{yaml_name}: `{key}` = {name!r} resolves outside the scenario folder ({real}); keep the file inside "
+            f"{base}, or add `{ALLOW_OUTSIDE}: true` to {yaml_name} to read it there."
+        )
+    return path
+
+
+def scenario_inputs(path: str | Path) -> list[Path]:
+    """Every file and folder a scenario's ``scenario.yaml`` names (itself included), for refusing an output
+    that would overwrite one; a scenario that cannot be read yet gives what is known (loading reports it)."""
+    path = Path(path).expanduser()
+    try:
+        root, yaml_path = locate_scenario(path)
+        data = _read_meta_dict(yaml_path)
+    except (ConfigError, DataError):
+        return [path]
+    names: list[object] = [data.get(k) for k in ("grids", "measurements", "point_cloud", "truth")]
+    rounds = data.get("rounds")
+    if isinstance(rounds, dict):
+        names += [r.get("cells") if isinstance(r, dict) else r for r in rounds.values()]
+    return [yaml_path, *(root / str(n) for n in names if isinstance(n, str) and n)]
+
+
+def _referenced(root: Path, name: str, key: str, yaml_name: str, allow_outside: bool = False) -> Path:
+    path = inside_scenario(root, name, key, yaml_name, allow_outside)
     if not path.exists():
         raise DataError(
             f"{yaml_name}: `{key}` = {name!r}: not found ({path}); file names are relative to the scenario folder."
@@ -75,8 +162,8 @@ def _referenced(root: Path, name: str, key: str, yaml_name: str) -> Path:
     return path
 
 
-def _read(root: Path, name: str, key: str, yaml_name: str) -> tuple[pd.DataFrame, TableRef]:
-    path = _referenced(root, name, key, yaml_name)
+def _read(root: Path, name: str, key: str, yaml_name: str, outside: bool) -> tuple[pd.DataFrame, TableRef]:
+    path = _referenced(root, name, key, yaml_name, outside)
     df = read_table(path)
     return df, TableRef(name, csv=table_kind(path) == "csv", lines=df.attrs.get(LINE_NUMBERS))
 
@@ -92,33 +179,53 @@ def load_scenario(path: str | Path) -> Scenario:
     root, yaml_path = locate_scenario(path)
     meta = load_meta(yaml_path)
     yaml_name = yaml_path.name
+    raw = _read_meta_dict(yaml_path)
+    outside, ue = allows_outside(raw, yaml_name), ue_kind(raw, yaml_name)
     cells: dict[int, pd.DataFrame] = {}
     elements: dict[str, Any] = {}
     for rnd, name in meta.rounds.items():
-        df, ref = _read(root, name, f"rounds.{rnd}.cells", yaml_name)
+        df, ref = _read(root, name, f"rounds.{rnd}.cells", yaml_name, outside)
+        _check_elements(df, root, f"rounds.{rnd}.cells", yaml_name, outside)
         round1 = None if rnd == 1 else (cells[1], meta.rounds[1])
         cells[rnd], found = normalise_cells(df, ref, meta, root, round1)
         elements.update(found)
-    df, ref = _read(root, meta.grids, "grids", yaml_name)
+    df, ref = _read(root, meta.grids, "grids", yaml_name, outside)
     grids = normalise_grids(df, ref, meta.origin, meta.ground)
     if meta.measurements is None:
         measurements = empty_measurements()
     else:
-        df, ref = _read(root, meta.measurements, "measurements", yaml_name)
+        df, ref = _read(root, meta.measurements, "measurements", yaml_name, outside)
         measurements = normalise_measurements(df, ref, meta, cells, grids["grid_id"].to_numpy(), meta.grids)
     point_cloud = None
     if meta.point_cloud is not None:
-        point_cloud = read_point_cloud(_referenced(root, meta.point_cloud, "point_cloud", yaml_name))
+        pc_path = _referenced(root, meta.point_cloud, "point_cloud", yaml_name, outside)
+        regular_file_size(pc_path, "point cloud file", DataError)
+        point_cloud = read_point_cloud(pc_path)
     if meta.truth is not None:
-        _referenced(root, meta.truth, "truth", yaml_name)
+        _referenced(root, meta.truth, "truth", yaml_name, outside)
     parts: list[tuple[Any, np.ndarray]] = [(meta.rounds[1], cells[1][list(XYZ)].to_numpy(np.float64))]
     parts.append((meta.grids, grids[list(XYZ)].to_numpy(np.float64)))
     if point_cloud is not None:
         parts.append((meta.point_cloud, point_cloud.xyz))
     check_overlap(parts)
+    check_grid_heights(parts[1][1], [p[1] for p in parts[:1] + parts[2:]], ue, meta.grids)
     scenario = Scenario(root, meta, cells, grids, measurements, point_cloud)
     scenario._elements.update(elements)
     return scenario
+
+
+def _check_elements(df: pd.DataFrame, root: Path, key: str, yaml_name: str, outside: bool) -> None:
+    """Element pattern files named in a cells table: inside the scenario folder and regular files, before the
+    cells module reads them."""
+    if "element" not in df.columns:
+        return
+    for name in pd.unique(df["element"].dropna()):
+        text = str(name).strip()
+        if not text or text.lower() == DEFAULT_ELEMENT:
+            continue
+        path = inside_scenario(root, text, f"{key}: element", yaml_name, outside)
+        if path.exists() and not path.is_dir():
+            regular_file_size(path, "antenna pattern file", DataError)
 
 
 def save_scenario(scenario: Scenario, root: str | Path, table_format: str = "parquet") -> Path:
@@ -153,7 +260,7 @@ def save_scenario(scenario: Scenario, root: str | Path, table_format: str = "par
         meta, rounds=rounds, grids=grids_name, measurements=measurements_name, point_cloud=pc_name, truth=truth
     )
     text = yaml.safe_dump(_plain(new_meta.to_dict()), sort_keys=False, allow_unicode=True, default_flow_style=None)
-    (root / SCENARIO_FILE).write_text(text)
+    write_text_atomic(root / SCENARIO_FILE, text, "scenario file")
     return root
 
 

@@ -81,3 +81,27 @@ def check_overlap(parts: list[tuple[str, np.ndarray]]) -> None:
                 f"({_describe(name_a, box_a)}; {_describe(name_b, box_b)}); are both in the same coordinate frame "
                 "and unit?"
             )
+
+
+MAX_GROUND_UE_HEIGHT_M = 500.0
+"""Largest height [m] of a grid above the lowest point of the scene (cells, grids, point cloud) for ground UEs;
+a scenario declaring ``ue: aerial`` in scenario.yaml may go up to :data:`HEIGHT_RANGE_M`."""
+UE_KINDS = ("ground", "aerial")
+
+
+def check_grid_heights(grids_xyz: np.ndarray, others: list[np.ndarray], ue: str, grids_name: str) -> None:
+    """Grids of ground UEs lie at most :data:`MAX_GROUND_UE_HEIGHT_M` above the lowest point of the scene
+    (``grids_xyz`` and every array in ``others``); a :class:`DataError` names the first grid that does not."""
+    if ue == "aerial" or not len(grids_xyz):
+        return
+    lows = [float(np.nanmin(a[:, 2])) for a in (grids_xyz, *others) if len(a)]
+    ground = min(lows)
+    z = grids_xyz[:, 2]
+    above = np.flatnonzero(z - ground > MAX_GROUND_UE_HEIGHT_M)
+    if above.size:
+        first = int(above[0])
+        raise DataError(
+            f"{grids_name} row {first + 1}: z = {z[first]:.6g} m is {z[first] - ground:.6g} m above the lowest point "
+            f"of the scene ({ground:.6g} m), more than the {MAX_GROUND_UE_HEIGHT_M:g} m a ground UE can be "
+            f"({above.size} grid(s)); {HEIGHT_FIX} For drones or aircraft add `ue: aerial` to scenario.yaml."
+        )

@@ -24,7 +24,6 @@ from __future__ import annotations
 import abc
 import hashlib
 import json
-import os
 import pickle
 import zipfile
 from collections.abc import Callable
@@ -36,6 +35,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from rflscm.data.safe_io import atomic_write, discard_stale_temps
 from rflscm.errors import CheckpointError, DataError, RflscmError, UnsupportedError
 from rflscm.geometry import AngleGrid
 
@@ -204,13 +204,13 @@ class LSCMModel(abc.ABC):
             "state": self.state_dict_for_checkpoint(),
             "train_state": train_state,
         })  # fmt: skip
-        tmp = partial_save_path(path)
-        tmp.unlink(missing_ok=True)  # a partial file left by a save that was killed
-        with open(tmp, "wb") as f:
-            torch.save({"format": CHECKPOINT_FORMAT, "sha256": content_hash(payload), "payload": payload}, f)
-            f.flush()
-            os.fsync(f.fileno())
-        tmp.replace(path)
+        checkpoint = {"format": CHECKPOINT_FORMAT, "sha256": content_hash(payload), "payload": payload}
+
+        def write(tmp: Path) -> None:
+            with open(tmp, "wb") as f:
+                torch.save(checkpoint, f)
+
+        atomic_write(path, write, "checkpoint")  # a unique temporary name: concurrent saves never collide
         return path
 
 
@@ -222,8 +222,7 @@ def partial_save_path(path: str | Path) -> Path:
 
 def discard_partial_save(path: str | Path | None) -> None:
     """Remove the temporary file of a save that was interrupted (kill -9, full disk) before it was renamed."""
-    if path is not None:
-        partial_save_path(path).unlink(missing_ok=True)
+    discard_stale_temps(path)
 
 
 def to_plain(value: Any) -> Any:
@@ -261,6 +260,10 @@ def from_plain(value: Any) -> Any:
     return value
 
 
+MAX_EXPANDED_BYTES = 256 * 2**20
+"""A tensor whose shape claims more bytes than its storage holds (stride 0) is refused above this size [bytes]."""
+
+
 def content_hash(value: Any) -> str:
     """SHA-256 (hex) of a plain value: every key, number, text, and every tensor's dtype, shape and bytes, in a
     fixed order, so it does not depend on how pickle lays the file out."""
@@ -271,6 +274,12 @@ def content_hash(value: Any) -> str:
 
 def _hash_into(h: Any, value: Any) -> None:
     if isinstance(value, torch.Tensor):
+        claimed = value.numel() * value.element_size()
+        if claimed > MAX_EXPANDED_BYTES and claimed > value.untyped_storage().nbytes():  # stride 0 in a small file
+            raise CheckpointError(
+                f"a tensor of shape {tuple(value.shape)} claims {claimed:,} bytes but stores "
+                f"{value.untyped_storage().nbytes():,}; refused before expanding it (limit {MAX_EXPANDED_BYTES:,} bytes)."
+            )
         t = value.detach().cpu().contiguous()
         h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
         h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
@@ -373,7 +382,11 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     if archive["format"] != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path}: written by an older rflscm (format 1); retrain it with the `train` command.")
     payload = archive.get("payload")
-    if not isinstance(payload, dict) or archive.get("sha256") != content_hash(payload):
+    try:
+        digest = content_hash(payload) if isinstance(payload, dict) else None
+    except CheckpointError as exc:
+        raise CheckpointError(f"{path}: {exc}") from None
+    if not isinstance(payload, dict) or archive.get("sha256") != digest:
         raise CheckpointError(
             f"{path}: the content does not match the SHA-256 written when it was saved (the file is damaged or was "
             "edited); restore it or retrain with the `train` command."

@@ -251,6 +251,7 @@ def write_round(scenario: Scenario, cells: pd.DataFrame, out_dir: Path) -> tuple
         if meta[key] is not None:
             meta[key] = rel(meta[key])
     meta["description"] = (meta.get("description") or "") + f" Round {rnd}: written by `rflscm optimize`."
+    meta["allow_outside"] = True  # its tables are the original scenario's, outside this folder (rflscm.data.loader)
     cols = [c for c in cells.columns]
     write_table(cells[cols].reset_index(drop=True), folder / f"cells_round{rnd}.parquet")
     (folder / "scenario.yaml").write_text(
