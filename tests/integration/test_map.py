@@ -179,6 +179,21 @@ def test_map_refuses_bad_rounds_in_one_line(mapped, tmp_path) -> None:
         assert run.stderr.startswith("ConfigError: --")
 
 
+def test_map_never_writes_over_its_inputs_and_checks_its_numbers(mapped, tmp_path) -> None:
+    scenario, out, _, _ = mapped
+    ckpt = out.parent / "w.ckpt"
+    before = sorted(p.name for p in scenario.root.iterdir())
+    yaml_text = (scenario.root / "scenario.yaml").read_text()
+    run = rflscm("map", str(ckpt), str(scenario.root), "--out", str(scenario.root / "scenario.yaml"), "--device", "cpu")
+    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    assert sorted(p.name for p in scenario.root.iterdir()) == before  # nothing written or replaced
+    assert (scenario.root / "scenario.yaml").read_text() == yaml_text
+    run = rflscm("map", str(ckpt), str(scenario.root), "--out", str(ckpt), "--device", "cpu")
+    assert run.returncode == 2 and ckpt.stat().st_size > 0, run.stderr
+    run = rflscm("map", str(ckpt), str(scenario.root), "--threshold", "nan", "--out", str(tmp_path / "m"))
+    assert run.returncode == 2 and "--threshold" in run.stderr and len(run.stderr.strip().splitlines()) == 1
+
+
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed (.ci/run installs it)")
 def test_html_map_works_offline_in_a_real_browser(mapped, tmp_path) -> None:
     from playwright.sync_api import sync_playwright

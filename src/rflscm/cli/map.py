@@ -8,7 +8,16 @@ import typer
 from rich.console import Console
 
 from rflscm.cli import app
-from rflscm.cli.common import Device, DeviceOption, SeedOption, output_folder, resolve_device, seed_everything
+from rflscm.cli.common import (
+    SEED_MAX,
+    Device,
+    DeviceOption,
+    ForceOption,
+    SeedOption,
+    check_numbers,
+    resolve_device,
+    seed_everything,
+)
 
 
 @app.command("map")
@@ -26,14 +35,21 @@ def map_(
     html: bool = typer.Option(True, "--html/--no-html", help="Also write the interactive map, map.html."),
     device: Device = DeviceOption,
     seed: int = SeedOption,
+    force: bool = ForceOption,
 ) -> None:  # fmt: skip
     """Write map layers of predicted best-server RSRP, serving cell, SS-SINR and coverage (docs/maps.md)."""
     from rflscm.data import load_scenario
+    from rflscm.data.loader import scenario_inputs
+    from rflscm.data.safe_io import guard_outputs
     from rflscm.maps import write_layers
     from rflscm.models import load_model
     from rflscm.network.kpi import KPIConfig
 
-    output_folder(out, "--out")
+    check_numbers(
+        round=(round, 1, 2**31 - 1), compare_round=(compare_round, 1, 2**31 - 1),
+        threshold=(threshold, -300.0, 100.0), noise_figure=(noise_figure, 0.0, 30.0), seed=(seed, 0, SEED_MAX),
+    )  # fmt: skip
+    guard_outputs({"--out": out}, [*scenario_inputs(scenario), checkpoint], force=force, folders=("--out",))
     seed_everything(seed)
     console = Console(stderr=True)
     scen = load_scenario(scenario)
