@@ -107,9 +107,10 @@ def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
             f"unknown key(s) {', '.join(repr(k) for k in unknown)} in {where}; valid keys: {', '.join(sorted(fields))}."
         )
     required = [
-        name for name, f in fields.items()
+        name
+        for name, f in fields.items()
         if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING and name not in data
-    ]  # fmt: skip
+    ]
     if required:
         where = f"`{prefix}`" if prefix else cls.__name__
         raise ConfigError(

@@ -41,10 +41,13 @@ DeviceOption = typer.Option(Device.auto, "--device", help="Compute device: auto 
 SeedOption = typer.Option(0, "--seed", help="Random seed (integer; runs are repeatable for a given seed).")
 THREADS_ENV = "RFLSCM_THREADS"
 ThreadsOption = typer.Option(
-    None, "--threads", metavar="N", show_default=False,
+    None,
+    "--threads",
+    metavar="N",
+    show_default=False,
     help=f"CPU threads torch uses inside one operation (count; default: ${THREADS_ENV} if set, else torch's own "
     "default). On a busy machine 1 can be many times faster than more.",
-)  # fmt: skip
+)
 
 
 def output_file(path: Path, option: str) -> Path:

@@ -132,9 +132,13 @@ def import_(
     from rflscm.data.ingest.spec import CELL_LIST_COLUMNS, SAMPLE_COLUMNS
     from rflscm.data.safe_io import guard_outputs
 
-    check_numbers(grid_size=(grid_size, 1e-3, 1e5), min_samples=(min_samples, 1, 2**31 - 1),
-                  outlier_k=(outlier_k, 0.0, 1e6), max_distance=(max_distance, 0.0, 1e8),
-                  threshold=(threshold, -300.0, 100.0))  # fmt: skip
+    check_numbers(
+        grid_size=(grid_size, 1e-3, 1e5),
+        min_samples=(min_samples, 1, 2**31 - 1),
+        outlier_k=(outlier_k, 0.0, 1e6),
+        max_distance=(max_distance, 0.0, 1e8),
+        threshold=(threshold, -300.0, 100.0),
+    )
     inputs: list[Path | None] = [spec, *samples, *cells, codebooks, columns, point_cloud]
     refuse_inputs_inside(out, inputs)
     guard_outputs({"--out": out}, inputs, force=True, folders=("--out",))
@@ -144,12 +148,16 @@ def import_(
         "codebooks": None if codebooks is None else str(codebooks),
         "columns": {**_column_file(columns), **parse_pairs(col, "--col")},
         "origin": None if origin is None else parse_origin(origin),
-        "grid_size_m": grid_size, "min_samples": min_samples, "outlier_k": outlier_k,
-        "max_distance_m": max_distance, "rsrp_threshold_dbm": threshold,
+        "grid_size_m": grid_size,
+        "min_samples": min_samples,
+        "outlier_k": outlier_k,
+        "max_distance_m": max_distance,
+        "rsrp_threshold_dbm": threshold,
         "beam_type": None if beam_type is None else beam_type.value,
-        "reporting": parse_reporting(reporting) or None, "name": name,
+        "reporting": parse_reporting(reporting) or None,
+        "name": name,
         "point_cloud": None if point_cloud is None else str(point_cloud),
-    }  # fmt: skip
+    }
     known = set(SAMPLE_COLUMNS) | set(CELL_LIST_COLUMNS)
     if unknown := sorted(set(overrides["columns"]) - known):
         raise ConfigError(
@@ -179,6 +187,8 @@ def _print(result: Any, out: Path, console: Console) -> None:
     console.print(table)
     where = "none (x/y in metres)" if result.origin is None else f"{result.origin.lat:.6f}, {result.origin.lon:.6f}"
     chosen = " (default: −120 dBm or the weakest kept bin, rounded down)" if result.threshold_chosen else ""
-    console.print(f"origin {where}; {result.cells} cells, {result.grids} grids, rounds {result.rounds}; "
-                  f"rsrp_threshold_dbm {result.threshold_dbm:g}{chosen}")  # fmt: skip
+    console.print(
+        f"origin {where}; {result.cells} cells, {result.grids} grids, rounds {result.rounds}; "
+        f"rsrp_threshold_dbm {result.threshold_dbm:g}{chosen}"
+    )
     console.print(f"[green]wrote[/green] {out} (checked). Next: `rflscm check {out}`, `rflscm train {out}`.")

@@ -26,7 +26,9 @@ def map_(
     scenario: Path = typer.Argument(..., help="The scenario the model was trained on."),
     round: int = typer.Option(1, "--round", help="Round whose antenna configuration to map (integer)."),
     compare_round: int | None = typer.Option(
-        None, "--compare-round", metavar="M",
+        None,
+        "--compare-round",
+        metavar="M",
         help="A second round (integer): its layers too, and the difference (round M − --round).",
     ),
     out: Path = typer.Option(Path("maps"), "--out", help="Output folder: GeoTIFF, GeoJSON, KML and HTML files."),
@@ -36,7 +38,7 @@ def map_(
     device: Device = DeviceOption,
     seed: int = SeedOption,
     force: bool = ForceOption,
-) -> None:  # fmt: skip
+) -> None:
     """Write map layers of predicted best-server RSRP, serving cell, SS-SINR and coverage (docs/maps.md)."""
     from rflscm.data import load_scenario
     from rflscm.data.loader import scenario_inputs
@@ -46,9 +48,12 @@ def map_(
     from rflscm.network.kpi import KPIConfig
 
     check_numbers(
-        round=(round, 1, 2**31 - 1), compare_round=(compare_round, 1, 2**31 - 1),
-        threshold=(threshold, -300.0, 100.0), noise_figure=(noise_figure, 0.0, 30.0), seed=(seed, 0, SEED_MAX),
-    )  # fmt: skip
+        round=(round, 1, 2**31 - 1),
+        compare_round=(compare_round, 1, 2**31 - 1),
+        threshold=(threshold, -300.0, 100.0),
+        noise_figure=(noise_figure, 0.0, 30.0),
+        seed=(seed, 0, SEED_MAX),
+    )
     guard_outputs({"--out": out}, [*scenario_inputs(scenario), checkpoint], force=force, folders=("--out",))
     seed_everything(seed)
     console = Console(stderr=True)

@@ -43,15 +43,25 @@ class Method(StrEnum):
     de = "de"
 
 
-def search_spec(search: Path | None, tilt: str | None, elec: str | None, azimuth: str | None, codebooks: str | None,
-                freeze: str | None, max_changed: int | None) -> dict:  # fmt: skip
+def search_spec(
+    search: Path | None,
+    tilt: str | None,
+    elec: str | None,
+    azimuth: str | None,
+    codebooks: str | None,
+    freeze: str | None,
+    max_changed: int | None,
+) -> dict:
     """The search spec: the YAML file's, with CLI flags laid over its ``defaults``."""
     from rflscm.network.space import check_physical, load_spec, parse_range
 
     spec = load_spec(search)
     defaults = dict(spec.get("defaults") or {})
-    for flag, key, text in (("--tilt-range", "mech_tilt_deg", tilt), ("--elec-tilt-range", "elec_tilt_deg", elec),
-                            ("--azimuth-range", "azimuth_offset_deg", azimuth)):  # fmt: skip
+    for flag, key, text in (
+        ("--tilt-range", "mech_tilt_deg", tilt),
+        ("--elec-tilt-range", "elec_tilt_deg", elec),
+        ("--azimuth-range", "azimuth_offset_deg", azimuth),
+    ):
         if text is not None:
             defaults[key] = parse_range(text, flag)
             check_physical(key, defaults[key]["min"], defaults[key]["max"], flag)
@@ -105,7 +115,8 @@ def optimize(
     checkpoint: Path = typer.Argument(..., help="Model checkpoint written by `rflscm train`."),
     scenario: Path = typer.Argument(..., help="The scenario folder the model was trained on."),
     objective: Objective = typer.Option(
-        Objective.coverage, "--objective",
+        Objective.coverage,
+        "--objective",
         help="What to maximise: coverage ratio (%), mean SS-SINR (dB) or weighted (1 dB of SINR = 1 % coverage).",
     ),
     out: Path = typer.Option(Path("optimize-out"), "--out", help="Output folder: new round, changes, report."),
@@ -113,15 +124,21 @@ def optimize(
         None, "--search", help="YAML search spec: ranges (deg), per-cell overrides, frozen cells, step limits."
     ),
     tilt_range: str | None = typer.Option(
-        None, "--tilt-range", metavar="MIN:MAX[:STEP]",
+        None,
+        "--tilt-range",
+        metavar="MIN:MAX[:STEP]",
         help="Mechanical down-tilt range (deg), within -10:20 (default 0:15:1, at most ±4 per step).",
     ),
     elec_range: str | None = typer.Option(
-        None, "--elec-tilt-range", metavar="MIN:MAX[:STEP]",
+        None,
+        "--elec-tilt-range",
+        metavar="MIN:MAX[:STEP]",
         help="Electrical down-tilt range (deg), within -5:20 (default 0:15:1, at most ±4 per step).",
     ),
     azimuth_range: str | None = typer.Option(
-        None, "--azimuth-range", metavar="MIN:MAX[:STEP]",
+        None,
+        "--azimuth-range",
+        metavar="MIN:MAX[:STEP]",
         help="Azimuth offsets around the present azimuth (deg, clockwise), within -60:60 (default -30:30:5, "
         "at most ±10 per step).",
     ),
@@ -132,14 +149,21 @@ def optimize(
         None, "--freeze", metavar="IDS", help="Comma-separated cell ids that must not change."
     ),
     max_changed: int | None = typer.Option(
-        None, "--max-changed", min=1, metavar="N",
+        None,
+        "--max-changed",
+        min=1,
+        metavar="N",
         help="Most cells the recommendation may change (cells; default 8).",
     ),
-    base_round: int = typer.Option(1, "--round", help="Round the search starts from (integer; its antenna configuration)."),
+    base_round: int = typer.Option(
+        1, "--round", help="Round the search starts from (integer; its antenna configuration)."
+    ),
     method: Method = typer.Option(
         Method.cd, "--method", help="cd: coordinate descent with restarts; de: scipy's differential evolution."
     ),
-    restarts: int = typer.Option(2, "--restarts", min=0, help="cd: restarts from perturbed best configurations (count)."),
+    restarts: int = typer.Option(
+        2, "--restarts", min=0, help="cd: restarts from perturbed best configurations (count)."
+    ),
     time_budget: float = typer.Option(60.0, "--time-budget", help="de: search time (s)."),
     threshold: float = typer.Option(-105.0, "--threshold", help="Coverage threshold on best-server SSB RSRP (dBm)."),
     noise_figure: float = typer.Option(7.0, "--noise-figure", help="UE noise figure for SS-SINR (dB)."),
@@ -157,7 +181,7 @@ def optimize(
     workers: int = WorkersOption,
     ray_address: str | None = RayAddressOption,
     force: bool = ForceOption,
-) -> None:  # fmt: skip
+) -> None:
     """Search antenna settings that maximise a coverage/SINR objective; write them as a new round."""
     from rflscm.data import load_scenario
     from rflscm.data.loader import scenario_inputs
@@ -169,9 +193,15 @@ def optimize(
     from rflscm.network.report import write_report
     from rflscm.network.space import build_space
 
-    check_numbers(round=(base_round, 1, 2**31 - 1), restarts=(restarts, 0, 1000), time_budget=(time_budget, 0.0, 1e7),
-                  threshold=(threshold, -300.0, 100.0), noise_figure=(noise_figure, -50.0, 100.0),
-                  max_changed=(max_changed, 1, 2**31 - 1), seed=(seed, 0, SEED_MAX))  # fmt: skip
+    check_numbers(
+        round=(base_round, 1, 2**31 - 1),
+        restarts=(restarts, 0, 1000),
+        time_budget=(time_budget, 0.0, 1e7),
+        threshold=(threshold, -300.0, 100.0),
+        noise_figure=(noise_figure, -50.0, 100.0),
+        max_changed=(max_changed, 1, 2**31 - 1),
+        seed=(seed, 0, SEED_MAX),
+    )
     if aps_cache is not None and aps_cache.suffix.lower() != ".pt":
         raise ConfigError(f"--aps-cache {aps_cache}: the file name must end in .pt.")
     inputs = [*scenario_inputs(scenario), checkpoint, search]
@@ -218,8 +248,20 @@ def optimize(
         )
         passes = (restarts + 1) * 8 * len(space.free_cells()) if method_name == "cd" else None
         task = bar.add_task(f"searching ({method_name}, {objective_name})", total=passes)
-        result = run_optimize(scen, cache, space, base_round, objective_name, method_name, kpi, verify, seed,
-                              restarts, time_budget, on_step=lambda: bar.advance(task))  # fmt: skip
+        result = run_optimize(
+            scen,
+            cache,
+            space,
+            base_round,
+            objective_name,
+            method_name,
+            kpi,
+            verify,
+            seed,
+            restarts,
+            time_budget,
+            on_step=lambda: bar.advance(task),
+        )
     result.timings["aps_cache_s"] = cache_s
     folder, rnd = write_round(scen, result.cells_after, out)
     report = write_report(result, scen, out, kpi, rnd, folder, command="rflscm " + " ".join(sys.argv[1:]))

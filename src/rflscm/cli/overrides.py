@@ -19,9 +19,11 @@ PresetOption = typer.Option(
     None, "--preset", help="Preset the --config YAML and --set start from: quick or full (default: quick)."
 )
 SetOption = typer.Option(
-    [], "--set", metavar="SECTION.KEY=VALUE",
+    [],
+    "--set",
+    metavar="SECTION.KEY=VALUE",
     help="Change one model setting (repeatable), e.g. --set train.steps=500 --set prior.enabled=false.",
-)  # fmt: skip
+)
 
 
 def model_config(model: str, config: str, preset: str | None, sets: list[str]) -> str | dict[str, Any]:

@@ -114,8 +114,9 @@ def _export_aps(model: LSCMModel, scenario: Scenario, cells: np.ndarray, grids: 
     return len(table)
 
 
-def _print_kpis(scen, model, selected: pd.DataFrame, ssb: pd.DataFrame, threshold: float, path: Path | None,
-                console: Console) -> None:  # fmt: skip
+def _print_kpis(
+    scen, model, selected: pd.DataFrame, ssb: pd.DataFrame, threshold: float, path: Path | None, console: Console
+) -> None:
     """Network KPIs (rflscm.network) of the predicted SSB RSRP, printed and optionally written as JSON."""
 
     from rflscm.network.kpi import KPIConfig, best_beam_power_from_rsrp, network_kpis
@@ -130,11 +131,13 @@ def _print_kpis(scen, model, selected: pd.DataFrame, ssb: pd.DataFrame, threshol
         from rflscm.data.safe_io import write_text_atomic
 
         write_text_atomic(path, json_text(kpis), "KPI JSON")
-    console.print(f"network KPIs on {kpis['pairs']}: coverage {100 * kpis['coverage']:.2f} %, mean SS-SINR "
-                  f"{kpis['mean_sinr_db']:.2f} dB, 5th percentile SS-SINR {kpis['p5_sinr_db']:.2f} dB, overlap "
-                  f"{100 * kpis['overlap']:.2f} %, mean best-server RSRP {kpis['mean_rsrp_dbm']:.2f} dBm "
-                  f"(--pairs {'measured' if not known.all() else 'all'}; `rflscm optimize` reports the same KPIs "
-                  "on the same pairs)")  # fmt: skip
+    console.print(
+        f"network KPIs on {kpis['pairs']}: coverage {100 * kpis['coverage']:.2f} %, mean SS-SINR "
+        f"{kpis['mean_sinr_db']:.2f} dB, 5th percentile SS-SINR {kpis['p5_sinr_db']:.2f} dB, overlap "
+        f"{100 * kpis['overlap']:.2f} %, mean best-server RSRP {kpis['mean_rsrp_dbm']:.2f} dBm "
+        f"(--pairs {'measured' if not known.all() else 'all'}; `rflscm optimize` reports the same KPIs "
+        "on the same pairs)"
+    )
 
 
 @app.command()
@@ -192,9 +195,12 @@ def predict(
     cells, grids = _id_list(aps_cells, "--aps-cells"), _id_list(aps_grids, "--aps-grids")
     if (cells is None) != (grids is None):
         raise ConfigError("--aps-cells and --aps-grids go together.")
-    for option, path, suffixes in (("--out", out, None), ("--aps-out", aps_out if cells is not None else None, None),
-                                   ("--attenuation-map", attenuation_map, (".png",)),
-                                   ("--kpi-json", kpi_json, (".json",))):  # fmt: skip
+    for option, path, suffixes in (
+        ("--out", out, None),
+        ("--aps-out", aps_out if cells is not None else None, None),
+        ("--attenuation-map", attenuation_map, (".png",)),
+        ("--kpi-json", kpi_json, (".json",)),
+    ):
         if path is None:
             continue
         if suffixes is None:
@@ -204,8 +210,12 @@ def predict(
                 raise ConfigError(f"{option} {path}: unknown table format; use .parquet or .csv.") from None
         elif path.suffix.lower() not in suffixes:
             raise ConfigError(f"{option} {path}: the file name must end in {' or '.join(suffixes)}.")
-    outputs = {"--out": out, "--aps-out": aps_out if cells is not None else None,
-               "--attenuation-map": attenuation_map, "--kpi-json": kpi_json}  # fmt: skip
+    outputs = {
+        "--out": out,
+        "--aps-out": aps_out if cells is not None else None,
+        "--attenuation-map": attenuation_map,
+        "--kpi-json": kpi_json,
+    }
     guard_outputs(outputs, [*scenario_inputs(scenario), checkpoint], force=force)
     seed_everything(seed)
     dev = resolve_device(device)

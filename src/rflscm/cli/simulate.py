@@ -151,8 +151,11 @@ def simulate(
     if measurements not in (None, "ideal", "field"):
         raise ConfigError(f"--measurements must be ideal or field (got {measurements!r}).")
     if from_trace is not None:
-        layout = [flag for flag, value in (("--sites", sites), ("--grids", grids), ("--carriers", carriers),
-                                           ("--scene", scene)) if value is not None]  # fmt: skip
+        layout = [
+            flag
+            for flag, value in (("--sites", sites), ("--grids", grids), ("--carriers", carriers), ("--scene", scene))
+            if value is not None
+        ]
         if layout:
             raise ConfigError(
                 f"--from-trace re-measures an existing trace, so {', '.join(layout)} cannot change it; drop "
@@ -162,8 +165,13 @@ def simulate(
         _write_raw(out, raw_out, raw_samples, raw_fading, raw_grids, seed)
         return
     cfg = load_config(SimulationConfig, config) if config is not None else SimulationConfig()
-    overrides: dict[str, Any] = {"num_sites": sites, "max_grids": grids, "seed": seed, "measurements": measurements,
-                 "carriers_hz": parse_carriers(carriers) if carriers is not None else None}  # fmt: skip
+    overrides: dict[str, Any] = {
+        "num_sites": sites,
+        "max_grids": grids,
+        "seed": seed,
+        "measurements": measurements,
+        "carriers_hz": parse_carriers(carriers) if carriers is not None else None,
+    }
     cfg = dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     _check_backend(backend, scene)
     scene = scene or ("city" if backend == "procedural" else "munich")
@@ -191,8 +199,9 @@ def simulate(
     _write_raw(out, raw_out, raw_samples, raw_fading, raw_grids, cfg.seed)
 
 
-def _write_raw(scenario: Path, raw_out: Path | None, samples: int, fading_db: float, grids: int | None,
-               seed: int | None) -> None:  # fmt: skip
+def _write_raw(
+    scenario: Path, raw_out: Path | None, samples: int, fading_db: float, grids: int | None, seed: int | None
+) -> None:
     """``--raw-out``: the written scenario as raw samples and a cell list (rflscm.sim.raw_writer)."""
     if raw_out is None:
         return
@@ -201,17 +210,24 @@ def _write_raw(scenario: Path, raw_out: Path | None, samples: int, fading_db: fl
     from rflscm.sim.raw_writer import write_raw
 
     sc = load_scenario(scenario)
-    info = write_raw(sc, output_folder(raw_out, "--raw-out"), samples_per_beam=samples, fading_db=fading_db,
-                     max_grids=grids, grid_size_m=float(sc.meta.simulation.get("config", {}).get("grid_size_m", 10.0)),
-                     seed=seed or 0)  # fmt: skip
+    info = write_raw(
+        sc,
+        output_folder(raw_out, "--raw-out"),
+        samples_per_beam=samples,
+        fading_db=fading_db,
+        max_grids=grids,
+        grid_size_m=float(sc.meta.simulation.get("config", {}).get("grid_size_m", 10.0)),
+        seed=seed or 0,
+    )
     Console(stderr=True).print(
         f"[green]wrote[/green] raw {raw_out}: {info['samples']:,} samples of {info['grids']} grids, "
         f"{info['cells']} cell rows. Import with `rflscm import {raw_out / 'import.yaml'} --out DIR`."
     )
 
 
-def _remeasure(source: Path, out: Path, config: Path | None, measurements: str | None, seed: int | None,
-               force: bool) -> None:  # fmt: skip
+def _remeasure(
+    source: Path, out: Path, config: Path | None, measurements: str | None, seed: int | None, force: bool
+) -> None:
     """``--from-trace``: the trace's recorded config, overridden by the measurement keys of --config and the flags."""
     from rflscm.config import from_dict, load_yaml, to_dict
     from rflscm.sim import SimulationConfig

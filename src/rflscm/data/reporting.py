@@ -243,6 +243,13 @@ def reported_fraction(scenario) -> pd.DataFrame:
             possible = sum(scenario.num_beams(int(c), beam_type, int(rnd)) for c in pairs["cell_id"].to_numpy())
             rows = sub[(sub["beam_type"] == beam_type).to_numpy()]
             reported = int(rows["rsrp_dbm"].notna().sum())
-            out.append({"round": int(rnd), "beam_type": beam_type, "reported": reported, "possible": int(possible),
-                        "fraction": reported / possible if possible else float("nan")})  # fmt: skip
+            out.append(
+                {
+                    "round": int(rnd),
+                    "beam_type": beam_type,
+                    "reported": reported,
+                    "possible": int(possible),
+                    "fraction": reported / possible if possible else float("nan"),
+                }
+            )
     return pd.DataFrame(out, columns=["round", "beam_type", "reported", "possible", "fraction"])

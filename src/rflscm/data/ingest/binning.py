@@ -45,8 +45,9 @@ def bin_samples(samples: pd.DataFrame, spec: ImportSpec, tally: Tally) -> pd.Dat
     agg = agg.reset_index()
     agg["std_db"] = agg["std_db"].fillna(0.0)
     few = agg["samples"].to_numpy() < spec.min_samples
-    tally.drop(f"bin with fewer than min_samples = {spec.min_samples} samples", int(agg["samples"][few].sum()),
-               int(few.sum()))  # fmt: skip
+    tally.drop(
+        f"bin with fewer than min_samples = {spec.min_samples} samples", int(agg["samples"][few].sum()), int(few.sum())
+    )
     agg = agg[~few].reset_index(drop=True)
     agg["rsrp_dbm"] = 10.0 * np.log10(agg.pop("mw"))
     return agg
@@ -60,8 +61,11 @@ def keep_top_n(bins: pd.DataFrame, beam_type: str, top_n: int, tally: Tally) -> 
     rank = bins[mine].groupby(["round", "cell_id", "ix", "iy"])["rsrp_dbm"].rank(ascending=False, method="first")
     drop = np.zeros(len(bins), bool)
     drop[np.flatnonzero(mine)] = rank.to_numpy() > top_n
-    tally.drop(f"{beam_type} bin beyond the top-{top_n} strongest of its grid (rule top_n)",
-               int(bins["samples"][drop].sum()), int(drop.sum()))  # fmt: skip
+    tally.drop(
+        f"{beam_type} bin beyond the top-{top_n} strongest of its grid (rule top_n)",
+        int(bins["samples"][drop].sum()),
+        int(drop.sum()),
+    )
     return bins[~drop].reset_index(drop=True)
 
 

@@ -24,8 +24,19 @@ from rflscm.data.ingest.spec import CARRIER_COLUMNS, CELL_LIST_COLUMNS, ImportSp
 from rflscm.data.io import read_table
 from rflscm.errors import DataError
 
-PASS_THROUGH = ("azimuth_deg", "mech_tilt_deg", "elec_tilt_deg", "tx_power_dbm", "array_nh", "array_nv",
-                "spacing_h_m", "spacing_v_m", "ssb_codebook", "csi_codebook", "element")  # fmt: skip
+PASS_THROUGH = (
+    "azimuth_deg",
+    "mech_tilt_deg",
+    "elec_tilt_deg",
+    "tx_power_dbm",
+    "array_nh",
+    "array_nv",
+    "spacing_h_m",
+    "spacing_v_m",
+    "ssb_codebook",
+    "csi_codebook",
+    "element",
+)
 
 
 def carrier_hz(df: pd.DataFrame, ref: TableRef) -> np.ndarray:
@@ -79,8 +90,12 @@ def cells_frame(df: pd.DataFrame, origin: Origin | None, ids: dict[str, int]) ->
     """A cell-list table → the scenario cells table plus ``pci``, ``carrier_hz``, ``cell_name`` (and ``round``
     when the table has one) columns; rows keep the file's order, so messages name the file's rows."""
     ref = TableRef(df.attrs.get("file", "cells"), csv=str(df.attrs.get("file", "")).lower().endswith(".csv"))
-    require_columns(df, ref, ["cell_id", "height_m", "azimuth_deg", "pci"], "cell_id, lat/lon or x/y, height_m, "
-                    "azimuth_deg, pci, a carrier, ssb_codebook, csi_codebook")  # fmt: skip
+    require_columns(
+        df,
+        ref,
+        ["cell_id", "height_m", "azimuth_deg", "pci"],
+        "cell_id, lat/lon or x/y, height_m, azimuth_deg, pci, a carrier, ssb_codebook, csi_codebook",
+    )
     if {"lat", "lon"} <= set(df.columns):
         if origin is None:
             raise DataError(f"{ref.name}: gives lat/lon; the import needs an origin (--origin LAT,LON).")
@@ -122,9 +137,14 @@ def _check_elements(df: pd.DataFrame, ref: TableRef, folder: Path) -> None:
     is not a pattern: map the column away or give the file)."""
     names = df["element"].astype("string").fillna("").str.strip()
     ok = names.str.lower().isin(["", "tr38901"]) | names.map(lambda n: (folder / n).is_file() if n else True)
-    raise_rows(ref, ~ok.to_numpy(dtype=bool), "element", df["element"],
-               f"names no pattern file next to the cell list ({folder}); give a Planet/MSI file there, `tr38901`, or "
-               "leave the column out (an antenna model name is not a pattern)")  # fmt: skip
+    raise_rows(
+        ref,
+        ~ok.to_numpy(dtype=bool),
+        "element",
+        df["element"],
+        f"names no pattern file next to the cell list ({folder}); give a Planet/MSI file there, `tr38901`, or "
+        "leave the column out (an antenna model name is not a pattern)",
+    )
 
 
 def _cell_number(name: str, ids: dict[str, int]) -> int:

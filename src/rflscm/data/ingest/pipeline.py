@@ -23,9 +23,25 @@ from rflscm.data.meta import RSRP_MIN_DBM, meta_from_dict
 from rflscm.data.reporting import BEAM_TYPES, reporting_from_dict
 from rflscm.errors import DataError
 
-SCENARIO_CELL_COLUMNS = ("cell_id", "site_id", "x", "y", "z", "azimuth_deg", "mech_tilt_deg", "elec_tilt_deg",
-                         "freq_hz", "tx_power_dbm", "array_nh", "array_nv", "spacing_h_m", "spacing_v_m",
-                         "ssb_codebook", "csi_codebook", "element")  # fmt: skip
+SCENARIO_CELL_COLUMNS = (
+    "cell_id",
+    "site_id",
+    "x",
+    "y",
+    "z",
+    "azimuth_deg",
+    "mech_tilt_deg",
+    "elec_tilt_deg",
+    "freq_hz",
+    "tx_power_dbm",
+    "array_nh",
+    "array_nv",
+    "spacing_h_m",
+    "spacing_v_m",
+    "ssb_codebook",
+    "csi_codebook",
+    "element",
+)
 DEFAULT_THRESHOLD_DBM = -120.0
 """rsrp_threshold_dbm without one given: this, or the weakest kept bin rounded down when that is lower (a low
 threshold claims little about missing beams; a high one would claim they were all weaker than it)."""
@@ -97,8 +113,11 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
     if spec.rsrp_threshold_dbm is not None:
         res.threshold_dbm = spec.rsrp_threshold_dbm
         below = (bins["rsrp_dbm"] < res.threshold_dbm).to_numpy()
-        res.dropped.drop(f"bin mean below rsrp_threshold_dbm = {res.threshold_dbm:g}",
-                         int(bins["samples"][below].sum()), int(below.sum()))  # fmt: skip
+        res.dropped.drop(
+            f"bin mean below rsrp_threshold_dbm = {res.threshold_dbm:g}",
+            int(bins["samples"][below].sum()),
+            int(below.sum()),
+        )
         bins = bins[~below].reset_index(drop=True)
     elif len(bins):
         weakest = max(math.floor(bins["rsrp_dbm"].min()), RSRP_MIN_DBM)
@@ -138,8 +157,10 @@ def _check_beams(samples: pd.DataFrame, cells: dict[int, pd.DataFrame], meta: An
                 raise DataError(f"the cell list has no `{col}`; add the column or `cell_defaults: {{{col}: NAME}}`.")
             unknown = sorted(set(table[col].astype(str)) - set(meta.codebooks))
             if unknown:
-                raise DataError(f"the cell list names codebook(s) {unknown} that `codebooks` does not define; "
-                                f"defined: {', '.join(meta.codebooks)}.")  # fmt: skip
+                raise DataError(
+                    f"the cell list names codebook(s) {unknown} that `codebooks` does not define; "
+                    f"defined: {', '.join(meta.codebooks)}."
+                )
             size = table.set_index("cell_id")[col].map(lambda n: meta.codebooks[n].num_beams)
             mine = samples[(samples["round"] == rnd).to_numpy() & (samples["beam_type"] == beam_type).to_numpy()]
             bad = mine["beam_id"].to_numpy() >= size.reindex(mine["cell_id"]).to_numpy()
@@ -168,8 +189,17 @@ def _check_reports(samples: pd.DataFrame, beam_type: str, top_n: int) -> None:
         )
 
 
-def _write(out: Path, spec: ImportSpec, meta_dict: dict[str, Any], res: ImportResult, cells: dict[int, pd.DataFrame],
-           folders: dict[int, str], grids: pd.DataFrame, bins: pd.DataFrame, table_format: str) -> None:  # fmt: skip
+def _write(
+    out: Path,
+    spec: ImportSpec,
+    meta_dict: dict[str, Any],
+    res: ImportResult,
+    cells: dict[int, pd.DataFrame],
+    folders: dict[int, str],
+    grids: pd.DataFrame,
+    bins: pd.DataFrame,
+    table_format: str,
+) -> None:
     ext = ".csv" if table_format == "csv" else ".parquet"
     out.mkdir(parents=True, exist_ok=True)
     for rnd, table in cells.items():
@@ -179,8 +209,9 @@ def _write(out: Path, spec: ImportSpec, meta_dict: dict[str, Any], res: ImportRe
     write_table(grids, out / f"grids{ext}")
     meas = bins[["round", "cell_id", "grid_id", "beam_type", "beam_id", "rsrp_dbm"]]
     write_table(meas, out / f"measurements{ext}")
-    write_table(bins[["round", "cell_id", "grid_id", "beam_type", "beam_id", "samples", "std_db"]],
-                out / f"{BINS_FILE}{ext}")  # fmt: skip
+    write_table(
+        bins[["round", "cell_id", "grid_id", "beam_type", "beam_id", "samples", "std_db"]], out / f"{BINS_FILE}{ext}"
+    )
     meta = {**meta_dict, "rsrp_threshold_dbm": float(res.threshold_dbm)}
     meta["rounds"] = {r: {"cells": f"cells_round{r}{ext}"} for r in cells}
     meta["grids"], meta["measurements"] = f"grids{ext}", f"measurements{ext}"
@@ -191,12 +222,17 @@ def _write(out: Path, spec: ImportSpec, meta_dict: dict[str, Any], res: ImportRe
     meta["simulation"] = {
         "generator": "rflscm import",
         "import": {
-            "grid_size_m": spec.grid_size_m, "min_samples": spec.min_samples, "outlier_k": spec.outlier_k,
-            "max_distance_m": spec.max_distance_m, "ambiguity_ratio": spec.ambiguity_ratio,
-            "samples_read": res.samples_read, "samples_kept": res.samples_kept,
-            "dropped": dict(res.dropped.samples), "bins_table": f"{BINS_FILE}{ext}",
+            "grid_size_m": spec.grid_size_m,
+            "min_samples": spec.min_samples,
+            "outlier_k": spec.outlier_k,
+            "max_distance_m": spec.max_distance_m,
+            "ambiguity_ratio": spec.ambiguity_ratio,
+            "samples_read": res.samples_read,
+            "samples_kept": res.samples_kept,
+            "dropped": dict(res.dropped.samples),
+            "bins_table": f"{BINS_FILE}{ext}",
             "cell_names": f"{CELL_MAP_FILE}{ext}",
         },
-    }  # fmt: skip
+    }
     text = yaml.safe_dump(meta, sort_keys=False, allow_unicode=True, default_flow_style=None)
     (out / "scenario.yaml").write_text(text)

@@ -26,8 +26,9 @@ UNKNOWN_ID = "cell_id not in the cell list"
 FAR_FROM_ID = "cell_id: farther than max_distance_m from that cell (a bad GPS fix?)"
 
 
-def resolve_cells(samples: pd.DataFrame, cells: dict[int, pd.DataFrame], ids: dict[str, int], spec: ImportSpec,
-                  tally: Tally) -> pd.DataFrame:  # fmt: skip
+def resolve_cells(
+    samples: pd.DataFrame, cells: dict[int, pd.DataFrame], ids: dict[str, int], spec: ImportSpec, tally: Tally
+) -> pd.DataFrame:
     """``samples`` (from :func:`read_samples`) with ``cell_id`` filled; unresolvable rows removed and counted.
 
     Args:
@@ -47,8 +48,9 @@ def resolve_cells(samples: pd.DataFrame, cells: dict[int, pd.DataFrame], ids: di
     return out[cell_id >= 0].reset_index(drop=True)
 
 
-def _near_enough(samples: pd.DataFrame, cell_id: np.ndarray, cells: dict[int, pd.DataFrame], spec: ImportSpec,
-                 tally: Tally) -> np.ndarray:  # fmt: skip
+def _near_enough(
+    samples: pd.DataFrame, cell_id: np.ndarray, cells: dict[int, pd.DataFrame], spec: ImportSpec, tally: Tally
+) -> np.ndarray:
     """``cell_id`` with −1 where the sample lies farther than ``max_distance_m`` from its (named) cell."""
     table = pd.concat([c[["cell_id", "x", "y"]].assign(round=r) for r, c in cells.items()], ignore_index=True)
     at = pd.MultiIndex.from_arrays([samples["round"].to_numpy(), cell_id])

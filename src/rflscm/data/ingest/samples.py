@@ -56,8 +56,12 @@ def _one_file(path: Path, spec: ImportSpec, origin: Origin | None, tally: Tally)
     ref = TableRef(path.name, csv=path.suffix.lower() == ".csv", lines=raw.attrs.get(LINE_NUMBERS))
     df = canonical(raw, spec, SAMPLE_COLUMNS)
     geo = {"lat", "lon"} <= set(df.columns)
-    require_columns(df, ref, ["lat", "lon"] if geo or "x" not in df.columns else ["x", "y"],
-                    "lat/lon (WGS84) or x/y [m], rsrp_dbm, beam_id, and cell_id or pci with a carrier")  # fmt: skip
+    require_columns(
+        df,
+        ref,
+        ["lat", "lon"] if geo or "x" not in df.columns else ["x", "y"],
+        "lat/lon (WGS84) or x/y [m], rsrp_dbm, beam_id, and cell_id or pci with a carrier",
+    )
     require_columns(df, ref, ["rsrp_dbm", "beam_id"])
     a, b = (float_column(df, ref, c, allow_nan=True) for c in (("lat", "lon") if geo else ("x", "y")))
     rsrp = float_column(df, ref, "rsrp_dbm", allow_nan=True)
@@ -69,8 +73,13 @@ def _one_file(path: Path, spec: ImportSpec, origin: Origin | None, tally: Tally)
     rows = np.flatnonzero(keep)
     ref = TableRef(ref.name, ref.csv, None if ref.lines is None else np.asarray(ref.lines)[rows])
     bad = (rsrp < RSRP_MIN_DBM) | (rsrp > RSRP_MAX_DBM)
-    raise_rows(ref, bad, "rsrp_dbm", df["rsrp_dbm"], f"is outside the reportable range {RSRP_MIN_DBM:g}…"
-               f"{RSRP_MAX_DBM:g} dBm (values in W or mW? convert to dBm)")  # fmt: skip
+    raise_rows(
+        ref,
+        bad,
+        "rsrp_dbm",
+        df["rsrp_dbm"],
+        f"is outside the reportable range {RSRP_MIN_DBM:g}…{RSRP_MAX_DBM:g} dBm (values in W or mW? convert to dBm)",
+    )
     if geo:
         if origin is None:
             raise DataError(f"{path.name}: gives lat/lon; the import needs an origin (--origin LAT,LON).")
