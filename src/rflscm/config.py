@@ -23,7 +23,7 @@ from rflscm.errors import ConfigError, RflscmError
 T = TypeVar("T")
 
 
-def _is_dataclass_type(tp: Any) -> bool:
+def _is_dataclass_type(tp: object) -> bool:
     return isinstance(tp, type) and dataclasses.is_dataclass(tp)
 
 

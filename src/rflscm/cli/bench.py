@@ -22,7 +22,7 @@ from rflscm.cli.common import Device, DeviceOption, SeedOption, resolve_device, 
 from rflscm.errors import ConfigError
 
 
-def _flatten(prefix: str, value: Any, rows: list[tuple[str, str]]) -> None:
+def _flatten(prefix: str, value: object, rows: list[tuple[str, str]]) -> None:
     if isinstance(value, dict):
         for k, v in value.items():
             _flatten(f"{prefix}.{k}" if prefix else str(k), v, rows)

@@ -47,7 +47,7 @@ class TableRef:
         return f"{self.name} {self.label(pos)}"
 
 
-def fmt_value(value: Any) -> str:
+def fmt_value(value: object) -> str:
     """A received value as it should appear in a message (floats keep their decimal point, text is quoted)."""
     if isinstance(value, (float, np.floating)):
         return repr(float(value))
@@ -96,7 +96,7 @@ def raise_rows(ref: TableRef, mask: np.ndarray, column: str, values: Any, proble
     raise DataError(message)
 
 
-def _is_missing(value: Any) -> bool:
+def _is_missing(value: object) -> bool:
     try:
         return bool(pd.isna(value))
     except (TypeError, ValueError):
@@ -235,7 +235,7 @@ def str_column(df: pd.DataFrame, ref: TableRef, column: str, *, default: str | N
     return values
 
 
-def _text_of(value: Any) -> str:
+def _text_of(value: object) -> str:
     if isinstance(value, (float, np.floating)) and float(value).is_integer():
         return str(int(value))
     return str(value).strip()

@@ -148,7 +148,7 @@ def meta_from_dict(data: dict[str, Any], where: str = "scenario.yaml", root: Pat
     return meta
 
 
-def _number(value: Any, key: str) -> float:
+def _number(value: object, key: str) -> float:
     if isinstance(value, str):
         try:
             return float(value.strip())
@@ -159,17 +159,17 @@ def _number(value: Any, key: str) -> float:
     return float(value)
 
 
-def _text(value: Any, key: str) -> str:
+def _text(value: object, key: str) -> str:
     if not isinstance(value, str):
         raise ConfigError(f"`{key}` must be text (got {value!r}).")
     return value
 
 
-def _optional_text(value: Any, key: str) -> str | None:
+def _optional_text(value: object, key: str) -> str | None:
     return None if value in (None, "") else _text(value, key)
 
 
-def _threshold(value: Any) -> float:
+def _threshold(value: object) -> float:
     th = _number(value, "rsrp_threshold_dbm")
     if not RSRP_MIN_DBM <= th <= RSRP_MAX_DBM:
         raise ConfigError(
@@ -187,7 +187,7 @@ def frequency_unit_hint(freq: float) -> str | None:
     return None
 
 
-def _frequencies(value: Any) -> tuple[float, ...]:
+def _frequencies(value: object) -> tuple[float, ...]:
     items = value if isinstance(value, (list, tuple)) else [value]
     out = []
     for i, item in enumerate(items):
@@ -202,7 +202,7 @@ def _frequencies(value: Any) -> tuple[float, ...]:
     return tuple(out)
 
 
-def _codebooks(value: Any, root: Path | None = None) -> dict[str, Codebook]:
+def _codebooks(value: object, root: Path | None = None) -> dict[str, Codebook]:
     if not isinstance(value, dict):
         raise ConfigError(f"`codebooks` must map names to codebooks, e.g. {{ssb8: {{type: ssb}}}} (got {value!r}).")
     books = {}
@@ -212,7 +212,7 @@ def _codebooks(value: Any, root: Path | None = None) -> dict[str, Codebook]:
     return books
 
 
-def _rounds(value: Any) -> dict[int, str]:
+def _rounds(value: object) -> dict[int, str]:
     if not isinstance(value, dict):
         raise ConfigError("`rounds` must map round numbers to {cells: FILE}, e.g. {1: {cells: cells.csv}}.")
     rounds: dict[int, str] = {}
@@ -231,7 +231,7 @@ def _rounds(value: Any) -> dict[int, str]:
     return dict(sorted(rounds.items()))
 
 
-def _simulation(value: Any) -> dict[str, Any]:
+def _simulation(value: object) -> dict[str, Any]:
     if value is None:
         return {}
     if not isinstance(value, dict):

@@ -78,7 +78,7 @@ class ReportingRule:
         return out
 
 
-def reporting_from_dict(value: Any) -> dict[str, ReportingRule]:
+def reporting_from_dict(value: object) -> dict[str, ReportingRule]:
     """Validate ``scenario.yaml`` ``reporting:`` (``None`` → threshold for every beam type)."""
     if value in (None, {}):
         return {}

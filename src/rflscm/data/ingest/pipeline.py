@@ -19,7 +19,7 @@ from rflscm.data.ingest.resolve import resolve_cells
 from rflscm.data.ingest.samples import Tally, read_samples
 from rflscm.data.ingest.spec import ImportSpec
 from rflscm.data.io import write_table
-from rflscm.data.meta import RSRP_MIN_DBM, meta_from_dict
+from rflscm.data.meta import RSRP_MIN_DBM, ScenarioMeta, meta_from_dict
 from rflscm.data.reporting import BEAM_TYPES, reporting_from_dict
 from rflscm.errors import DataError
 
@@ -148,7 +148,7 @@ def _meta_dict(spec: ImportSpec, cells: dict[int, pd.DataFrame], origin: Origin 
     }
 
 
-def _check_beams(samples: pd.DataFrame, cells: dict[int, pd.DataFrame], meta: Any) -> None:
+def _check_beams(samples: pd.DataFrame, cells: dict[int, pd.DataFrame], meta: ScenarioMeta) -> None:
     """A beam index beyond the cell's codebook stops the import naming the sample's file, row and value."""
     for rnd, table in cells.items():
         for beam_type in BEAM_TYPES:
