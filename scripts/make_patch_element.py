@@ -32,9 +32,12 @@ def cut(hpbw_deg: float, fbr_db: float, ripple_db: float) -> tuple[float, ...]:
 
 def main() -> None:
     element = MeasuredElement(
-        max_gain_dbi=7.0, horizontal_loss_db=cut(90.0, 25.0, 1.0), vertical_loss_db=cut(70.0, 25.0, 1.0),
-        max_attenuation_db=25.0, name="rflscm-synthetic-patch-90x70deg-3500MHz",
-    )  # fmt: skip
+        max_gain_dbi=7.0,
+        horizontal_loss_db=cut(90.0, 25.0, 1.0),
+        vertical_loss_db=cut(70.0, 25.0, 1.0),
+        max_attenuation_db=25.0,
+        name="rflscm-synthetic-patch-90x70deg-3500MHz",
+    )
     write_msi(element, OUT, frequency_mhz=3500.0)
     print(f"wrote {OUT}")
 

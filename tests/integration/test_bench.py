@@ -25,9 +25,14 @@ def scenario_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     size = tiny_size()
     cfg = SimulationConfig(
-        name="bench-tiny", num_sites=2, max_grids=40, seed=3, site_radius_m=70.0,
-        point_cloud_points_per_m2=0.05, angle_grid=size.grid(),
-    )  # fmt: skip
+        name="bench-tiny",
+        num_sites=2,
+        max_grids=40,
+        seed=3,
+        site_radius_m=70.0,
+        point_cloud_points_per_m2=0.05,
+        angle_grid=size.grid(),
+    )
     out = tmp_path_factory.mktemp("bench") / "scen"
     build_scenario(ProceduralCity(seed=2, size_m=180.0, num_buildings=8), cfg, out, progress=False)
     return out
@@ -230,8 +235,9 @@ def test_b9_time_to_target_tiny(tmp_path: Path, scenario_dir: Path) -> None:
     shutil.copytree(
         Path(rflscm.__file__).parent, baseline / "src" / "rflscm", ignore=shutil.ignore_patterns("__pycache__")
     )
-    ctx = BenchContext(size="tiny", seeds=1, out_dir=tmp_path, device="cpu", scenario=str(scenario_dir),
-                       baseline=str(baseline))  # fmt: skip
+    ctx = BenchContext(
+        size="tiny", seeds=1, out_dir=tmp_path, device="cpu", scenario=str(scenario_dir), baseline=str(baseline)
+    )
     res = run_b9(ctx, "tiny")
     json.dumps(res)
     assert res["settings"]["threads"] == 1 and res["settings"]["baseline"] == str((baseline / "src").resolve())

@@ -19,8 +19,15 @@ def scenario(tmp_path_factory: pytest.TempPathFactory):
     from rflscm.data import load_scenario
     from rflscm.sim import ProceduralCity, SimulationConfig, build_scenario
 
-    cfg = SimulationConfig(name="b7-tiny", num_sites=2, max_grids=30, seed=3, site_radius_m=70.0,
-                           point_cloud_points_per_m2=0.05, angle_grid=tiny_size().grid())  # fmt: skip
+    cfg = SimulationConfig(
+        name="b7-tiny",
+        num_sites=2,
+        max_grids=30,
+        seed=3,
+        site_radius_m=70.0,
+        point_cloud_points_per_m2=0.05,
+        angle_grid=tiny_size().grid(),
+    )
     out = tmp_path_factory.mktemp("b7") / "scen"
     build_scenario(ProceduralCity(seed=2, size_m=180.0, num_buildings=8), cfg, out, progress=False)
     return load_scenario(out)

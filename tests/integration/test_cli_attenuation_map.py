@@ -41,16 +41,24 @@ CONFIGS = {
 
 
 def rflscm(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "rflscm.cli", "--threads", "1", *args], capture_output=True,
-                          text=True, timeout=600)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "rflscm.cli", "--threads", "1", *args], capture_output=True, text=True, timeout=600
+    )
 
 
 @pytest.fixture(scope="module")
 def scenario(tmp_path_factory: pytest.TempPathFactory):
     cfg = SimulationConfig(
-        name="att-tiny", num_sites=1, max_grids=16, seed=3, site_radius_m=60.0, carriers_hz=(3.5e9,),
-        sector_azimuths_deg=(0.0, 180.0), point_cloud_points_per_m2=0.05, angle_grid=GRID,
-    )  # fmt: skip
+        name="att-tiny",
+        num_sites=1,
+        max_grids=16,
+        seed=3,
+        site_radius_m=60.0,
+        carriers_hz=(3.5e9,),
+        sector_azimuths_deg=(0.0, 180.0),
+        point_cloud_points_per_m2=0.05,
+        angle_grid=GRID,
+    )
     out = tmp_path_factory.mktemp("att") / "scen"
     build_scenario(ProceduralCity(seed=2, size_m=160.0, num_buildings=6), cfg, out, progress=False)
     return load_scenario(out)
@@ -67,8 +75,19 @@ def _checkpoint(scenario, name: str, path: Path):
 def test_attenuation_map_of_field_models(scenario, tmp_path, name: str) -> None:
     model, ckpt = _checkpoint(scenario, name, tmp_path / f"{name}.ckpt")
     png = tmp_path / "att.png"
-    run = rflscm("predict", str(ckpt), str(scenario.root), "--round", "1", "--out", str(tmp_path / "p.parquet"),
-                 "--attenuation-map", str(png), "--device", "cpu")  # fmt: skip
+    run = rflscm(
+        "predict",
+        str(ckpt),
+        str(scenario.root),
+        "--round",
+        "1",
+        "--out",
+        str(tmp_path / "p.parquet"),
+        "--attenuation-map",
+        str(png),
+        "--device",
+        "cpu",
+    )
     assert run.returncode == 0, run.stderr
     image = imread(png)
     assert image.shape[0] > 400 and image.shape[1] > 400 and image[..., :3].std() > 0.05
@@ -87,8 +106,17 @@ def test_attenuation_map_of_field_models(scenario, tmp_path, name: str) -> None:
 def test_attenuation_map_refused_for_wnomp_before_predicting(scenario, tmp_path) -> None:
     _, ckpt = _checkpoint(scenario, "wnomp", tmp_path / "w.ckpt")
     out = tmp_path / "p.parquet"
-    run = rflscm("predict", str(ckpt), str(scenario.root), "--out", str(out), "--attenuation-map",
-                 str(tmp_path / "att.png"), "--device", "cpu")  # fmt: skip
+    run = rflscm(
+        "predict",
+        str(ckpt),
+        str(scenario.root),
+        "--out",
+        str(out),
+        "--attenuation-map",
+        str(tmp_path / "att.png"),
+        "--device",
+        "cpu",
+    )
     assert run.returncode == 2
     assert "no attenuation field" in run.stderr and len(run.stderr.strip().splitlines()) == 1
     assert not out.exists() and not (tmp_path / "att.png").exists()

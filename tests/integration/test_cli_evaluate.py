@@ -25,8 +25,9 @@ def rflscm(*args: str) -> subprocess.CompletedProcess:
 
 
 def _scenario(root: Path, seed: int):
-    config = SimulationConfig(num_sites=2, max_grids=50, seed=seed, site_radius_m=120.0, angle_grid=GRID,
-                              point_cloud_points_per_m2=0.05)  # fmt: skip
+    config = SimulationConfig(
+        num_sites=2, max_grids=50, seed=seed, site_radius_m=120.0, angle_grid=GRID, point_cloud_points_per_m2=0.05
+    )
     build_scenario(ProceduralCity(seed=3, size_m=240.0, num_buildings=12), config, root, progress=False)
     return load_scenario(root)
 
@@ -44,8 +45,17 @@ def tiny(tmp_path_factory: pytest.TempPathFactory):
 
 def test_evaluate_writes_json_and_report(tiny, tmp_path) -> None:
     ckpt = _checkpoint(tiny, tmp_path / "w.ckpt")
-    run = rflscm("evaluate", str(ckpt), str(tiny.root), "--json", str(tmp_path / "m.json"),
-                 "--report", str(tmp_path / "rep"), "--device", "cpu")  # fmt: skip
+    run = rflscm(
+        "evaluate",
+        str(ckpt),
+        str(tiny.root),
+        "--json",
+        str(tmp_path / "m.json"),
+        "--report",
+        str(tmp_path / "rep"),
+        "--device",
+        "cpu",
+    )
     assert run.returncode == 0, run.stderr
     assert "MAE SSB, all cells [dB]" in run.stdout and "oracle" in run.stdout and "trivial" in run.stdout
     metrics = json.loads((tmp_path / "m.json").read_text())

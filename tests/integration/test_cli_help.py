@@ -18,9 +18,31 @@ _register_commands()
 ROOT = typer.main.get_command(app)
 COMMANDS = sorted(getattr(ROOT, "commands", {}))
 UNITS = {
-    "dBm", "dB", "deg", "m", "m²", "s", "min", "Hz", "GHz", "%", "count", "cells", "threads", "grids", "steps",
-    "fraction", "integer", "passes", "seeds", "points", "bins", "beams", "rays", "samples",
-}  # fmt: skip
+    "dBm",
+    "dB",
+    "deg",
+    "m",
+    "m²",
+    "s",
+    "min",
+    "Hz",
+    "GHz",
+    "%",
+    "count",
+    "cells",
+    "threads",
+    "grids",
+    "steps",
+    "fraction",
+    "integer",
+    "passes",
+    "seeds",
+    "points",
+    "bins",
+    "beams",
+    "rays",
+    "samples",
+}
 """What may stand in parentheses in a numeric option's help: ``(dBm)``, ``(deg, clockwise)``, ``(count; …)``."""
 INTERNAL = [r"SPEC\s*§", r"§\s*\d", r"\bissue\s*#?\d+", r"\b(?=[0-9a-f]*\d)(?=[0-9a-f]*[a-f])[0-9a-f]{7,40}\b"]
 

@@ -24,8 +24,9 @@ GRID = AngleGrid(num_el=31, num_az=36, el_min_deg=-90.0, el_step_deg=6.0)
 
 
 def rflscm(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "rflscm.cli", "--threads", "1", *args], capture_output=True,
-                          text=True, timeout=600)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "rflscm.cli", "--threads", "1", *args], capture_output=True, text=True, timeout=600
+    )
 
 
 def summary_changes(out: Path) -> list[dict]:
@@ -41,8 +42,9 @@ def _checkpoint(scenario, path: Path) -> Path:
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory: pytest.TempPathFactory):
     root = tmp_path_factory.mktemp("cli_opt") / "sc"
-    config = SimulationConfig(num_sites=2, max_grids=40, seed=5, site_radius_m=120.0, angle_grid=GRID,
-                              point_cloud_points_per_m2=0.05)  # fmt: skip
+    config = SimulationConfig(
+        num_sites=2, max_grids=40, seed=5, site_radius_m=120.0, angle_grid=GRID, point_cloud_points_per_m2=0.05
+    )
     build_scenario(
         ProceduralCity(seed=3, size_m=240.0, num_buildings=12),
         config,
@@ -56,8 +58,23 @@ def simulated(tmp_path_factory: pytest.TempPathFactory):
 def test_optimize_writes_a_round_that_checks_and_predicts_the_same_kpis(simulated, tmp_path) -> None:
     scenario, ckpt = simulated
     out = tmp_path / "opt"
-    run = rflscm("optimize", str(ckpt), str(scenario.root), "--out", str(out), "--tilt-range", "0:10:2",
-                 "--azimuth-range", "-10:10:5", "--max-changed", "3", "--restarts", "1", "--device", "cpu")  # fmt: skip
+    run = rflscm(
+        "optimize",
+        str(ckpt),
+        str(scenario.root),
+        "--out",
+        str(out),
+        "--tilt-range",
+        "0:10:2",
+        "--azimuth-range",
+        "-10:10:5",
+        "--max-changed",
+        "3",
+        "--restarts",
+        "1",
+        "--device",
+        "cpu",
+    )
     assert run.returncode == 0, run.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["kpi_pairs"] == "measured round-1 pairs only"  # WNOMP
@@ -88,9 +105,21 @@ def test_optimize_writes_a_round_that_checks_and_predicts_the_same_kpis(simulate
     assert check.returncode == 0, check.stderr
     again = load_scenario(out / "scenario")
     assert sorted(again.cells) == [1, 2, 3] and again.fingerprint() == scenario.fingerprint()
-    pred = rflscm("predict", str(ckpt), str(out / "scenario"), "--round", str(rnd), "--pairs", "measured",
-                  "--out", str(tmp_path / "p.parquet"), "--kpi-json", str(tmp_path / "k.json"),
-                  "--device", "cpu")  # fmt: skip
+    pred = rflscm(
+        "predict",
+        str(ckpt),
+        str(out / "scenario"),
+        "--round",
+        str(rnd),
+        "--pairs",
+        "measured",
+        "--out",
+        str(tmp_path / "p.parquet"),
+        "--kpi-json",
+        str(tmp_path / "k.json"),
+        "--device",
+        "cpu",
+    )
     assert pred.returncode == 0, pred.stderr
     kpis = json.loads((tmp_path / "k.json").read_text())
     for key in ("coverage", "mean_sinr_db", "overlap", "mean_rsrp_dbm", "p5_sinr_db"):
@@ -147,8 +176,21 @@ def test_aps_cache_is_written_reused_and_refused_when_foreign_or_hostile(simulat
 
     scenario, ckpt = simulated
     cache = tmp_path / "aps.pt"
-    small = ["--tilt-range", "0:4:2", "--elec-tilt-range", "0:0", "--azimuth-range", "0:0", "--restarts", "0",
-             "--no-verify", "--device", "cpu", "--aps-cache", str(cache)]  # fmt: skip
+    small = [
+        "--tilt-range",
+        "0:4:2",
+        "--elec-tilt-range",
+        "0:0",
+        "--azimuth-range",
+        "0:0",
+        "--restarts",
+        "0",
+        "--no-verify",
+        "--device",
+        "cpu",
+        "--aps-cache",
+        str(cache),
+    ]
     first = rflscm("optimize", str(ckpt), str(scenario.root), "--out", str(tmp_path / "o1"), *small)
     assert first.returncode == 0, first.stderr
     written = cache.stat().st_mtime_ns

@@ -33,9 +33,27 @@ def test_simulate_then_check(tmp_path: Path) -> None:
         "backend_options: {size_m: 220, num_buildings: 10}\n"
     )
     out = tmp_path / "sc"
-    run = rflscm("simulate", "--backend", "procedural", "--scene", "city", "--sites", "2", "--grids", "30",
-                 "--carriers", "3.5e9,2.1e9", "--seed", "3", "--config", str(config), "--out", str(out),
-                 "--device", "cpu")  # fmt: skip
+    run = rflscm(
+        "simulate",
+        "--backend",
+        "procedural",
+        "--scene",
+        "city",
+        "--sites",
+        "2",
+        "--grids",
+        "30",
+        "--carriers",
+        "3.5e9,2.1e9",
+        "--seed",
+        "3",
+        "--config",
+        str(config),
+        "--out",
+        str(out),
+        "--device",
+        "cpu",
+    )
     assert run.returncode == 0, run.stderr
     assert "tracing" in run.stderr and "wrote" in run.stderr
     check = rflscm("check", str(out))
@@ -49,8 +67,17 @@ def test_simulate_then_check(tmp_path: Path) -> None:
     field = tmp_path / "field"
     field_config = tmp_path / "field.yaml"
     field_config.write_text("field_model: {samples_per_grid: 8, csi_top_n: 2}\n")
-    remeasured = rflscm("simulate", "--from-trace", str(out), "--measurements", "field", "--config", str(field_config),
-                        "--out", str(field))  # fmt: skip
+    remeasured = rflscm(
+        "simulate",
+        "--from-trace",
+        str(out),
+        "--measurements",
+        "field",
+        "--config",
+        str(field_config),
+        "--out",
+        str(field),
+    )
     assert remeasured.returncode == 0, remeasured.stderr
     check = rflscm("check", str(field))
     assert check.returncode == 0, check.stderr
@@ -58,8 +85,21 @@ def test_simulate_then_check(tmp_path: Path) -> None:
     moved = rflscm("simulate", "--from-trace", str(out), "--grids", "5", "--out", str(tmp_path / "f2"))
     assert moved.returncode == 2 and "--grids cannot change it" in moved.stderr
 
-    forced = rflscm("simulate", "--sites", "1", "--grids", "10", "--carriers", "3.5e9", "--config", str(config),
-                    "--out", str(out), "--force", "--no-progress")  # fmt: skip
+    forced = rflscm(
+        "simulate",
+        "--sites",
+        "1",
+        "--grids",
+        "10",
+        "--carriers",
+        "3.5e9",
+        "--config",
+        str(config),
+        "--out",
+        str(out),
+        "--force",
+        "--no-progress",
+    )
     assert forced.returncode == 0, forced.stderr
     assert "3 on 1 site(s)" in rflscm("check", str(out)).stdout
 

@@ -74,9 +74,13 @@ def test_threads_0_is_a_config_error(tiny: Path) -> None:
     ],
 )
 def test_rejected_values_exit_2_with_one_clear_message(
-    tiny: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
-    args: list[str], env: str | None, message: str,
-) -> None:  # fmt: skip
+    tiny: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    args: list[str],
+    env: str | None,
+    message: str,
+) -> None:
     if env is not None:
         monkeypatch.setenv("RFLSCM_THREADS", env)
     monkeypatch.setattr(sys, "argv", ["rflscm", *args, "check", str(tiny)])

@@ -17,8 +17,9 @@ TINY = (
 
 
 @pytest.mark.parametrize("minutes", ["0", "-1", "nan"])
-def test_a_budget_that_is_not_positive_is_one_line_and_exit_2(scenario_dir: Path, tmp_path: Path, minutes: str,
-                                                              monkeypatch, capsys) -> None:  # fmt: skip
+def test_a_budget_that_is_not_positive_is_one_line_and_exit_2(
+    scenario_dir: Path, tmp_path: Path, minutes: str, monkeypatch, capsys
+) -> None:
     out_ckpt = tmp_path / "m.ckpt"
     code, out, err = run_cli(
         ["train", str(scenario_dir), "--minutes", minutes, "--out", str(out_ckpt)], monkeypatch, capsys
@@ -29,8 +30,9 @@ def test_a_budget_that_is_not_positive_is_one_line_and_exit_2(scenario_dir: Path
     assert_one_line_error(code, out, err, ["--minutes must be a positive number of minutes"])
 
 
-def test_train_to_a_budget_records_it_and_resume_must_keep_it(scenario_dir: Path, tmp_path: Path, monkeypatch,
-                                                              capsys) -> None:  # fmt: skip
+def test_train_to_a_budget_records_it_and_resume_must_keep_it(
+    scenario_dir: Path, tmp_path: Path, monkeypatch, capsys
+) -> None:
     config, ckpt = tmp_path / "tiny.yaml", tmp_path / "m.ckpt"
     config.write_text(TINY)
     base = ["train", str(scenario_dir), "--config", str(config), "--out", str(ckpt), "--no-progress", "--device", "cpu"]

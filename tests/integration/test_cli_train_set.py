@@ -9,8 +9,9 @@ from check_helpers import assert_one_line_error, run_cli
 from rflscm.models import load_model
 
 
-def test_train_set_reaches_the_checkpoint_and_a_wrong_key_is_one_line(scenario_dir: Path, tmp_path: Path,
-                                                                      monkeypatch, capsys) -> None:  # fmt: skip
+def test_train_set_reaches_the_checkpoint_and_a_wrong_key_is_one_line(
+    scenario_dir: Path, tmp_path: Path, monkeypatch, capsys
+) -> None:
     ckpt = tmp_path / "w.ckpt"
     base = ["train", str(scenario_dir), "--model", "wnomp", "--out", str(ckpt), "--device", "cpu", "--no-progress"]
     code, _, err = run_cli([*base, "--set", "k_max=3", "--set", "residual_floor=0.05"], monkeypatch, capsys)

@@ -106,8 +106,18 @@ def trained(tmp_path_factory: pytest.TempPathFactory, template: Path) -> tuple[P
     scenario = Path(shutil.copytree(template, root / "tiny"))
     ckpt = root / "w.ckpt"
     argv = sys.argv
-    sys.argv = ["rflscm", "--threads", "1", "train", str(scenario), "--model", "wnomp", "--out", str(ckpt),
-                "--no-progress"]  # fmt: skip
+    sys.argv = [
+        "rflscm",
+        "--threads",
+        "1",
+        "train",
+        str(scenario),
+        "--model",
+        "wnomp",
+        "--out",
+        str(ckpt),
+        "--no-progress",
+    ]
     try:
         main()
     except SystemExit as exc:
@@ -141,8 +151,9 @@ def test_a_signal_during_train_fails_in_one_line_and_resume_finishes(scenario_di
     assert 0 < payload["train_state"]["step"] < 40
     no_temps(tmp_path)
 
-    resumed = subprocess.run([sys.executable, "-m", "rflscm.cli", *args, "--resume"], env=env(), capture_output=True,
-                             text=True, timeout=300)  # fmt: skip
+    resumed = subprocess.run(
+        [sys.executable, "-m", "rflscm.cli", *args, "--resume"], env=env(), capture_output=True, text=True, timeout=300
+    )
     assert resumed.returncode == 0, resumed.stderr
     payload = read_checkpoint(out)
     assert payload["train_state"]["step"] == 40 and "interrupted" not in payload["run_info"]
@@ -223,8 +234,16 @@ def test_replacing_an_output_needs_force_and_formats_are_checked_first(trained, 
         code, err, _ = cli("predict", str(ckpt), str(scenario), *args, capsys=capsys)
         assert code == 2 and message in one_line(err), (args, err)
     (tmp_path / "k.json").mkdir()
-    code, err, _ = cli("predict", str(ckpt), str(scenario), "--out", str(tmp_path / "p.parquet"), "--kpi-json",
-                    str(tmp_path / "k.json"), capsys=capsys)  # fmt: skip
+    code, err, _ = cli(
+        "predict",
+        str(ckpt),
+        str(scenario),
+        "--out",
+        str(tmp_path / "p.parquet"),
+        "--kpi-json",
+        str(tmp_path / "k.json"),
+        capsys=capsys,
+    )
     assert code == 2 and "is a folder" in one_line(err) and not (tmp_path / "p.parquet").exists()
 
 
@@ -269,10 +288,15 @@ def test_file_too_large_ends_in_one_line_with_the_previous_output_intact(trained
     out = tmp_path / "p.csv"  # 96 predicted beams: a few kB, past the 1 kB limit
     write_table(pd.DataFrame({"a": [1.0]}), out)
     before = out.read_bytes()
-    args = ["--threads", "1", "predict", str(ckpt), str(scenario), "--out", str(out), "--pairs", "measured",
-            "--force"]  # fmt: skip
-    run = subprocess.run([sys.executable, "-m", "rflscm.cli", *args], env=env(), capture_output=True, text=True,
-                         timeout=300, preexec_fn=_limit_file_size)  # fmt: skip
+    args = ["--threads", "1", "predict", str(ckpt), str(scenario), "--out", str(out), "--pairs", "measured", "--force"]
+    run = subprocess.run(
+        [sys.executable, "-m", "rflscm.cli", *args],
+        env=env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=_limit_file_size,
+    )
     assert run.returncode == 2, run.stderr
     line = one_line(run.stderr)
     assert "File too large" in line and "the previous file is kept" in line
@@ -322,8 +346,10 @@ WRITER = textwrap.dedent(
 
 def test_two_concurrent_writers_both_complete_whole(tmp_path) -> None:
     out = tmp_path / "shared.parquet"
-    writers = [subprocess.Popen([sys.executable, "-c", WRITER, str(out), str(v)], env=env(), stderr=subprocess.PIPE,
-                                text=True) for v in (1.0, 2.0)]  # fmt: skip
+    writers = [
+        subprocess.Popen([sys.executable, "-c", WRITER, str(out), str(v)], env=env(), stderr=subprocess.PIPE, text=True)
+        for v in (1.0, 2.0)
+    ]
     for w in writers:
         _, err = w.communicate(timeout=120)
         assert w.returncode == 0, err

@@ -30,10 +30,33 @@ def test_simulate_raw_then_import_gives_the_scenario_back(tmp_path: Path) -> Non
         "backend_options: {size_m: 220, num_buildings: 10}\n"
     )
     sim, raw, imported = tmp_path / "sim", tmp_path / "raw", tmp_path / "imported"
-    run = rflscm("simulate", "--backend", "procedural", "--scene", "city", "--sites", "2", "--grids", "30",
-                 "--carriers", "3.5e9,2.1e9", "--seed", "3", "--config", str(config), "--out", str(sim),
-                 "--device", "cpu", "--raw-out", str(raw), "--raw-samples", str(SAMPLES),
-                 "--raw-fading", str(FADING_DB))  # fmt: skip
+    run = rflscm(
+        "simulate",
+        "--backend",
+        "procedural",
+        "--scene",
+        "city",
+        "--sites",
+        "2",
+        "--grids",
+        "30",
+        "--carriers",
+        "3.5e9,2.1e9",
+        "--seed",
+        "3",
+        "--config",
+        str(config),
+        "--out",
+        str(sim),
+        "--device",
+        "cpu",
+        "--raw-out",
+        str(raw),
+        "--raw-samples",
+        str(SAMPLES),
+        "--raw-fading",
+        str(FADING_DB),
+    )
     assert run.returncode == 0, run.stderr
     assert "wrote raw" in run.stderr
     run = rflscm("import", str(raw / "import.yaml"), "--out", str(imported), "--format", "csv")

@@ -32,8 +32,13 @@ CHROMIUM = Path("/usr/bin/chromium")
 
 def rflscm(*args: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.run([sys.executable, "-m", "rflscm.cli", "--threads", "1", *args], capture_output=True,
-                          text=True, timeout=600, env=env)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "rflscm.cli", "--threads", "1", *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -42,8 +47,9 @@ def mapped(tmp_path_factory: pytest.TempPathFactory):
     `predict`'s round-2 table."""
     base = tmp_path_factory.mktemp("map")
     root = base / "sc"
-    config = SimulationConfig(num_sites=2, max_grids=40, seed=5, site_radius_m=120.0, angle_grid=GRID,
-                              point_cloud_points_per_m2=0.05)  # fmt: skip
+    config = SimulationConfig(
+        num_sites=2, max_grids=40, seed=5, site_radius_m=120.0, angle_grid=GRID, point_cloud_points_per_m2=0.05
+    )
     build_scenario(ProceduralCity(seed=3, size_m=240.0, num_buildings=12), config, root, progress=False)
     scenario = load_scenario(root)
     model = MODEL_REGISTRY["wnomp"].build(None, GRID, "cpu")
@@ -110,8 +116,9 @@ def test_geotiffs_have_the_scenario_crs_and_predicts_values(mapped) -> None:
             assert serving[band, rows, cols].tolist() == top["cell_id"].tolist()
             assert np.isfinite(rsrp[band]).sum() == len(top)  # nodata everywhere else
             assert (serving[band] >= 0).sum() == len(top)
-    diff, r1, r2 = (_band_stack(out / f) for f in ("rsrp_diff_round2_minus_round1.tif", "rsrp_round1.tif",
-                                                     "rsrp_round2.tif"))  # fmt: skip
+    diff, r1, r2 = (
+        _band_stack(out / f) for f in ("rsrp_diff_round2_minus_round1.tif", "rsrp_round1.tif", "rsrp_round2.tif")
+    )
     np.testing.assert_allclose(diff, r2 - r1, atol=1e-3, equal_nan=True)
     with rasterio.open(out / "coverage_round2.tif") as cov:
         assert cov.nodata == 255 and set(np.unique(cov.read())) <= {0, 1, 255}
@@ -141,10 +148,13 @@ def test_geojson_is_wgs84_with_local_xy_and_predicts_values(mapped) -> None:
     assert {c["properties"]["round"] for c in cells} == {1, 2}
     changed = {c["properties"]["cell_id"] for c in cells if c["properties"]["changed"]}
     c1, c2 = scenario.cells[1].set_index("cell_id"), scenario.cells[2].set_index("cell_id")
-    truly = {int(i) for i in c1.index if not c1.loc[i, ["azimuth_deg", "mech_tilt_deg", "elec_tilt_deg",
-                                                        "ssb_codebook", "csi_codebook"]].equals(
-                                                   c2.loc[i, ["azimuth_deg", "mech_tilt_deg", "elec_tilt_deg",
-                                                              "ssb_codebook", "csi_codebook"]])}  # fmt: skip
+    truly = {
+        int(i)
+        for i in c1.index
+        if not c1.loc[i, ["azimuth_deg", "mech_tilt_deg", "elec_tilt_deg", "ssb_codebook", "csi_codebook"]].equals(
+            c2.loc[i, ["azimuth_deg", "mech_tilt_deg", "elec_tilt_deg", "ssb_codebook", "csi_codebook"]]
+        )
+    }
     assert changed == truly and changed
     points = json.loads((out / "measured.geojson").read_text())["features"]
     measured = scenario.measurements[scenario.measurements["round"] == 1]["grid_id"].unique()
@@ -213,10 +223,19 @@ def test_html_map_works_offline_in_a_real_browser(mapped, tmp_path) -> None:
 
     with sync_playwright() as p:
         ctx = p.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=str(CHROMIUM), headless=True,
-            args=["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-                  "--disable-component-update", "--disable-sync"],
-        )  # fmt: skip
+            str(tmp_path / "profile"),
+            executable_path=str(CHROMIUM),
+            headless=True,
+            args=[
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--no-first-run",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+            ],
+        )
         try:
             ctx.route("**/*", route)
             page = ctx.new_page()
@@ -257,13 +276,36 @@ def test_optimize_maps_writes_the_before_after_layers(mapped, tmp_path) -> None:
 
     scenario, out, _, _ = mapped
     opt = tmp_path / "opt"
-    run = rflscm("optimize", str(out.parent / "w.ckpt"), str(scenario.root), "--out", str(opt), "--tilt-range",
-                 "0:6:2", "--azimuth-range", "-5:5:5", "--max-changed", "2", "--restarts", "0", "--no-verify",
-                 "--maps", "--device", "cpu")  # fmt: skip
+    run = rflscm(
+        "optimize",
+        str(out.parent / "w.ckpt"),
+        str(scenario.root),
+        "--out",
+        str(opt),
+        "--tilt-range",
+        "0:6:2",
+        "--azimuth-range",
+        "-5:5:5",
+        "--max-changed",
+        "2",
+        "--restarts",
+        "0",
+        "--no-verify",
+        "--maps",
+        "--device",
+        "cpu",
+    )
     assert run.returncode == 0, run.stderr
     maps = opt / "maps"
-    for name in ("rsrp_round1.tif", "rsrp_round3.tif", "rsrp_diff_round3_minus_round1.tif", "grids.geojson",
-                 "cells.geojson", "map.kml", "map.html"):  # fmt: skip
+    for name in (
+        "rsrp_round1.tif",
+        "rsrp_round3.tif",
+        "rsrp_diff_round3_minus_round1.tif",
+        "grids.geojson",
+        "cells.geojson",
+        "map.kml",
+        "map.html",
+    ):
         assert (maps / name).is_file(), name
     changes = pd.read_csv(opt / "changes.csv")
     assert len(changes) > 0  # seeded: the search changes cells here, so the check below is not vacuous

@@ -57,8 +57,9 @@ def scenario(tmp_path_factory: pytest.TempPathFactory):
 
 @pytest.mark.parametrize("protocol", sorted(PROTOCOLS))
 @pytest.mark.parametrize("name", sorted(CONFIGS))
-def test_field_model_trained_on_a_split_is_evaluated_on_the_full_scenario(scenario, tmp_path: Path, name: str,
-                                                                            protocol: str) -> None:  # fmt: skip
+def test_field_model_trained_on_a_split_is_evaluated_on_the_full_scenario(
+    scenario, tmp_path: Path, name: str, protocol: str
+) -> None:
     proto = make_protocol(protocol, **PROTOCOLS[protocol])
     subset = proto.training_scenario(scenario)
     assert subset.fingerprint() != scenario.fingerprint()  # the split differs, so the bug would show

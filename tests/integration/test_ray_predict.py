@@ -32,8 +32,9 @@ def rflscm(*args: str) -> subprocess.CompletedProcess:
 def wnomp(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """Two sites (twelve cells on two carriers) and 50 grids: more APS calls than chunks, so every worker answers several."""
     root = tmp_path_factory.mktemp("ray")
-    config = SimulationConfig(num_sites=2, max_grids=50, seed=4, site_radius_m=120.0, angle_grid=GRID,
-                              point_cloud_points_per_m2=0.05)  # fmt: skip
+    config = SimulationConfig(
+        num_sites=2, max_grids=50, seed=4, site_radius_m=120.0, angle_grid=GRID, point_cloud_points_per_m2=0.05
+    )
     build_scenario(ProceduralCity(seed=3, size_m=240.0, num_buildings=12), config, root / "s", progress=False)
     model = MODEL_REGISTRY["wnomp"].build(None, GRID, "cpu")
     fit_with_protocol(model, load_scenario(root / "s"), None, progress=False)
@@ -77,9 +78,26 @@ def test_optimize_with_two_ray_workers_renders_the_serial_aps_and_finds_the_seri
     caches, summaries = {}, {}
     for workers in ("1", "2"):
         cache = tmp_path / f"aps{workers}.pt"
-        run = rflscm("optimize", str(ckpt), str(scenario), "--out", str(tmp_path / f"o{workers}"), "--tilt-range",
-                     "0:6:3", "--max-changed", "2", "--restarts", "0", "--device", "cpu", "--no-verify",
-                     "--aps-cache", str(cache), "--workers", workers)  # fmt: skip
+        run = rflscm(
+            "optimize",
+            str(ckpt),
+            str(scenario),
+            "--out",
+            str(tmp_path / f"o{workers}"),
+            "--tilt-range",
+            "0:6:3",
+            "--max-changed",
+            "2",
+            "--restarts",
+            "0",
+            "--device",
+            "cpu",
+            "--no-verify",
+            "--aps-cache",
+            str(cache),
+            "--workers",
+            workers,
+        )
         assert run.returncode == 0, run.stderr
         caches[workers] = torch.load(cache, weights_only=True)["payload"]
         summaries[workers] = json.loads((tmp_path / f"o{workers}" / "summary.json").read_text())

@@ -351,12 +351,21 @@ def test_trailing_empty_header_column_is_ignored(scenario_dir: Path, monkeypatch
 
 def test_output_options_are_checked_before_any_work(scenario_dir: Path, tmp_path: Path, monkeypatch, capsys) -> None:
     """A folder given where a file is written was a traceback after training (IsADirectoryError)."""
-    for argv in (["train", str(scenario_dir), "--model", "wnomp", "--out", str(tmp_path)],
-                 ["evaluate", str(tmp_path / "none.ckpt"), str(scenario_dir), "--json", str(tmp_path)],
-                 ["evaluate", str(tmp_path / "none.ckpt"), str(scenario_dir), "--report", str(scenario_dir / G)],
-                 ["predict", str(tmp_path / "none.ckpt"), str(scenario_dir), "--out", str(tmp_path)],
-                 ["predict", str(tmp_path / "none.ckpt"), str(scenario_dir), "--aps-cells", "11",
-                  "--aps-grids", "99999999999999999999999"]):  # fmt: skip
+    for argv in (
+        ["train", str(scenario_dir), "--model", "wnomp", "--out", str(tmp_path)],
+        ["evaluate", str(tmp_path / "none.ckpt"), str(scenario_dir), "--json", str(tmp_path)],
+        ["evaluate", str(tmp_path / "none.ckpt"), str(scenario_dir), "--report", str(scenario_dir / G)],
+        ["predict", str(tmp_path / "none.ckpt"), str(scenario_dir), "--out", str(tmp_path)],
+        [
+            "predict",
+            str(tmp_path / "none.ckpt"),
+            str(scenario_dir),
+            "--aps-cells",
+            "11",
+            "--aps-grids",
+            "99999999999999999999999",
+        ],
+    ):
         monkeypatch.setattr(sys, "argv", ["rflscm", *argv])
         with pytest.raises(SystemExit) as exit_info:
             main()
@@ -367,9 +376,11 @@ def test_output_options_are_checked_before_any_work(scenario_dir: Path, tmp_path
 
 def test_wnomp_outputs_hold_no_nan(scenario_dir: Path, tmp_path: Path, monkeypatch, capsys) -> None:
     ckpt, pred, metrics = tmp_path / "w.ckpt", tmp_path / "p.csv", tmp_path / "m.json"
-    for argv in (["train", str(scenario_dir), "--model", "wnomp", "--out", str(ckpt), "--no-progress"],
-                 ["predict", str(ckpt), str(scenario_dir), "--out", str(pred)],
-                 ["evaluate", str(ckpt), str(scenario_dir), "--json", str(metrics)]):  # fmt: skip
+    for argv in (
+        ["train", str(scenario_dir), "--model", "wnomp", "--out", str(ckpt), "--no-progress"],
+        ["predict", str(ckpt), str(scenario_dir), "--out", str(pred)],
+        ["evaluate", str(ckpt), str(scenario_dir), "--json", str(metrics)],
+    ):
         monkeypatch.setattr(sys, "argv", ["rflscm", *argv])
         try:
             main()

@@ -28,10 +28,17 @@ class _Outer:
 
 
 def test_set_values_are_read_as_yaml_and_coerced_to_the_field_type() -> None:
-    data = apply_sets(_Outer, {"inner": {"steps": 3}}, [
-        "inner.rate=1e-3",  # YAML 1.1 reads 1e-3 as text; the float field takes it as a number
-        "inner.flag=true", "inner.cap=null", "name=b", "table.x=2",
-    ])  # fmt: skip
+    data = apply_sets(
+        _Outer,
+        {"inner": {"steps": 3}},
+        [
+            "inner.rate=1e-3",  # YAML 1.1 reads 1e-3 as text; the float field takes it as a number
+            "inner.flag=true",
+            "inner.cap=null",
+            "name=b",
+            "table.x=2",
+        ],
+    )
     cfg = from_dict(_Outer, data)
     assert cfg == _Outer(_Inner(rate=0.001, steps=3, flag=True, cap=None), "b", {"x": 2})
     assert isinstance(cfg.inner.rate, float)

@@ -42,10 +42,13 @@ VARIANTS = {
 SETTINGS: dict[str, dict[str, Any]] = {  # per size: time budget per run [s] (None: the full step count),
     # validation every N steps, and overrides on top of the size's (steps: the learning-rate schedule's length)
     "tiny": {"time_budget_s": None, "val_every": 2, "extra": {}},
-    "quick": {"time_budget_s": 90.0, "val_every": 20,
-              "extra": {"train": {"steps": 400}, "hitam": {"warmup_steps": 150, "ramp_steps": 40}}},
+    "quick": {
+        "time_budget_s": 90.0,
+        "val_every": 20,
+        "extra": {"train": {"steps": 400}, "hitam": {"warmup_steps": 150, "ramp_steps": 40}},
+    },
     "full": {"time_budget_s": None, "val_every": 100, "extra": {}},
-}  # fmt: skip
+}
 TARGET_MARGIN_DB = 1.0
 GRID_POINTS = 60
 

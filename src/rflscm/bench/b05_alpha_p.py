@@ -49,8 +49,17 @@ def run_b5(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
     reference: dict[str, Any] = {}
     oracle_above = None
     for alpha in alphas:
-        runs = [train_and_evaluate(data, "rflscm", AdjustProtocol(), merge(EXTRA[size.name], {"loss": {"missing_penalty": alpha}}), s, ctx.device)
-                for s in seeds]  # fmt: skip
+        runs = [
+            train_and_evaluate(
+                data,
+                "rflscm",
+                AdjustProtocol(),
+                merge(EXTRA[size.name], {"loss": {"missing_penalty": alpha}}),
+                s,
+                ctx.device,
+            )
+            for s in seeds
+        ]
         agg = aggregate([record(r) for r in runs])
         rates = [_above(r.metrics, "model") for r in runs]
         sweep[f"{alpha:g}"] = {
@@ -67,8 +76,11 @@ def run_b5(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
         if oracle_above is None:
             oracle_above = _above(runs[0].metrics, "oracle")
     out["sweep"] = sweep
-    out["oracle"] = {"mae_db": reference["oracle"], "truth_mae_db": reference["truth"]["oracle"],
-                     "missing_above_bound": oracle_above}  # fmt: skip
+    out["oracle"] = {
+        "mae_db": reference["oracle"],
+        "truth_mae_db": reference["truth"]["oracle"],
+        "missing_above_bound": oracle_above,
+    }
     out["trivial"] = {"mae_db": reference["trivial"], "truth_mae_db": reference["truth"]["trivial"]}
     out["best_alpha"] = {bt: _best(sweep, bt) for bt in BEAM_TYPES}
     out["best_alpha_truth"] = {bt: _best(sweep, bt, "truth_mae_db") for bt in BEAM_TYPES}
@@ -95,8 +107,13 @@ def _plot(ctx: BenchContext, sweep: dict[str, Any], oracle: dict[str, Any]) -> s
     alphas = [float(a) for a in sweep]
     for bt, marker in (("ssb", "o"), ("csi", "s")):
         axes[0].plot(alphas, [e["mae_db"][bt]["all"] for e in sweep.values()], marker=marker, label=f"{bt.upper()} all")
-        axes[0].plot(alphas, [e["mae_db"][bt]["changed"] for e in sweep.values()], marker=marker, linestyle="--",
-                     label=f"{bt.upper()} changed")  # fmt: skip
+        axes[0].plot(
+            alphas,
+            [e["mae_db"][bt]["changed"] for e in sweep.values()],
+            marker=marker,
+            linestyle="--",
+            label=f"{bt.upper()} changed",
+        )
         if oracle[bt]["all"] is not None:
             axes[0].axhline(oracle[bt]["all"], color="grey", linestyle=":", linewidth=0.8)
     axes[0].set_xlabel("α_P")

@@ -59,12 +59,14 @@ def run_b6(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
             r = train_and_evaluate(data, name, protocol, seed=seed, device=ctx.device)
             m = r.metrics
             aps = m.get("aps") or {}
-            entries.append({
-                "unseen_mae_db": dict(m["unseen"]["mae_db"]),
-                "aps_unseen": {k: aps.get(k) for k in ("nmse_db", "nmse_db_median", "angle_error_deg", "pairs")},
-                "aps_seen": aps_recovery(r.judged, data.oracle, seen_pairs, max_pairs=APS_SEEN_PAIRS[size.name]),
-                "train_time_s": r.train_time_s,
-            })  # fmt: skip
+            entries.append(
+                {
+                    "unseen_mae_db": dict(m["unseen"]["mae_db"]),
+                    "aps_unseen": {k: aps.get(k) for k in ("nmse_db", "nmse_db_median", "angle_error_deg", "pairs")},
+                    "aps_seen": aps_recovery(r.judged, data.oracle, seen_pairs, max_pairs=APS_SEEN_PAIRS[size.name]),
+                    "train_time_s": r.train_time_s,
+                }
+            )
             reference = reference or m
         models[name] = {**aggregate(entries)["mean"], "runs": len(entries)}
         if "wnomp_selection" in r.model.run_info:

@@ -70,10 +70,14 @@ def run_b7(ctx: BenchContext, data: BenchData, models: tuple[str, ...], restarts
     folder.mkdir(parents=True, exist_ok=True)
     space = build_space({}, scen.cells[1], scen.meta.codebooks)
     kpi = KPIConfig()
-    out: dict[str, Any] = {"scenario": data.info, "size": data.size.describe(), "notes": __doc__.split("\n\n")[-1],
-                           "search_space_log10": space.size_log10(),
-                           "kpi": kpi.describe(list(scen.meta.frequencies_hz)),
-                           "models": {}}  # fmt: skip
+    out: dict[str, Any] = {
+        "scenario": data.info,
+        "size": data.size.describe(),
+        "notes": __doc__.split("\n\n")[-1],
+        "search_space_log10": space.size_log10(),
+        "kpi": kpi.describe(list(scen.meta.frequencies_hz)),
+        "models": {},
+    }
     runs: dict[str, tuple[OptimizeResult, ScenarioAPS]] = {}
     for name in ("oracle", *models):
         model, train_s, reused = _model(ctx, data, name, folder)
@@ -89,9 +93,11 @@ def run_b7(ctx: BenchContext, data: BenchData, models: tuple[str, ...], restarts
     out["optimisers_on_oracle"] = _compare_optimisers(scen, runs["oracle"], space, kpi)
     learned = {k: v for k, v in out["models"].items() if k != "oracle"}
     best = max(learned, key=lambda k: learned[k]["true_gain"]["coverage"])
-    out["winner"] = (f"{best}: its recommendation gains {100 * learned[best]['true_gain']['coverage']:+.2f} % true "
-                     f"coverage, {100 * (learned[best]['share_of_oracle_true_coverage_gain'] or 0):.0f} % of the "
-                     f"oracle's {100 * oracle_gain:+.2f} %")  # fmt: skip
+    out["winner"] = (
+        f"{best}: its recommendation gains {100 * learned[best]['true_gain']['coverage']:+.2f} % true "
+        f"coverage, {100 * (learned[best]['share_of_oracle_true_coverage_gain'] or 0):.0f} % of the "
+        f"oracle's {100 * oracle_gain:+.2f} %"
+    )
     return out
 
 
@@ -152,9 +158,11 @@ def _optimise(
         "changed_cells": s["changed_cells"],
         "evaluations": s["search"]["evaluations"],
         "candidates_per_s": s["search"]["candidates_per_s"],
-        "aps_time_s": cache_s, "search_time_s": result.timings["search_s"], "verify_time_s": result.timings["verify_s"],
+        "aps_time_s": cache_s,
+        "search_time_s": result.timings["search_s"],
+        "verify_time_s": result.timings["verify_s"],
         "kept_bins_mean": float(np.mean([len(b) for b in cache.bins])),
-    }  # fmt: skip
+    }
     return entry, result, cache
 
 
@@ -172,8 +180,11 @@ def _compare_optimisers(
         ("coordinate_descent", cd.search),
         ("scipy_differential_evolution", de),
     ):
-        out[label] = {"objective_before": r.base_objective, "objective_after": r.objective,
-                      "evaluations": r.evaluations,
-                      "time_s": r.time_s, "gain_per_1000_evaluations": 1000 * (r.objective - r.base_objective)
-                      / max(r.evaluations, 1)}  # fmt: skip
+        out[label] = {
+            "objective_before": r.base_objective,
+            "objective_after": r.objective,
+            "evaluations": r.evaluations,
+            "time_s": r.time_s,
+            "gain_per_1000_evaluations": 1000 * (r.objective - r.base_objective) / max(r.evaluations, 1),
+        }
     return out

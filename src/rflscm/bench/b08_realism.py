@@ -36,13 +36,21 @@ FULL = FieldConfig()
 STEPS: dict[str, tuple[Literal["ideal", "field"], FieldConfig]] = {
     "ideal": ("ideal", IDEAL),
     "reporting": ("field", dataclasses.replace(IDEAL, ssb_detection="sinr", csi_serving_only=True, csi_top_n=4)),
-    "noise": ("field", dataclasses.replace(IDEAL, fading=True, samples_per_grid=FULL.samples_per_grid,
-                                           accuracy_sigma_db=FULL.accuracy_sigma_db)),
-    "array_error": ("field", dataclasses.replace(IDEAL, array_amp_sigma_db=FULL.array_amp_sigma_db,
-                                                 array_phase_sigma_deg=FULL.array_phase_sigma_deg)),
+    "noise": (
+        "field",
+        dataclasses.replace(
+            IDEAL, fading=True, samples_per_grid=FULL.samples_per_grid, accuracy_sigma_db=FULL.accuracy_sigma_db
+        ),
+    ),
+    "array_error": (
+        "field",
+        dataclasses.replace(
+            IDEAL, array_amp_sigma_db=FULL.array_amp_sigma_db, array_phase_sigma_deg=FULL.array_phase_sigma_deg
+        ),
+    ),
     "ue_sampling": ("field", dataclasses.replace(IDEAL, positions="random")),
     "all": ("field", FULL),
-}  # fmt: skip
+}
 """Step → (regime, effects): the ideal regime, each effect of the field default alone, then all of them."""
 NEURAL = ("rflscm", "nerf2")
 BUDGET_S: dict[str, float | None] = {"tiny": None, "quick": 180.0, "full": None}
@@ -60,9 +68,13 @@ def run_b8(ctx: BenchContext, size: BenchSize, steps: tuple[str, ...] = tuple(ST
     trace, source = scenario_path(ctx)
     results = {step: run_step(ctx, size, trace, step) for step in steps}
     out: dict[str, Any] = {
-        "size": size.describe(), "trace": str(trace), "source": source, "budget_s": BUDGET_S[size.name],
-        "notes": __doc__.split("\n\n")[-1].strip(), "steps": results,
-    }  # fmt: skip
+        "size": size.describe(),
+        "trace": str(trace),
+        "source": source,
+        "budget_s": BUDGET_S[size.name],
+        "notes": __doc__.split("\n\n")[-1].strip(),
+        "steps": results,
+    }
     (Path(ctx.out_dir) / "b8.md").write_text(table_md(results))
     out["plots"] = [_plot(ctx, results)]
     return out
@@ -101,8 +113,11 @@ def run_step(ctx: BenchContext, size: BenchSize, trace: Path, step: str) -> dict
     grid = size.grid()
     t0 = time.perf_counter()
     chosen, table = select_wnomp(scenario, grid, device=ctx.device)
-    result: dict[str, Any] = {"wnomp_settings": dataclasses.asdict(chosen), "wnomp_selection_s": time.perf_counter() - t0,
-                              "wnomp_selection": table.to_dict(orient="records")}  # fmt: skip
+    result: dict[str, Any] = {
+        "wnomp_settings": dataclasses.asdict(chosen),
+        "wnomp_selection_s": time.perf_counter() - t0,
+        "wnomp_selection": table.to_dict(orient="records"),
+    }
     models: list[tuple[str, Any]] = [("wnomp", WNOMPModel(chosen, grid, ctx.device))]
     models += [(m, MODEL_REGISTRY[m].build(neural_config(m, size), grid, ctx.device)) for m in NEURAL]
     for label, model in models:
@@ -112,8 +127,12 @@ def run_step(ctx: BenchContext, size: BenchSize, trace: Path, step: str) -> dict
         fit = fit_with_protocol(model, scenario, AdjustProtocol(), budget_s=budget, progress=False)
         fit_s = time.perf_counter() - t0
         metrics = run_evaluation(APSCache(model), scenario, AdjustProtocol(), oracle="auto").metrics
-        result[label] = {"mae_db": metrics["mae_db"], "bias_db": metrics["bias_db"], "fit_s": fit_s,
-                         "steps": fit.get("steps")}  # fmt: skip
+        result[label] = {
+            "mae_db": metrics["mae_db"],
+            "bias_db": metrics["bias_db"],
+            "fit_s": fit_s,
+            "steps": fit.get("steps"),
+        }
         for key, floor in FLOORS:
             result[key] = {"mae_db": metrics[floor]}
     counts = scenario.measurements.groupby(["round", "beam_type"])["rsrp_dbm"].apply(lambda s: int(s.notna().sum()))
@@ -130,8 +149,11 @@ def neural_config(model: str, size: BenchSize) -> Any:
 def table_md(results: dict[str, Any]) -> str:
     """The Markdown table of BENCHMARKS.md: one row per step, each model's four MAEs (SSB all / changed, CSI-RS
     all / changed)."""
-    labels = [k for k in ("wnomp", "rflscm", "nerf2", "model_floor", "noise_floor", "trivial")
-              if any(k in r for r in results.values())]  # fmt: skip
+    labels = [
+        k
+        for k in ("wnomp", "rflscm", "nerf2", "model_floor", "noise_floor", "trivial")
+        if any(k in r for r in results.values())
+    ]
     head = "| step | reported SSB / CSI-RS beams, round 1 | " + " | ".join(labels) + " |"
     lines = [head, "|" + " --- |" * (2 + len(labels))]
     for step, r in results.items():
@@ -150,8 +172,14 @@ def _plot(ctx: BenchContext, results: dict[str, Any]) -> str:
     fig, axes = new_figure(ncols=2, width=5.5)
     steps = list(results)
     for ax, (bt, title) in zip(axes, (("ssb", "SSB"), ("csi", "CSI-RS")), strict=True):
-        for lab, style in (("wnomp", "o-"), ("rflscm", "s-"), ("nerf2", "^-"), ("model_floor", "k--"),
-                           ("noise_floor", "k:"), ("trivial", "x-")):  # fmt: skip
+        for lab, style in (
+            ("wnomp", "o-"),
+            ("rflscm", "s-"),
+            ("nerf2", "^-"),
+            ("model_floor", "k--"),
+            ("noise_floor", "k:"),
+            ("trivial", "x-"),
+        ):
             ys = [r[lab]["mae_db"][bt]["changed"] if lab in r else None for r in results.values()]
             ax.plot(steps, [np.nan if y is None else y for y in ys], style, label=lab)
         ax.set_title(f"{title}: round-2 MAE on the changed cells")

@@ -82,19 +82,43 @@ def _marks(first: float, last: float, factor: float = 2.0) -> list[float]:
 
 def _tiny_overrides() -> dict[str, Any]:
     over = tiny_size().overrides["rflscm"]
-    return {**over, "train": {**over["train"], "steps": 30, "val_every": 10**6},
-            "hitam": {**over["hitam"], "warmup_steps": 10, "ramp_steps": 5}}  # fmt: skip
+    return {
+        **over,
+        "train": {**over["train"], "steps": 30, "val_every": 10**6},
+        "hitam": {**over["hitam"], "warmup_steps": 10, "ramp_steps": 5},
+    }
 
 
 SETTINGS: dict[str, dict[str, Any]] = {  # per size: presets of the old and new model, overrides on both, the
     # angle grid (None: AngleGrid()), evaluation marks [s of training], cap per model [s] (None: whole schedule)
-    "tiny": {"old_config": "quick", "new_config": "quick", "overrides": _tiny_overrides(),
-             "angle_grid": tiny_size().angle_grid, "marks_s": _marks(0.25, 64.0), "max_train_s": 60.0, "new_minutes": None},
-    "quick": {"old_config": "quick", "new_config": "quick", "overrides": {}, "angle_grid": None,
-              "marks_s": _marks(5.0, 1800.0, MARK_FACTOR), "max_train_s": 1800.0, "new_minutes": 3.0},
-    "full": {"old_config": "full", "new_config": "full", "overrides": {}, "angle_grid": None,
-             "marks_s": _marks(5.0, 86400.0, MARK_FACTOR), "max_train_s": None, "new_minutes": None},
-}  # fmt: skip
+    "tiny": {
+        "old_config": "quick",
+        "new_config": "quick",
+        "overrides": _tiny_overrides(),
+        "angle_grid": tiny_size().angle_grid,
+        "marks_s": _marks(0.25, 64.0),
+        "max_train_s": 60.0,
+        "new_minutes": None,
+    },
+    "quick": {
+        "old_config": "quick",
+        "new_config": "quick",
+        "overrides": {},
+        "angle_grid": None,
+        "marks_s": _marks(5.0, 1800.0, MARK_FACTOR),
+        "max_train_s": 1800.0,
+        "new_minutes": 3.0,
+    },
+    "full": {
+        "old_config": "full",
+        "new_config": "full",
+        "overrides": {},
+        "angle_grid": None,
+        "marks_s": _marks(5.0, 86400.0, MARK_FACTOR),
+        "max_train_s": None,
+        "new_minutes": None,
+    },
+}
 
 
 @register_bench(
@@ -116,24 +140,43 @@ def run_b9(ctx: BenchContext, size: str) -> dict[str, Any]:
     seed = seeds_of(ctx)[0]
     result: dict[str, Any] = {
         "notes": __doc__.split("\n\n")[-1].strip(),
-        "settings": {**settings, "new_config": new_config, "baseline": str(old_src),
-                     "threads": threads, "seed": seed, "device": ctx.device},
+        "settings": {
+            **settings,
+            "new_config": new_config,
+            "baseline": str(old_src),
+            "threads": threads,
+            "seed": seed,
+            "device": ctx.device,
+        },
         "regimes": {},
         "plots": [],
-    }  # fmt: skip
+    }
     for regime, path in regimes(ctx).items():
         wnomp = wnomp_level(path, settings["angle_grid"], seed, ctx.device)
-        common = dict(marks=settings["marks_s"], max_s=settings["max_train_s"], overrides=settings["overrides"],
-                      grid=settings["angle_grid"], threads=threads, seed=seed, device=ctx.device)  # fmt: skip
+        common = dict(
+            marks=settings["marks_s"],
+            max_s=settings["max_train_s"],
+            overrides=settings["overrides"],
+            grid=settings["angle_grid"],
+            threads=threads,
+            seed=seed,
+            device=ctx.device,
+        )
         old_scen = without_reporting(path, out_dir / "_baseline_scenarios" / regime)
         work = out_dir / "b9_runs"
         old = run_worker(old_src, old_scen, settings["old_config"], work / f"{regime}_old.json", **common)
         new = run_worker(
             new_src, path, new_config, work / f"{regime}_new.json", minutes=settings["new_minutes"], **common
         )
-        entry = {"scenario": str(path), "wnomp": wnomp, "old": old, "new": new,
-                 "comparison": {bt: compare(old["rows"], new["rows"], bt, wnomp["mae_db"][bt]["changed"])
-                                for bt in BEAM_TYPES}}  # fmt: skip
+        entry = {
+            "scenario": str(path),
+            "wnomp": wnomp,
+            "old": old,
+            "new": new,
+            "comparison": {
+                bt: compare(old["rows"], new["rows"], bt, wnomp["mae_db"][bt]["changed"]) for bt in BEAM_TYPES
+            },
+        }
         result["regimes"][regime] = entry
         labels = {"old": f"old {old_src.parent.name}", "new": f"new {new_config}"}
         result["plots"].append(plot(ctx, regime, entry, labels))
@@ -161,8 +204,9 @@ def best(rows: Sequence[dict[str, Any]], beam_type: str, cells: str = "changed")
     return low, min(t for m, t in values if m == low)
 
 
-def compare(old: Sequence[dict[str, Any]], new: Sequence[dict[str, Any]], beam_type: str,
-            wnomp_mae: float | None) -> dict[str, Any]:  # fmt: skip
+def compare(
+    old: Sequence[dict[str, Any]], new: Sequence[dict[str, Any]], beam_type: str, wnomp_mae: float | None
+) -> dict[str, Any]:
     """Time to WNOMP's changed-cell MAE of both models and their ratio old / new; the old model's best and
     the new model's time to it (the comparison where the old model never reaches WNOMP)."""
     old_t, new_t = time_to(old, beam_type, wnomp_mae), time_to(new, beam_type, wnomp_mae)
@@ -284,15 +328,44 @@ def _finite(value: Any) -> float | None:
     return float(value) if value is not None and np.isfinite(value) else None
 
 
-def run_worker(src: Path, scenario: Path, config: str, out: Path, *, marks: list[float], max_s: float | None,
-               overrides: dict[str, Any], grid: tuple | None, threads: int, seed: int, device: str,
-               minutes: float | None = None) -> dict[str, Any]:  # fmt: skip
+def run_worker(
+    src: Path,
+    scenario: Path,
+    config: str,
+    out: Path,
+    *,
+    marks: list[float],
+    max_s: float | None,
+    overrides: dict[str, Any],
+    grid: tuple | None,
+    threads: int,
+    seed: int,
+    device: str,
+    minutes: float | None = None,
+) -> dict[str, Any]:
     """Run :mod:`~rflscm.bench.b09_worker` with ``PYTHONPATH=src``; its JSON (rows of the MAE over training time).
     ``minutes``: train to that budget (``rflscm train --minutes``; today's code only) instead of the step schedule."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, str(WORKER), "--scenario", str(scenario), "--config", config, "--out", str(out),
-           "--overrides", json.dumps(overrides), "--marks", ",".join(f"{m:g}" for m in marks),
-           "--threads", str(threads), "--seed", str(seed), "--device", device]  # fmt: skip
+    cmd = [
+        sys.executable,
+        str(WORKER),
+        "--scenario",
+        str(scenario),
+        "--config",
+        config,
+        "--out",
+        str(out),
+        "--overrides",
+        json.dumps(overrides),
+        "--marks",
+        ",".join(f"{m:g}" for m in marks),
+        "--threads",
+        str(threads),
+        "--seed",
+        str(seed),
+        "--device",
+        device,
+    ]
     if grid:
         cmd += ["--angle-grid", ",".join(f"{v:g}" for v in grid)]
     if max_s is not None:
@@ -332,8 +405,14 @@ def plot(ctx: BenchContext, regime: str, entry: dict[str, Any], labels: dict[str
             t = [max(r["train_s"], 1e-3) for r in rows]
             for cells, style in (("changed", "-"), ("all", ":")):
                 y = [_mae(r, bt, cells) for r in rows]
-                ax.plot(t, [np.nan if v is None else v for v in y], style, marker="o" if cells == "changed" else None,
-                        color=color, label=f"{labels[who]} ({cells} cells)")  # fmt: skip
+                ax.plot(
+                    t,
+                    [np.nan if v is None else v for v in y],
+                    style,
+                    marker="o" if cells == "changed" else None,
+                    color=color,
+                    label=f"{labels[who]} ({cells} cells)",
+                )
         level = entry["wnomp"]["mae_db"][bt]["changed"]
         if level is not None:
             ax.axhline(level, color="tab:red", linewidth=0.9, linestyle="--", label=f"WNOMP changed {level:.2f} dB")

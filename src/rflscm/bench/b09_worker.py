@@ -173,8 +173,15 @@ def main(argv: list[str] | None = None) -> None:
         if args.minutes is None:
             fit_with_protocol(model, scenario, AdjustProtocol(), progress=False, callback=callback)
         else:  # the budget's clock leaves the evaluations out, as train_s does
-            fit_with_protocol(model, scenario, AdjustProtocol(), progress=False, callback=callback,
-                              budget_s=60.0 * args.minutes, clock=lambda: clocks()[0] - excluded["wall"])  # fmt: skip
+            fit_with_protocol(
+                model,
+                scenario,
+                AdjustProtocol(),
+                progress=False,
+                callback=callback,
+                budget_s=60.0 * args.minutes,
+                clock=lambda: clocks()[0] - excluded["wall"],
+            )
     except _Stop:
         stopped = "max_seconds"
     if not rows or rows[-1]["step"] != state["step"]:

@@ -90,16 +90,27 @@ def quick_size() -> BenchSize:
     hitam = {"warmup_steps": 600, "ramp_steps": 150}
     train = _train(1500, 32, 1500, val_pairs=64)
     return BenchSize(
-        name="quick", max_sites=1, max_grids=150, crop_margin_m=20.0, angle_grid=(91, 72, -90.0, 2.0),
+        name="quick",
+        max_sites=1,
+        max_grids=150,
+        crop_margin_m=20.0,
+        angle_grid=(91, 72, -90.0, 2.0),
         overrides={"rflscm": {"train": train, "hitam": hitam}, "nerf2": {"train": train, "hitam": hitam}, "wnomp": {}},
         preset="quick",
-    )  # fmt: skip
+    )
 
 
 def full_size() -> BenchSize:
     """The paper-like setting for a GPU: the whole scenario and the models' ``full`` presets unchanged."""
-    return BenchSize(name="full", max_sites=None, max_grids=None, crop_margin_m=None, angle_grid=(91, 72, -90.0, 2.0),
-                     overrides={"rflscm": {}, "nerf2": {}, "wnomp": {}}, preset="full")  # fmt: skip
+    return BenchSize(
+        name="full",
+        max_sites=None,
+        max_grids=None,
+        crop_margin_m=None,
+        angle_grid=(91, 72, -90.0, 2.0),
+        overrides={"rflscm": {}, "nerf2": {}, "wnomp": {}},
+        preset="full",
+    )
 
 
 def tiny_size() -> BenchSize:
@@ -107,16 +118,28 @@ def tiny_size() -> BenchSize:
     hitam = {"beta": 2, "top_k": 4, "warmup_steps": 3, "ramp_steps": 2}
     train = _train(6, 8, 3, val_pairs=8)
     return BenchSize(
-        name="tiny", max_sites=1, max_grids=24, crop_margin_m=10.0, angle_grid=(16, 18, -90.0, 12.0),
+        name="tiny",
+        max_sites=1,
+        max_grids=24,
+        crop_margin_m=10.0,
+        angle_grid=(16, 18, -90.0, 12.0),
         overrides={
-            "rflscm": {"train": train, "hitam": hitam, "decoder": {"hidden": 16},
-                       "field": {"voxel_m": 16.0, "delta_rank": 2, "feature_rank": 2, "feature_dim": 4}},
-            "nerf2": {"train": train, "hitam": hitam, "decoder": {"hidden": 16, "head_hidden": 8},
-                      "field": {"hidden": 16, "layers": 4, "skip_at": 2, "pos_freqs": 4, "feature_dim": 8}},
+            "rflscm": {
+                "train": train,
+                "hitam": hitam,
+                "decoder": {"hidden": 16},
+                "field": {"voxel_m": 16.0, "delta_rank": 2, "feature_rank": 2, "feature_dim": 4},
+            },
+            "nerf2": {
+                "train": train,
+                "hitam": hitam,
+                "decoder": {"hidden": 16, "head_hidden": 8},
+                "field": {"hidden": 16, "layers": 4, "skip_at": 2, "pos_freqs": 4, "feature_dim": 8},
+            },
             "wnomp": {"k_max": 4},
         },
         preset="quick",
-    )  # fmt: skip
+    )
 
 
 def bench_size(name: str) -> BenchSize:
@@ -253,13 +276,23 @@ def sub_scenario(full: Scenario, size: BenchSize) -> tuple[Scenario, dict[str, A
     m = m[m["grid_id"].isin(grids["grid_id"]).to_numpy()]
     cells = {r: t[t["cell_id"].isin(keep_cells)].reset_index(drop=True) for r, t in full.cells.items()}
     cloud = _crop_cloud(full.point_cloud, cells[1], grids, size.crop_margin_m)
-    sub = dataclasses.replace(full, cells=cells, grids=grids, measurements=m.reset_index(drop=True), point_cloud=cloud,
-                              outside_ssb=_outside_ssb(full, keep_cells, grids["grid_id"]))  # fmt: skip
+    sub = dataclasses.replace(
+        full,
+        cells=cells,
+        grids=grids,
+        measurements=m.reset_index(drop=True),
+        point_cloud=cloud,
+        outside_ssb=_outside_ssb(full, keep_cells, grids["grid_id"]),
+    )
     info = {
-        "sites": [int(s) for s in sites], "cells": keep_cells.tolist(), "grids": int(len(grids)),
-        "measurement_rows": int(len(m)), "point_cloud_points": 0 if cloud is None else int(len(cloud.xyz)),
-        "full_cells": int(len(cells1)), "full_grids": int(len(full.grids)),
-    }  # fmt: skip
+        "sites": [int(s) for s in sites],
+        "cells": keep_cells.tolist(),
+        "grids": int(len(grids)),
+        "measurement_rows": int(len(m)),
+        "point_cloud_points": 0 if cloud is None else int(len(cloud.xyz)),
+        "full_cells": int(len(cells1)),
+        "full_grids": int(len(full.grids)),
+    }
     return sub, info
 
 
@@ -319,10 +352,17 @@ def build_model(
 
 
 def train_and_evaluate(
-    data: BenchData, name: str, protocol: Protocol | None = None, extra: dict[str, Any] | None = None, seed: int = 0,
-    device: str = "cpu", on_step: Callable[[LSCMModel, dict[str, float]], None] | None = None, evaluate_model: bool = True,
-    time_budget_s: float | None = None, select_wnomp: bool = True,
-) -> RunResult:  # fmt: skip
+    data: BenchData,
+    name: str,
+    protocol: Protocol | None = None,
+    extra: dict[str, Any] | None = None,
+    seed: int = 0,
+    device: str = "cpu",
+    on_step: Callable[[LSCMModel, dict[str, float]], None] | None = None,
+    evaluate_model: bool = True,
+    time_budget_s: float | None = None,
+    select_wnomp: bool = True,
+) -> RunResult:
     """Train model ``name`` (size overrides ← ``extra``, ``train.seed`` = ``seed``) on ``protocol``'s training
     data of the benchmark scenario and evaluate it (oracle next to it).
 
@@ -362,16 +402,29 @@ def train_and_evaluate(
             summary = fit_with_protocol(model, data.scenario, protocol, progress=False, callback=callback)
         except _StopTraining:
             last = history[-1]
-            summary = {"train_time_s": last["time_s"], "steps": last["step"], "final_loss": last["total"],
-                       "val_mae_db": last["val_mae_db"], "stopped_by_time_budget": 1.0}  # fmt: skip
+            summary = {
+                "train_time_s": last["time_s"],
+                "steps": last["step"],
+                "final_loss": last["total"],
+                "val_mae_db": last["val_mae_db"],
+                "stopped_by_time_budget": 1.0,
+            }
         wall = time.perf_counter() - t0 - excluded[0]
     model.run_info["fit"] = {k: float(v) for k, v in summary.items()}
     metrics = {}
     judged = APSCache(model)
     if evaluate_model:
         metrics = run_evaluation(judged, data.scenario, protocol, oracle=data.oracle).metrics
-    return RunResult(model, metrics, {k: float(v) for k, v in summary.items()}, wall, mem.result(),
-                     history, model.run_info["bench_config"], judged)  # fmt: skip
+    return RunResult(
+        model,
+        metrics,
+        {k: float(v) for k, v in summary.items()},
+        wall,
+        mem.result(),
+        history,
+        model.run_info["bench_config"],
+        judged,
+    )
 
 
 def selected_wnomp(model: LSCMModel, training: Scenario, seed: int, device: str) -> LSCMModel:
@@ -387,8 +440,11 @@ def selected_wnomp(model: LSCMModel, training: Scenario, seed: int, device: str)
     out = WNOMPModel(chosen, model.angle_grid, device)
     out.run_info = dict(model.run_info)
     out.run_info["bench_config"] = dataclasses.asdict(chosen)
-    out.run_info["wnomp_selection"] = {"chosen": dataclasses.asdict(chosen), "time_s": time.perf_counter() - t0,
-                                       "candidates": table.to_dict(orient="records")}  # fmt: skip
+    out.run_info["wnomp_selection"] = {
+        "chosen": dataclasses.asdict(chosen),
+        "time_s": time.perf_counter() - t0,
+        "candidates": table.to_dict(orient="records"),
+    }
     return out
 
 

@@ -79,13 +79,21 @@ def _measure(scen: Scenario, cache: ScenarioAPS, whole: bool) -> dict[str, Any]:
             ev.score_cell(pos, cands)
             count += len(cands)
     elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
-    out: dict[str, Any] = {"kept_bins_mean": float(np.mean([len(b) for b in cache.bins])), "candidates": count,
-           "candidates_time_s": elapsed, "candidates_cpu_s": cpu, "candidates_per_s": count / elapsed,
-           "candidates_per_cpu_s": count / cpu}  # fmt: skip
+    out: dict[str, Any] = {
+        "kept_bins_mean": float(np.mean([len(b) for b in cache.bins])),
+        "candidates": count,
+        "candidates_time_s": elapsed,
+        "candidates_cpu_s": cpu,
+        "candidates_per_s": count / elapsed,
+        "candidates_per_cpu_s": count / cpu,
+    }
     if whole:
         c0 = time.process_time()
         result = coordinate_descent(ev, restarts=2)
-        out.update(whole_scenario_search_s=result.time_s, whole_scenario_cpu_s=time.process_time() - c0,
-                   whole_scenario_evaluations=result.evaluations,
-                   coverage_objective=[result.base_objective, result.objective])  # fmt: skip
+        out.update(
+            whole_scenario_search_s=result.time_s,
+            whole_scenario_cpu_s=time.process_time() - c0,
+            whole_scenario_evaluations=result.evaluations,
+            coverage_objective=[result.base_objective, result.objective],
+        )
     return out

@@ -81,9 +81,12 @@ def save_comparison(results: dict[str, dict], title: str, out: Path) -> list[Pat
     columns, rows = demo_rows(results)
     md = [f"# {title}", "", "| " + " | ".join(columns) + " |", "| --- |" + " ---: |" * (len(columns) - 1)]
     md += ["| " + " | ".join(cell or "" for cell in row) + " |" for row in rows]
-    md += ["", "Model floor: the oracle (true APS through the nominal antenna model); noise floor: the noiseless "
-           "RSRP through the real antenna against the measurements; trivial: each pair's mean round-1 RSRP. "
-           "— marks a value that does not apply."]  # fmt: skip
+    md += [
+        "",
+        "Model floor: the oracle (true APS through the nominal antenna model); noise floor: the noiseless "
+        "RSRP through the real antenna against the measurements; trivial: each pair's mean round-1 RSRP. "
+        "— marks a value that does not apply.",
+    ]
     paths = [out / "comparison.md", out / "comparison.csv", out / "comparison.json"]
     from rflscm.data.safe_io import atomic_write, write_text_atomic
 
@@ -139,8 +142,16 @@ def demo(
     check_numbers(seed=(seed, 0, SEED_MAX))
     inputs = [*(scenario_inputs(scenario) if scenario is not None else []), *config_inputs(config)]
     guard_outputs({"--out": out}, inputs, force=True, folders=("--out",))
-    names = ["wnomp_selection.csv", "wnomp.ckpt", "rflscm.ckpt", "wnomp.json", "rflscm.json", "comparison.md",
-             "comparison.csv", "comparison.json"]  # fmt: skip
+    names = [
+        "wnomp_selection.csv",
+        "wnomp.ckpt",
+        "rflscm.ckpt",
+        "wnomp.json",
+        "rflscm.json",
+        "comparison.md",
+        "comparison.csv",
+        "comparison.json",
+    ]
     guard_outputs({f"--out (its {n})": out / n for n in names}, inputs, force=force)
     console = Console()
     budget_s = budget_seconds(minutes)
@@ -158,9 +169,11 @@ def demo(
     with console.status("choosing WNOMP's settings on held-aside round-1 beams…"):
         wnomp_cfg, choice = select_wnomp(scen, AngleGrid(), seed=seed, device=str(dev))
     write_table(choice, out / "wnomp_selection.csv")
-    console.print(f"WNOMP settings chosen on held-aside round-1 beams ({int(choice['beams'].iloc[0])} beams): "
-                  f"k_max {wnomp_cfg.k_max}, weighting {wnomp_cfg.weighting}, tolerance {wnomp_cfg.tolerance}, "
-                  f"residual floor {wnomp_cfg.residual_floor} (all candidates: {out / 'wnomp_selection.csv'})")  # fmt: skip
+    console.print(
+        f"WNOMP settings chosen on held-aside round-1 beams ({int(choice['beams'].iloc[0])} beams): "
+        f"k_max {wnomp_cfg.k_max}, weighting {wnomp_cfg.weighting}, tolerance {wnomp_cfg.tolerance}, "
+        f"residual floor {wnomp_cfg.residual_floor} (all candidates: {out / 'wnomp_selection.csv'})"
+    )
     from rflscm.config import to_dict
 
     configs: dict[str, str | dict[str, Any]] = {"wnomp": to_dict(wnomp_cfg), "rflscm": rflscm_cfg}

@@ -118,8 +118,12 @@ def train(
     from rflscm.models.base import read_checkpoint
     from rflscm.train import Trainable
 
-    check_numbers(holdout=(holdout, 0.0, 1.0), train_percent=(train_percent, 0.0, 100.0), seed=(seed, 0, SEED_MAX),
-                  split_seed=(split_seed, 0, SEED_MAX))  # fmt: skip
+    check_numbers(
+        holdout=(holdout, 0.0, 1.0),
+        train_percent=(train_percent, 0.0, 100.0),
+        seed=(seed, 0, SEED_MAX),
+        split_seed=(split_seed, 0, SEED_MAX),
+    )
     guard_outputs({"--out": out}, [*scenario_inputs(scenario), *config_inputs(config)], force=force, resume=resume)
     console = Console(stderr=True)
     if model not in MODEL_REGISTRY:

@@ -440,8 +440,13 @@ def _per_cell(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, An
     cells = sorted({int(c) for res in beams.values() for c in res.pairs["cell_id"].to_numpy()})
     out: dict[str, Any] = {}
     for cell in cells:
-        entry: dict[str, Any] = {"changed": bool(cell in set(changed.tolist())), "oracle": {}, "trivial": {},
-                                 "noise_floor": {}, "counts": {}}  # fmt: skip
+        entry: dict[str, Any] = {
+            "changed": bool(cell in set(changed.tolist())),
+            "oracle": {},
+            "trivial": {},
+            "noise_floor": {},
+            "counts": {},
+        }
         for beam_type, res in beams.items():
             rows = res.rows() & (res.pairs["cell_id"].to_numpy() == cell)
             trip = _mae_triplet(res, rows)

@@ -60,8 +60,13 @@ def _sites(ax: plt.Axes, cells_xy: np.ndarray, azimuth_deg: np.ndarray, changed:
     ax.scatter(sites[:, 0], sites[:, 1], marker="^", s=60, c="white", edgecolors="black", linewidths=1.2, zorder=5)
     for (x, y), az, ch in zip(cells_xy, azimuth_deg, changed):
         dx, dy = arrow_m * np.sin(np.radians(az)), arrow_m * np.cos(np.radians(az))
-        ax.annotate("", (x + dx, y + dy), (x, y), arrowprops={"arrowstyle": "->", "color": "red" if ch else "black", "lw": 1.4},
-                    zorder=6)  # fmt: skip
+        ax.annotate(
+            "",
+            (x + dx, y + dy),
+            (x, y),
+            arrowprops={"arrowstyle": "->", "color": "red" if ch else "black", "lw": 1.4},
+            zorder=6,
+        )
 
 
 def coverage_maps(
@@ -126,8 +131,17 @@ def _serving(ax: plt.Axes, xy: np.ndarray, serving: np.ndarray, cell_ids: np.nda
             continue
         own = xy[mine]
         cx, cy = own[np.argmin(np.linalg.norm(own - own.mean(0), axis=1))]  # inside its area, near the centre
-        ax.text(cx, cy, str(cell), ha="center", va="center", fontsize=7, fontweight="bold", zorder=7,
-                bbox={"boxstyle": "round,pad=0.15", "fc": colors[k], "ec": "black", "lw": 0.4, "alpha": 0.9})  # fmt: skip
+        ax.text(
+            cx,
+            cy,
+            str(cell),
+            ha="center",
+            va="center",
+            fontsize=7,
+            fontweight="bold",
+            zorder=7,
+            bbox={"boxstyle": "round,pad=0.15", "fc": colors[k], "ec": "black", "lw": 0.4, "alpha": 0.9},
+        )
 
 
 def kpi_maps(
@@ -175,8 +189,9 @@ def kpi_maps(
             mappable = _map(axes[r, col], grid_xy, diff, -lim, lim, ERROR_CMAP)
             fig.colorbar(mappable, ax=axes[r, col], label=f"{name} difference (dB)", shrink=0.85)
             axes[r, col].set_title(f"{label}: {name}")
-        moved = np.where((ma["serving"] >= 0) & (mb["serving"] >= 0), (ma["serving"] != mb["serving"]).astype(float),
-                         np.nan)  # fmt: skip
+        moved = np.where(
+            (ma["serving"] >= 0) & (mb["serving"] >= 0), (ma["serving"] != mb["serving"]).astype(float), np.nan
+        )
         mappable = _map(axes[r, 1], grid_xy, moved, 0.0, 1.0, "Greys")
         axes[r, 1].set_title(f"{label}: serving cell changed (black) — {np.nansum(moved):.0f} grids")
     for ax in axes.ravel():
@@ -206,8 +221,15 @@ def error_cdfs(path: Path, errors: dict[str, dict[str, np.ndarray]], title: str)
             color, ls = styles.get(name, ("tab:orange", "-"))
             frac = np.arange(1, len(err) + 1) / len(err)
             p50, p90 = np.percentile(err, [50, 90])
-            ax.step(err, frac, where="post", color=color, ls=ls, lw=1.8,
-                    label=f"{name}: median {p50:.2f} dB, 90 % {p90:.2f} dB (n={len(err)})")  # fmt: skip
+            ax.step(
+                err,
+                frac,
+                where="post",
+                color=color,
+                ls=ls,
+                lw=1.8,
+                label=f"{name}: median {p50:.2f} dB, 90 % {p90:.2f} dB (n={len(err)})",
+            )
             top = max(top, float(p90) * 1.6)
         ax.set_xlim(0.0, min(top, 40.0))
         ax.set_ylim(0.0, 1.0)
@@ -239,8 +261,16 @@ def error_histograms(path: Path, errors: dict[str, dict[str, np.ndarray]], title
             if not len(err):
                 continue
             color, kind, alpha = styles.get(name, ("tab:orange", "step", 1.0))
-            ax.hist(np.clip(err, bins[0], bins[-1]), bins=bins, histtype=kind, color=color, alpha=alpha, lw=1.6,
-                    density=True, label=f"{name}: MAE {np.abs(err).mean():.2f} dB")  # fmt: skip
+            ax.hist(
+                np.clip(err, bins[0], bins[-1]),
+                bins=bins,
+                histtype=kind,
+                color=color,
+                alpha=alpha,
+                lw=1.6,
+                density=True,
+                label=f"{name}: MAE {np.abs(err).mean():.2f} dB",
+            )
         ax.axvline(0.0, color="k", lw=0.6)
         ax.set_xlabel("predicted − measured RSRP [dB] (clipped to ±20)")
         ax.set_ylabel("fraction of beams per dB")
@@ -261,10 +291,24 @@ def per_cell_bars(path: Path, per_cell: dict[str, dict], title: str) -> Path:
         pos = x + (k - 0.5) * width
         model = [_nan(per_cell[c].get(beam_type)) for c in cells]
         ax.bar(pos, model, width, color=color, label=f"model {beam_type.upper()}")
-        ax.scatter(pos, [_nan(per_cell[c]["oracle"].get(beam_type)) for c in cells], marker="_", s=160, c="black", zorder=4,
-                   label="oracle" if k == 0 else None)  # fmt: skip
-        ax.scatter(pos, [_nan(per_cell[c]["trivial"].get(beam_type)) for c in cells], marker="_", s=160, c="tab:gray",
-                   zorder=4, label="trivial" if k == 0 else None)  # fmt: skip
+        ax.scatter(
+            pos,
+            [_nan(per_cell[c]["oracle"].get(beam_type)) for c in cells],
+            marker="_",
+            s=160,
+            c="black",
+            zorder=4,
+            label="oracle" if k == 0 else None,
+        )
+        ax.scatter(
+            pos,
+            [_nan(per_cell[c]["trivial"].get(beam_type)) for c in cells],
+            marker="_",
+            s=160,
+            c="tab:gray",
+            zorder=4,
+            label="trivial" if k == 0 else None,
+        )
     for i, c in enumerate(cells):
         if per_cell[c]["changed"]:
             ax.axvspan(i - 0.5, i + 0.5, color="red", alpha=0.08, lw=0)
@@ -310,8 +354,18 @@ def aps_heatmaps(
             aps = np.asarray(aps, dtype=np.float64)
             show = np.flatnonzero(aps > 10 ** ((vmax - floor_db) / 10))
             show = show[np.argsort(aps[show])]
-            sc = ax.scatter(az[show], el[show], c=10 * np.log10(aps[show]), s=30, marker="s", cmap="magma",
-                            vmin=vmax - floor_db, vmax=vmax, edgecolors="black", linewidths=0.3)  # fmt: skip
+            sc = ax.scatter(
+                az[show],
+                el[show],
+                c=10 * np.log10(aps[show]),
+                s=30,
+                marker="s",
+                cmap="magma",
+                vmin=vmax - floor_db,
+                vmax=vmax,
+                edgecolors="black",
+                linewidths=0.3,
+            )
             if boresight_az_deg is not None:
                 ax.axvline(boresight_az_deg[r] % 360.0, color="tab:blue", ls="--", lw=1, label="cell boresight")
                 ax.legend(loc="upper right", fontsize=8)
@@ -329,9 +383,14 @@ def aps_heatmaps(
 
 
 def attenuation_map(
-    path: Path, x_m: np.ndarray, y_m: np.ndarray, db_per_m: np.ndarray, title: str,
-    sites_xy: np.ndarray | None = None, azimuth_deg: np.ndarray | None = None,
-) -> Path:  # fmt: skip
+    path: Path,
+    x_m: np.ndarray,
+    y_m: np.ndarray,
+    db_per_m: np.ndarray,
+    title: str,
+    sites_xy: np.ndarray | None = None,
+    azimuth_deg: np.ndarray | None = None,
+) -> Path:
     """A top-down map of a learned attenuation field.
 
     Args:
@@ -345,8 +404,15 @@ def attenuation_map(
     extent = (x_m[0] - dx, x_m[-1] + dx, y_m[0] - dy, y_m[-1] + dy)
     finite = np.isfinite(db_per_m).any()
     low, top = (float(np.nanpercentile(db_per_m, q)) for q in (0.5, 99.5)) if finite else (0.0, 1.0)
-    image = ax.imshow(db_per_m, origin="lower", extent=extent, cmap="inferno", vmin=low, vmax=max(top, low + 1e-9),
-                      interpolation="nearest")  # fmt: skip
+    image = ax.imshow(
+        db_per_m,
+        origin="lower",
+        extent=extent,
+        cmap="inferno",
+        vmin=low,
+        vmax=max(top, low + 1e-9),
+        interpolation="nearest",
+    )
     fig.colorbar(image, ax=ax, label="learned attenuation −log|δ|, strongest over height (dB/m)", shrink=0.9)
     if sites_xy is not None and azimuth_deg is not None and len(sites_xy):
         span = max(extent[1] - extent[0], extent[3] - extent[2])

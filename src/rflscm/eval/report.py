@@ -32,28 +32,44 @@ def metric_rows(metrics: dict[str, Any]) -> list[tuple[str, str, str, str]]:
         for subset in ("all", "changed"):
             if subset == "changed" and metrics["mae_db"][beam_type]["changed"] is None:
                 continue
-            rows.append((
-                f"MAE {beam_type.upper()}, {subset} cells [dB]",
-                _fmt(metrics["mae_db"][beam_type][subset]),
-                _fmt(metrics["oracle_mae_db"][beam_type][subset]),
-                _fmt(metrics["trivial_mae_db"][beam_type][subset]),
-            ))  # fmt: skip
+            rows.append(
+                (
+                    f"MAE {beam_type.upper()}, {subset} cells [dB]",
+                    _fmt(metrics["mae_db"][beam_type][subset]),
+                    _fmt(metrics["oracle_mae_db"][beam_type][subset]),
+                    _fmt(metrics["trivial_mae_db"][beam_type][subset]),
+                )
+            )
     unseen = metrics["unseen"]
     for beam_type in BEAM_TYPES:
         if unseen["pairs"][beam_type]:
-            rows.append((
-                f"MAE {beam_type.upper()}, unseen pairs [dB] (n={unseen['pairs'][beam_type]})",
-                _fmt(unseen["mae_db"][beam_type]),
-                _fmt(unseen["oracle_mae_db"][beam_type]),
-                _fmt(unseen["trivial_mae_db"][beam_type]),
-            ))  # fmt: skip
+            rows.append(
+                (
+                    f"MAE {beam_type.upper()}, unseen pairs [dB] (n={unseen['pairs'][beam_type]})",
+                    _fmt(unseen["mae_db"][beam_type]),
+                    _fmt(unseen["oracle_mae_db"][beam_type]),
+                    _fmt(unseen["trivial_mae_db"][beam_type]),
+                )
+            )
     aps = metrics["aps"]
     if aps["pairs"]:
-        rows.append((f"APS NMSE against the true APS [dB] (mean / median over {aps['pairs']} pairs; an all-zero "
-                     "APS scores 0 dB, lower is better)",
-                     f"{_fmt(aps['nmse_db'])} / {_fmt(aps['nmse_db_median'])}", "– (is the reference)", "–"))  # fmt: skip
-        rows.append((f"APS angle error against the true APS, top {aps['top_k']} bins [deg]",
-                     _fmt(aps["angle_error_deg"]), "– (is the reference)", "–"))  # fmt: skip
+        rows.append(
+            (
+                f"APS NMSE against the true APS [dB] (mean / median over {aps['pairs']} pairs; an all-zero "
+                "APS scores 0 dB, lower is better)",
+                f"{_fmt(aps['nmse_db'])} / {_fmt(aps['nmse_db_median'])}",
+                "– (is the reference)",
+                "–",
+            )
+        )
+        rows.append(
+            (
+                f"APS angle error against the true APS, top {aps['top_k']} bins [deg]",
+                _fmt(aps["angle_error_deg"]),
+                "– (is the reference)",
+                "–",
+            )
+        )
     return rows
 
 
@@ -67,11 +83,13 @@ def _best_beam_per_grid(res: BeamResult) -> pd.DataFrame:
     """Measured and predicted best-beam RSRP [dBm] per grid over the scored (cell, grid) pairs."""
     rows = res.scored
     with np.errstate(all="ignore"):
-        frame = pd.DataFrame({
-            "grid_id": res.pairs["grid_id"].to_numpy()[rows],
-            "measured": np.nanmax(np.where(np.isfinite(res.measured[rows]), res.measured[rows], -np.inf), axis=1),
-            "predicted": np.nanmax(np.where(np.isfinite(res.model[rows]), res.model[rows], -np.inf), axis=1),
-        })  # fmt: skip
+        frame = pd.DataFrame(
+            {
+                "grid_id": res.pairs["grid_id"].to_numpy()[rows],
+                "measured": np.nanmax(np.where(np.isfinite(res.measured[rows]), res.measured[rows], -np.inf), axis=1),
+                "predicted": np.nanmax(np.where(np.isfinite(res.model[rows]), res.model[rows], -np.inf), axis=1),
+            }
+        )
     best = frame.groupby("grid_id").max().replace(-np.inf, np.nan)
     return best.reset_index()
 
@@ -86,10 +104,15 @@ def _coverage_figure(evaluation: Evaluation, scenario: Scenario, out: Path, titl
     cells = scenario.cells[evaluation.test_round]
     changed = cells["cell_id"].isin(evaluation.metrics["counts"]["changed_cells"]).to_numpy()
     path = plots.coverage_maps(
-        out / "coverage.png", grids, best["measured"].to_numpy(), best["predicted"].to_numpy(),
-        cells[["x", "y"]].to_numpy(), cells["azimuth_deg"].to_numpy(), changed,
+        out / "coverage.png",
+        grids,
+        best["measured"].to_numpy(),
+        best["predicted"].to_numpy(),
+        cells[["x", "y"]].to_numpy(),
+        cells["azimuth_deg"].to_numpy(),
+        changed,
         f"{title}: round-{evaluation.test_round} {beam_type.upper()} coverage",
-    )  # fmt: skip
+    )
     return path, (
         f"Best {beam_type.upper()}-beam RSRP per grid in round {evaluation.test_round}, measured (reported beams) vs "
         f"predicted (every beam of the same cells), and their difference.  The maximum over noisy measured "
@@ -101,8 +124,10 @@ def _signed_errors(evaluation: Evaluation) -> dict[str, dict[str, np.ndarray]]:
     out: dict[str, dict[str, np.ndarray]] = {}
     for beam_type, res in evaluation.beams.items():
         rows = res.rows()
-        by_name = {"model": (res.model[rows] - res.measured[rows]).ravel(),
-                   "trivial": (res.trivial[rows] - res.measured[rows]).ravel()}  # fmt: skip
+        by_name = {
+            "model": (res.model[rows] - res.measured[rows]).ravel(),
+            "trivial": (res.trivial[rows] - res.measured[rows]).ravel(),
+        }
         if res.oracle is not None:
             by_name["oracle"] = (res.oracle[rows] - res.measured[rows]).ravel()
         out[beam_type] = by_name
@@ -150,16 +175,37 @@ def write_report(evaluation: Evaluation, scenario: Scenario, model: APSSource, o
     errors = _signed_errors(evaluation)
     cdf = plots.error_cdfs(out / "error_cdf.png", errors, f"{title}: RSRP error CDFs")
     hist = plots.error_histograms(out / "errors.png", errors, f"{title}: RSRP errors")
-    sections += ["## Errors", "", "Absolute error of every scored reported beam, per beam type, as a CDF (model, "
-                 "oracle floor, trivial baseline; the oracle is absent without ground truth), then the signed errors.",
-                 "", f"![error CDFs]({cdf.name})", "", f"![error histograms]({hist.name})", ""]  # fmt: skip
+    sections += [
+        "## Errors",
+        "",
+        "Absolute error of every scored reported beam, per beam type, as a CDF (model, "
+        "oracle floor, trivial baseline; the oracle is absent without ground truth), then the signed errors.",
+        "",
+        f"![error CDFs]({cdf.name})",
+        "",
+        f"![error histograms]({hist.name})",
+        "",
+    ]
     bars = plots.per_cell_bars(out / "per_cell.png", m["per_cell"], f"{title}: MAE per cell")
-    sections += ["## Per cell", "", f"![per-cell MAE]({bars.name})", "",
-                 _per_cell_table(m["per_cell"], _pair_counts(evaluation)), ""]  # fmt: skip
+    sections += [
+        "## Per cell",
+        "",
+        f"![per-cell MAE]({bars.name})",
+        "",
+        _per_cell_table(m["per_cell"], _pair_counts(evaluation)),
+        "",
+    ]
     aps = _aps_figure(evaluation, scenario, model, out)
     if aps is not None:
-        sections += ["## Angular power spectra", "", "True (binned ray-tracer paths) vs estimated APS for three test "
-                     "pairs (strong, median and weak received power).", "", f"![APS heat maps]({aps.name})", ""]  # fmt: skip
+        sections += [
+            "## Angular power spectra",
+            "",
+            "True (binned ray-tracer paths) vs estimated APS for three test "
+            "pairs (strong, median and weak received power).",
+            "",
+            f"![APS heat maps]({aps.name})",
+            "",
+        ]
     path = out / "report.md"
     path.write_text("\n".join(sections))
     return path
@@ -168,14 +214,16 @@ def write_report(evaluation: Evaluation, scenario: Scenario, model: APSSource, o
 def _summary_lines(m: dict[str, Any]) -> str:
     counts = m["counts"]
     settings = ", ".join(f"{k}={v}" for k, v in m["protocol"].items() if k != "name") or "defaults"
-    return "\n".join([
-        f"- scenario: `{m['scenario']['name']}` ({m['scenario']['root']})",
-        f"- model: `{m['model']['name']}`; protocol: `{m['protocol']['name']}` ({settings}); test round {m['test_round']}",
-        f"- scored: {counts['ssb']['scored_pairs']}/{counts['ssb']['test_pairs']} SSB and "
-        f"{counts['csi']['scored_pairs']}/{counts['csi']['test_pairs']} CSI-RS (cell, grid) pairs; "
-        f"{counts['ssb']['beams']} + {counts['csi']['beams']} reported beams",
-        f"- changed cells: {', '.join(map(str, counts['changed_cells'])) or 'none'}",
-    ])  # fmt: skip
+    return "\n".join(
+        [
+            f"- scenario: `{m['scenario']['name']}` ({m['scenario']['root']})",
+            f"- model: `{m['model']['name']}`; protocol: `{m['protocol']['name']}` ({settings}); test round {m['test_round']}",
+            f"- scored: {counts['ssb']['scored_pairs']}/{counts['ssb']['test_pairs']} SSB and "
+            f"{counts['csi']['scored_pairs']}/{counts['csi']['test_pairs']} CSI-RS (cell, grid) pairs; "
+            f"{counts['ssb']['beams']} + {counts['csi']['beams']} reported beams",
+            f"- changed cells: {', '.join(map(str, counts['changed_cells'])) or 'none'}",
+        ]
+    )
 
 
 FEW_PAIRS = 5
@@ -194,10 +242,14 @@ def _pair_counts(evaluation: Evaluation) -> dict[str, dict[str, int]]:
 
 def _per_cell_table(per_cell: dict[str, Any], pairs: dict[str, dict[str, int]] | None = None) -> str:
     pairs = pairs or {}
-    lines = ["MAE per cell (dB) and the number of scored (cell, grid) pairs it rests on; ⚠ marks fewer than "
-             f"{FEW_PAIRS} pairs, too few to judge the cell.", "",
-             "| cell | changed | SSB pairs | SSB model | SSB oracle | SSB trivial | CSI pairs | CSI model | CSI oracle | "
-             "CSI trivial |", "|---|:---:|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    lines = [
+        "MAE per cell (dB) and the number of scored (cell, grid) pairs it rests on; ⚠ marks fewer than "
+        f"{FEW_PAIRS} pairs, too few to judge the cell.",
+        "",
+        "| cell | changed | SSB pairs | SSB model | SSB oracle | SSB trivial | CSI pairs | CSI model | CSI oracle | "
+        "CSI trivial |",
+        "|---|:---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for cell, e in per_cell.items():
         n = pairs.get(cell, {})
         count = {bt: f"{n.get(bt, 0)} ⚠" if 0 < n.get(bt, 0) < FEW_PAIRS else str(n.get(bt, 0)) for bt in BEAM_TYPES}
@@ -211,8 +263,11 @@ def _per_cell_table(per_cell: dict[str, Any], pairs: dict[str, dict[str, int]] |
 
 def _layers(m: Any) -> dict[str, np.ndarray]:
     v = m.valid
-    return {"rsrp_dbm": np.where(v, m.best_rsrp_dbm, np.nan), "serving": np.where(v, m.serving_cell, -1),
-            "sinr_db": np.where(v, m.sinr_db, np.nan)}  # fmt: skip
+    return {
+        "rsrp_dbm": np.where(v, m.best_rsrp_dbm, np.nan),
+        "serving": np.where(v, m.serving_cell, -1),
+        "sinr_db": np.where(v, m.sinr_db, np.nan),
+    }
 
 
 def _network_section(evaluation: Evaluation, scenario: Scenario, out: Path, title: str) -> list[str]:
@@ -234,16 +289,24 @@ def _network_section(evaluation: Evaluation, scenario: Scenario, out: Path, titl
     cells = scenario.cells[evaluation.test_round].set_index("cell_id").loc[cell_ids]
     changed = np.isin(cell_ids, evaluation.metrics["counts"]["changed_cells"])
     xy = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y"]].to_numpy()
-    lines = ["## Network maps", "",
-             f"Best-server SSB RSRP, serving cell and SS-SINR per grid in round {evaluation.test_round}, measured "
-             "(strongest reported beam of each pair) and predicted (strongest of every beam) over the same "
-             f"{int(known.sum())} scored (cell, grid) pairs, and predicted − measured. SS-SINR counts the cells "
-             "measured at a grid as its interferers (rflscm.network.kpi).", "",
-             "| KPI | measured | predicted | predicted − measured |", "| --- | ---: | ---: | ---: |"]  # fmt: skip
+    lines = [
+        "## Network maps",
+        "",
+        f"Best-server SSB RSRP, serving cell and SS-SINR per grid in round {evaluation.test_round}, measured "
+        "(strongest reported beam of each pair) and predicted (strongest of every beam) over the same "
+        f"{int(known.sum())} scored (cell, grid) pairs, and predicted − measured. SS-SINR counts the cells "
+        "measured at a grid as its interferers (rflscm.network.kpi).",
+        "",
+        "| KPI | measured | predicted | predicted − measured |",
+        "| --- | ---: | ---: | ---: |",
+    ]
     km, kp = network_kpis(measured, freqs, kpi, known), network_kpis(predicted, freqs, kpi, known)
-    for key, label, scale in (("coverage", f"coverage, RSRP ≥ {kpi.threshold_dbm:g} dBm (%)", 100.0),
-                              ("mean_sinr_db", "mean SS-SINR (dB)", 1.0), ("overlap", "overlap (%)", 100.0),
-                              ("mean_rsrp_dbm", "mean best-server RSRP (dBm)", 1.0)):  # fmt: skip
+    for key, label, scale in (
+        ("coverage", f"coverage, RSRP ≥ {kpi.threshold_dbm:g} dBm (%)", 100.0),
+        ("mean_sinr_db", "mean SS-SINR (dB)", 1.0),
+        ("overlap", "overlap (%)", 100.0),
+        ("mean_rsrp_dbm", "mean best-server RSRP (dBm)", 1.0),
+    ):
         lines.append(
             f"| {label} | {km[key] * scale:.2f} | {kp[key] * scale:.2f} | {(kp[key] - km[key]) * scale:+.2f} |"
         )
@@ -253,10 +316,17 @@ def _network_section(evaluation: Evaluation, scenario: Scenario, out: Path, titl
     ):
         on = freqs == mm.freq_hz
         name = f"network_{mm.freq_hz / 1e9:g}GHz.png"
-        plots.kpi_maps(out / name, xy, [("measured", _layers(mm)), ("predicted", _layers(mp))], cell_ids[on],
-                       cells[["x", "y"]].to_numpy()[on], cells["azimuth_deg"].to_numpy()[on], changed[on],
-                       f"{title}: {mm.freq_hz / 1e9:g} GHz, round {evaluation.test_round}",
-                       difference=("predicted − measured", 0, 1))  # fmt: skip
+        plots.kpi_maps(
+            out / name,
+            xy,
+            [("measured", _layers(mm)), ("predicted", _layers(mp))],
+            cell_ids[on],
+            cells[["x", "y"]].to_numpy()[on],
+            cells["azimuth_deg"].to_numpy()[on],
+            changed[on],
+            f"{title}: {mm.freq_hz / 1e9:g} GHz, round {evaluation.test_round}",
+            difference=("predicted − measured", 0, 1),
+        )
         lines += [f"![network maps {mm.freq_hz / 1e9:g} GHz]({name})", ""]
     return lines
 
@@ -286,8 +356,10 @@ def learned_attenuation(model: Any, cells_per_side: int = 160, heights: int = 24
     stage = stages()[-1]
     frame = scene.frame
     lo, hi = np.asarray(frame.box_lo, dtype=np.float64), np.asarray(frame.box_hi, dtype=np.float64)
-    xs, ys, zs = (lo[k] + (np.arange(n) + 0.5) * (hi[k] - lo[k]) / n
-                  for k, n in ((0, cells_per_side), (1, cells_per_side), (2, heights)))  # fmt: skip
+    xs, ys, zs = (
+        lo[k] + (np.arange(n) + 0.5) * (hi[k] - lo[k]) / n
+        for k, n in ((0, cells_per_side), (1, cells_per_side), (2, heights))
+    )
     grid = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), axis=-1).reshape(-1, 3)  # [nx·ny·nz, 3]
     device = next(stage.parameters()).device
     step_m = stage.medium.voxel_m
@@ -306,6 +378,11 @@ def write_attenuation_map(model: Any, scenario: Scenario, path: str | Path, roun
     xs, ys, db_per_m = learned_attenuation(model)
     cells = scenario.cells[round] if round in scenario.cells else scenario.cells[1]
     return plots.attenuation_map(
-        Path(path), xs, ys, db_per_m, f"{model.name}: learned attenuation over {scenario.meta.name}",
-        cells[["x", "y"]].to_numpy(), cells["azimuth_deg"].to_numpy(),
-    )  # fmt: skip
+        Path(path),
+        xs,
+        ys,
+        db_per_m,
+        f"{model.name}: learned attenuation over {scenario.meta.name}",
+        cells[["x", "y"]].to_numpy(),
+        cells["azimuth_deg"].to_numpy(),
+    )

@@ -93,9 +93,15 @@ class PointPrior(nn.Module):
 
     @classmethod
     def from_points(
-        cls, points: np.ndarray, box_lo: np.ndarray, box_hi: np.ndarray, voxel_m: float, radius_m: float,
-        threshold: float, beta: float,
-    ) -> PointPrior:  # fmt: skip
+        cls,
+        points: np.ndarray,
+        box_lo: np.ndarray,
+        box_hi: np.ndarray,
+        voxel_m: float,
+        radius_m: float,
+        threshold: float,
+        beta: float,
+    ) -> PointPrior:
         """Count the cloud once on a ``voxel_m`` grid over the box (:func:`density_grid`)."""
         density, lo, hi = density_grid(points, box_lo, box_hi, voxel_m, radius_m)
         return cls(torch.from_numpy(density), torch.from_numpy(lo), torch.from_numpy(hi), threshold, beta)

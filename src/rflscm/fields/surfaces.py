@@ -35,9 +35,14 @@ def point_normals(points: np.ndarray, neighbours: int = 12) -> np.ndarray:
 
 
 def structure_grid(
-    points: np.ndarray, lo: np.ndarray, hi: np.ndarray, shape: tuple[int, int, int], neighbours: int = 12,
-    max_points: int = 400_000, seed: int = 0,
-) -> np.ndarray:  # fmt: skip
+    points: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    shape: tuple[int, int, int],
+    neighbours: int = 12,
+    max_points: int = 400_000,
+    seed: int = 0,
+) -> np.ndarray:
     """Mean n nᵀ per voxel of the grid spanning ``lo … hi`` with ``shape`` points: ``[nx, ny, nz, 6]``
     (components in :data:`_PAIRS` order, trace 1 where any point falls, 0 elsewhere).  Clouds larger
     than ``max_points`` are subsampled (deterministically with ``seed``) before the PCA."""

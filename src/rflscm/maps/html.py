@@ -73,8 +73,16 @@ def _scale_legend(scale: Scale, label: str) -> dict:
     return {"label": label, "colours": scale.gradient(), "low": scale.low, "high": scale.high, "unit": scale.unit}
 
 
-def page_data(cache: APSCache, scenario: Scenario, outputs: MapOutputs, grids: pd.DataFrame, cells: list[Props],
-              radius: list[float], measured: list[Props], title: str) -> dict:  # fmt: skip
+def page_data(
+    cache: APSCache,
+    scenario: Scenario,
+    outputs: MapOutputs,
+    grids: pd.DataFrame,
+    cells: list[Props],
+    radius: list[float],
+    measured: list[Props],
+    title: str,
+) -> dict:
     """The page's data object: grid squares [lat, lon], layers (name, kind, colours), popups, cells, legend."""
     frame, size, layers = outputs.frame, outputs.lattice.size_m, outputs.layers
     xy = grids[["x", "y"]].to_numpy()
@@ -93,35 +101,58 @@ def page_data(cache: APSCache, scenario: Scenario, outputs: MapOutputs, grids: p
                 {"name": f"{head} · best-server RSRP (dBm)", "colours": RSRP.colours(c.rsrp_dbm)},
                 {"name": f"{head} · serving cell", "colours": serving_colours(c.serving, scenario.cell_ids())},
                 {"name": f"{head} · SS-SINR (dB)", "colours": SINR.colours(c.sinr_db)},
-                {"name": f"{head} · coverage (RSRP ≥ {lay.threshold_dbm:g} dBm)",
-                 "colours": [None if np.isnan(v) else (COVERED if v else NOT_COVERED) for v in c.covered]},
-            ]  # fmt: skip
+                {
+                    "name": f"{head} · coverage (RSRP ≥ {lay.threshold_dbm:g} dBm)",
+                    "colours": [None if np.isnan(v) else (COVERED if v else NOT_COVERED) for v in c.covered],
+                },
+            ]
             for ov in overlays[-4:]:
                 ov["popup"] = f"{lay.round}|{c.key}"
             rows = []
             for g in range(len(gids)):
                 finite = np.flatnonzero(np.isfinite(c.cell_rsrp_dbm[:, g]))
                 order = finite[np.argsort(-c.cell_rsrp_dbm[finite, g])][:POPUP_CELLS]
-                rows.append([[int(c.cell_ids[i]), round(float(c.cell_rsrp_dbm[i, g]), 1),
-                              round(float(c.cell_sinr_db[i, g]), 1)] for i in order])  # fmt: skip
+                rows.append(
+                    [
+                        [
+                            int(c.cell_ids[i]),
+                            round(float(c.cell_rsrp_dbm[i, g]), 1),
+                            round(float(c.cell_sinr_db[i, g]), 1),
+                        ]
+                        for i in order
+                    ]
+                )
                 if c.serving[g] >= 0:
                     aps_pairs.add((int(c.serving[g]), int(gids[g])))
-            popups[f"{lay.round}|{c.key}"] = [rows, [int(s) for s in c.serving], _round1(c.rsrp_dbm),
-                                              _round1(c.sinr_db), head]  # fmt: skip
+            popups[f"{lay.round}|{c.key}"] = [
+                rows,
+                [int(s) for s in c.serving],
+                _round1(c.rsrp_dbm),
+                _round1(c.sinr_db),
+                head,
+            ]
     if len(layers) == 2:
         a, b = layers
         for x, y in zip(a.carriers, b.carriers, strict=True):
             head = f"round {b.round} − round {a.round} · {x.label}"
             moved = np.where((x.serving >= 0) & (y.serving >= 0), (x.serving != y.serving).astype(float), np.nan)
             overlays += [
-                {"name": f"{head} · RSRP change (dB)", "colours": DIFF.colours(y.rsrp_dbm - x.rsrp_dbm),
-                 "popup": f"{b.round}|{x.key}"},
-                {"name": f"{head} · SS-SINR change (dB)", "colours": DIFF.colours(y.sinr_db - x.sinr_db),
-                 "popup": f"{b.round}|{x.key}"},
-                {"name": f"{head} · serving cell changed (red)",
-                 "colours": [None if np.isnan(v) else ("#e31a1c" if v else "#d9d9d9") for v in moved],
-                 "popup": f"{b.round}|{x.key}"},
-            ]  # fmt: skip
+                {
+                    "name": f"{head} · RSRP change (dB)",
+                    "colours": DIFF.colours(y.rsrp_dbm - x.rsrp_dbm),
+                    "popup": f"{b.round}|{x.key}",
+                },
+                {
+                    "name": f"{head} · SS-SINR change (dB)",
+                    "colours": DIFF.colours(y.sinr_db - x.sinr_db),
+                    "popup": f"{b.round}|{x.key}",
+                },
+                {
+                    "name": f"{head} · serving cell changed (red)",
+                    "colours": [None if np.isnan(v) else ("#e31a1c" if v else "#d9d9d9") for v in moved],
+                    "popup": f"{b.round}|{x.key}",
+                },
+            ]
     aps = {}
     if aps_pairs:
         pairs = sorted(aps_pairs)
@@ -134,14 +165,24 @@ def page_data(cache: APSCache, scenario: Scenario, outputs: MapOutputs, grids: p
     cell_items = []
     for row, r in zip(cells, radius, strict=True):
         lon, lat = frame.lonlat(wedge(float(row["x"]), float(row["y"]), float(row["azimuth_deg"]), r))  # type: ignore[arg-type]
-        cell_items.append({"ring": [[round(float(b), 7), round(float(a), 7)] for a, b in zip(lon, lat, strict=True)],
-                           "round": row["round"], "changed": bool(row.get("changed")),
-                           "text": ", ".join(f"{k} {v}" for k, v in row.items() if k not in ("x", "y", "z"))})  # fmt: skip
+        cell_items.append(
+            {
+                "ring": [[round(float(b), 7), round(float(a), 7)] for a, b in zip(lon, lat, strict=True)],
+                "round": row["round"],
+                "changed": bool(row.get("changed")),
+                "text": ", ".join(f"{k} {v}" for k, v in row.items() if k not in ("x", "y", "z")),
+            }
+        )
     points = []
     for p in measured:
         lon, lat = frame.lonlat(np.array([[p["x"], p["y"]]], dtype=np.float64))
-        points.append({"at": [float(lat[0]), float(lon[0])], "round": p["round"],
-                       "text": ", ".join(f"{k} {v}" for k, v in p.items() if k not in ("x", "y"))})  # fmt: skip
+        points.append(
+            {
+                "at": [float(lat[0]), float(lon[0])],
+                "round": p["round"],
+                "text": ", ".join(f"{k} {v}" for k, v in p.items() if k not in ("x", "y")),
+            }
+        )
     rounds = [lay.round for lay in layers]
     return {
         "title": html.escape(title),
@@ -245,8 +286,17 @@ _CSS = """
 """
 
 
-def write_html(path: Path, cache: APSCache, scenario: Scenario, outputs: MapOutputs, grids: pd.DataFrame,
-               cells: list[Props], radius: list[float], measured: list[Props], title: str) -> Path:  # fmt: skip
+def write_html(
+    path: Path,
+    cache: APSCache,
+    scenario: Scenario,
+    outputs: MapOutputs,
+    grids: pd.DataFrame,
+    cells: list[Props],
+    radius: list[float],
+    measured: list[Props],
+    title: str,
+) -> Path:
     """Write the self-contained interactive map (see the module docstring)."""
     import folium
     from branca.element import Element, Figure, MacroElement

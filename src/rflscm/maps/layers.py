@@ -77,8 +77,9 @@ def round_layers(source: APSSource, scenario: Scenario, round: int, cfg: KPIConf
     pairs = map_pairs(scenario, cache)
     rsrp = cache.predict_rsrp(scenario, round, "ssb", pairs)  # [pairs, beams] dBm, as `rflscm predict`
     cell_ids, grid_ids = scenario.cell_ids(), scenario.grid_ids()
-    power, known = best_beam_power_from_rsrp(rsrp, pairs["cell_id"].to_numpy(), pairs["grid_id"].to_numpy(),
-                                             cell_ids, grid_ids)  # fmt: skip
+    power, known = best_beam_power_from_rsrp(
+        rsrp, pairs["cell_id"].to_numpy(), pairs["grid_id"].to_numpy(), cell_ids, grid_ids
+    )
     freqs = np.array([float(f) for f in scenario.cells[round]["freq_hz"]])
     all_known = bool(known.all())
     maps = grid_maps(power, cell_ids, freqs, cfg, None if all_known else known)

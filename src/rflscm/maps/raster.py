@@ -66,8 +66,9 @@ class Band:
     description: str
 
 
-def write_geotiff(path: Path, lattice: Lattice, frame: MapFrame, bands: list[Band], dtype: str, nodata: float,
-                  unit: str, title: str) -> Path:  # fmt: skip
+def write_geotiff(
+    path: Path, lattice: Lattice, frame: MapFrame, bands: list[Band], dtype: str, nodata: float, unit: str, title: str
+) -> Path:
     """One GeoTIFF (one band per carrier) in the scenario's local projected CRS, with its note as a tag."""
     import rasterio
     from rasterio.crs import CRS

@@ -113,7 +113,9 @@ def cell_rows(scenario: Scenario, before: int, after: int | None) -> list[Props]
                 d_az = (float(a.loc[cid, "azimuth_deg"]) - float(b.loc[cid, "azimuth_deg"]) + 180.0) % 360.0 - 180.0
                 d_mech = float(a.loc[cid, "mech_tilt_deg"]) - float(b.loc[cid, "mech_tilt_deg"])
                 d_elec = float(a.loc[cid, "elec_tilt_deg"]) - float(b.loc[cid, "elec_tilt_deg"])
-                codebooks = (a.loc[cid, ["ssb_codebook", "csi_codebook"]] != b.loc[cid, ["ssb_codebook", "csi_codebook"]]).any()  # fmt: skip
+                codebooks = (
+                    a.loc[cid, ["ssb_codebook", "csi_codebook"]] != b.loc[cid, ["ssb_codebook", "csi_codebook"]]
+                ).any()
                 row |= {
                     "change": f"round {before} → round {after}",
                     "d_azimuth_deg": d_az,
@@ -182,8 +184,16 @@ def _data(parent: ET.Element, props: Props) -> None:
         ET.SubElement(d, "value").text = "" if _clean(v) is None else str(_clean(v))
 
 
-def write_kml(path: Path, frame: MapFrame, title: str, grid_folders: list[tuple[str, list[Props], np.ndarray, str]],
-              size_m: float, cells: list[Props], radius: list[float], measured: list[Props]) -> Path:  # fmt: skip
+def write_kml(
+    path: Path,
+    frame: MapFrame,
+    title: str,
+    grid_folders: list[tuple[str, list[Props], np.ndarray, str]],
+    size_m: float,
+    cells: list[Props],
+    radius: list[float],
+    measured: list[Props],
+) -> Path:
     """KML for Google Earth: one folder per (round, carrier) of grid squares coloured by ``rsrp_key`` (every KPI
     in ExtendedData), the cells as wedges (changed ones red) and the measured points."""
     kml = ET.Element("kml", xmlns="http://www.opengis.net/kml/2.2")

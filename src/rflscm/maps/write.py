@@ -71,16 +71,47 @@ def _rasters(out: Path, lattice: Lattice, frame: MapFrame, layers: list[RoundLay
         r, t = lay.round, lay.threshold_dbm
         cs = lay.carriers
         files += [
-            write_geotiff(out / f"rsrp_round{r}.tif", lattice, frame, [Band(c.rsrp_dbm, c.label) for c in cs],
-                          "float32", float("nan"), "dBm", f"round {r}: best-server SSB RSRP (dBm), one band per carrier"),
-            write_geotiff(out / f"serving_cell_round{r}.tif", lattice, frame, [Band(c.serving, c.label) for c in cs],
-                          "int32", -1, "cell id", f"round {r}: serving cell id (−1: none), one band per carrier"),
-            write_geotiff(out / f"sinr_round{r}.tif", lattice, frame, [Band(c.sinr_db, c.label) for c in cs],
-                          "float32", float("nan"), "dB", f"round {r}: SS-SINR of the serving cell (dB)"),
-            write_geotiff(out / f"coverage_round{r}.tif", lattice, frame,
-                          [Band(np.where(np.isnan(c.covered), 255, c.covered).astype(np.uint8), c.label) for c in cs],
-                          "uint8", 255, "1 = covered", f"round {r}: best-server RSRP >= {t:g} dBm (1) or below (0)"),
-        ]  # fmt: skip
+            write_geotiff(
+                out / f"rsrp_round{r}.tif",
+                lattice,
+                frame,
+                [Band(c.rsrp_dbm, c.label) for c in cs],
+                "float32",
+                float("nan"),
+                "dBm",
+                f"round {r}: best-server SSB RSRP (dBm), one band per carrier",
+            ),
+            write_geotiff(
+                out / f"serving_cell_round{r}.tif",
+                lattice,
+                frame,
+                [Band(c.serving, c.label) for c in cs],
+                "int32",
+                -1,
+                "cell id",
+                f"round {r}: serving cell id (−1: none), one band per carrier",
+            ),
+            write_geotiff(
+                out / f"sinr_round{r}.tif",
+                lattice,
+                frame,
+                [Band(c.sinr_db, c.label) for c in cs],
+                "float32",
+                float("nan"),
+                "dB",
+                f"round {r}: SS-SINR of the serving cell (dB)",
+            ),
+            write_geotiff(
+                out / f"coverage_round{r}.tif",
+                lattice,
+                frame,
+                [Band(np.where(np.isnan(c.covered), 255, c.covered).astype(np.uint8), c.label) for c in cs],
+                "uint8",
+                255,
+                "1 = covered",
+                f"round {r}: best-server RSRP >= {t:g} dBm (1) or below (0)",
+            ),
+        ]
     if len(layers) == 2:
         (a, b), name = layers, f"round{layers[1].round}_minus_round{layers[0].round}"
         what = f"round {b.round} − round {a.round}"
@@ -88,24 +119,60 @@ def _rasters(out: Path, lattice: Lattice, frame: MapFrame, layers: list[RoundLay
         cov = [np.where(np.isnan(y.covered - x.covered), -128, y.covered - x.covered) for x, y in pairs]
         moved = [np.where((x.serving >= 0) & (y.serving >= 0), (x.serving != y.serving), 255) for x, y in pairs]
         files += [
-            write_geotiff(out / f"rsrp_diff_{name}.tif", lattice, frame,
-                          [Band(y.rsrp_dbm - x.rsrp_dbm, x.label) for x, y in pairs], "float32", float("nan"), "dB",
-                          f"{what}: best-server SSB RSRP difference (dB)"),
-            write_geotiff(out / f"sinr_diff_{name}.tif", lattice, frame,
-                          [Band(y.sinr_db - x.sinr_db, x.label) for x, y in pairs], "float32", float("nan"), "dB",
-                          f"{what}: SS-SINR difference (dB)"),
-            write_geotiff(out / f"coverage_diff_{name}.tif", lattice, frame,
-                          [Band(v.astype(np.int8), x.label) for v, (x, _) in zip(cov, pairs, strict=True)], "int8",
-                          -128, "+1 gained, -1 lost", f"{what}: coverage gained (+1), lost (−1), unchanged (0)"),
-            write_geotiff(out / f"serving_changed_{name}.tif", lattice, frame,
-                          [Band(v.astype(np.uint8), x.label) for v, (x, _) in zip(moved, pairs, strict=True)], "uint8",
-                          255, "1 = changed", f"{what}: serving cell changed (1) or not (0)"),
-        ]  # fmt: skip
+            write_geotiff(
+                out / f"rsrp_diff_{name}.tif",
+                lattice,
+                frame,
+                [Band(y.rsrp_dbm - x.rsrp_dbm, x.label) for x, y in pairs],
+                "float32",
+                float("nan"),
+                "dB",
+                f"{what}: best-server SSB RSRP difference (dB)",
+            ),
+            write_geotiff(
+                out / f"sinr_diff_{name}.tif",
+                lattice,
+                frame,
+                [Band(y.sinr_db - x.sinr_db, x.label) for x, y in pairs],
+                "float32",
+                float("nan"),
+                "dB",
+                f"{what}: SS-SINR difference (dB)",
+            ),
+            write_geotiff(
+                out / f"coverage_diff_{name}.tif",
+                lattice,
+                frame,
+                [Band(v.astype(np.int8), x.label) for v, (x, _) in zip(cov, pairs, strict=True)],
+                "int8",
+                -128,
+                "+1 gained, -1 lost",
+                f"{what}: coverage gained (+1), lost (−1), unchanged (0)",
+            ),
+            write_geotiff(
+                out / f"serving_changed_{name}.tif",
+                lattice,
+                frame,
+                [Band(v.astype(np.uint8), x.label) for v, (x, _) in zip(moved, pairs, strict=True)],
+                "uint8",
+                255,
+                "1 = changed",
+                f"{what}: serving cell changed (1) or not (0)",
+            ),
+        ]
     return files
 
 
-def write_layers(source: APSSource, scenario: Scenario, out: Path, round: int, compare_round: int | None = None,
-                 kpi: KPIConfig | None = None, html: bool = True, title: str | None = None) -> MapOutputs:  # fmt: skip
+def write_layers(
+    source: APSSource,
+    scenario: Scenario,
+    out: Path,
+    round: int,
+    compare_round: int | None = None,
+    kpi: KPIConfig | None = None,
+    html: bool = True,
+    title: str | None = None,
+) -> MapOutputs:
     """Write GeoTIFF rasters, GeoJSON, KML and (``html``) the interactive HTML map of ``round`` (and, with
     ``compare_round``, of that round and the difference) into the folder ``out``; docs/maps.md lists the files.
 
@@ -140,8 +207,10 @@ def write_layers(source: APSSource, scenario: Scenario, out: Path, round: int, c
     before, after = (round, compare_round) if compare_round is not None else ((1, round) if round != 1 else (1, None))
     cells = cell_rows(scenario, before, after)
     radius = [wedge_radius(scenario, c) for c in cells]
-    wedges = [polygon_feature(frame, wedge(c["x"], c["y"], c["azimuth_deg"], r), c)  # type: ignore[arg-type]
-              for c, r in zip(cells, radius, strict=True)]  # fmt: skip
+    wedges = [
+        polygon_feature(frame, wedge(c["x"], c["y"], c["azimuth_deg"], r), c)  # type: ignore[arg-type]
+        for c, r in zip(cells, radius, strict=True)
+    ]
     files.append(write_geojson(out / "cells.geojson", feature_collection(frame, wedges, "cells (sector wedges)")))
     measured = [row for r in rounds for row in measured_rows(scenario, r)]
     points = [point_feature(frame, p["x"], p["y"], p) for p in measured]  # type: ignore[arg-type]

@@ -195,15 +195,17 @@ class LSCMModel(abc.ABC):
             example = path / "model.ckpt"
             raise CheckpointError(f"{path}: is a folder; give the checkpoint a file name (e.g. {example}).")
         path.parent.mkdir(parents=True, exist_ok=True)
-        payload = to_plain({
-            "rflscm_version": __version__,
-            "model": self.name,
-            "fingerprint": self.fingerprint,
-            "angle_grid": self.angle_grid.to_dict(),
-            "run_info": self.run_info,
-            "state": self.state_dict_for_checkpoint(),
-            "train_state": train_state,
-        })  # fmt: skip
+        payload = to_plain(
+            {
+                "rflscm_version": __version__,
+                "model": self.name,
+                "fingerprint": self.fingerprint,
+                "angle_grid": self.angle_grid.to_dict(),
+                "run_info": self.run_info,
+                "state": self.state_dict_for_checkpoint(),
+                "train_state": train_state,
+            }
+        )
         checkpoint = {"format": CHECKPOINT_FORMAT, "sha256": content_hash(payload), "payload": payload}
 
         def write(tmp: Path) -> None:

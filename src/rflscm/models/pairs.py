@@ -70,9 +70,15 @@ def stacked_sensing(
 
 
 def build_pair_data(
-    scenario: Scenario, cell_ids: np.ndarray, a_norm: torch.Tensor, num_ssb: int, r_ref_mw: float,
-    val_pairs: int, val_fraction: float, seed: int,
-) -> PairData:  # fmt: skip
+    scenario: Scenario,
+    cell_ids: np.ndarray,
+    a_norm: torch.Tensor,
+    num_ssb: int,
+    r_ref_mw: float,
+    val_pairs: int,
+    val_fraction: float,
+    seed: int,
+) -> PairData:
     """Stack the round-1 SSB and CSI-RS tables of ``scenario`` into :class:`PairData`.
 
     ``a_norm [num_cells, M, N]`` is the normalised stacked sensing matrix (for ``x_scale``).  ``bound``

@@ -28,8 +28,10 @@ CANDIDATES: dict[str, tuple[Any, ...]] = {
 }
 """The grid searched: atoms, weights, and two stopping rules (the default; an earlier stop that leaves ~1 dB of
 residual, i.e. does not fit the noise)."""
-STOPPING: dict[str, dict[str, Any]] = {"tolerance 0.01": {"tolerance": 0.01, "residual_floor": 0.0},
-            "tolerance 0.05 + residual floor 0.25": {"tolerance": 0.05, "residual_floor": 0.25}}  # fmt: skip
+STOPPING: dict[str, dict[str, Any]] = {
+    "tolerance 0.01": {"tolerance": 0.01, "residual_floor": 0.0},
+    "tolerance 0.05 + residual floor 0.25": {"tolerance": 0.05, "residual_floor": 0.25},
+}
 
 
 def hold_aside(measurements: pd.DataFrame, fraction: float, seed: int) -> tuple[pd.DataFrame, np.ndarray]:
@@ -81,8 +83,15 @@ def select_wnomp(
         model.fit(train, progress=False)
         errors = {t: _held_errors(model, train, truth[truth["beam_type"] == t], t) for t in ("ssb", "csi")}
         pooled = np.concatenate(list(errors.values()))
-        rows.append({**label, "mae_ssb_db": _mean(errors["ssb"]), "mae_csi_db": _mean(errors["csi"]),
-                     "mae_db": _mean(pooled), "beams": int(pooled.size)})  # fmt: skip
+        rows.append(
+            {
+                **label,
+                "mae_ssb_db": _mean(errors["ssb"]),
+                "mae_csi_db": _mean(errors["csi"]),
+                "mae_db": _mean(pooled),
+                "beams": int(pooled.size),
+            }
+        )
     table = pd.DataFrame(rows)
     best = int(table["mae_db"].fillna(np.inf).to_numpy().argmin())
     return candidate_configs(base)[best][1], table

@@ -103,17 +103,23 @@ class OptimizeResult:
         keys = KPI_KEYS
         pairs = int(self.known.sum()) if self.known is not None else int(self.power_before.size)
         out: dict[str, Any] = {
-            "model": self.model, "objective": self.objective, "method": self.search.method,
+            "model": self.model,
+            "objective": self.objective,
+            "method": self.search.method,
             "kpi_pairs": "measured round-1 pairs only" if self.known is not None else "every (cell, grid) pair",
             "kpi_pair_count": pairs,
             "predicted": self.predicted,
             "predicted_gain": {k: self.predicted["after"][k] - self.predicted["before"][k] for k in keys},
             "changed_cells": len(self.changes),
-            "search": {"evaluations": self.search.evaluations, "time_s": self.search.time_s,
-                       "candidates_per_s": self.search.evaluations / max(self.search.time_s, 1e-9),
-                       "objective_before": self.search.base_objective, "objective_after": self.search.objective},
+            "search": {
+                "evaluations": self.search.evaluations,
+                "time_s": self.search.time_s,
+                "candidates_per_s": self.search.evaluations / max(self.search.time_s, 1e-9),
+                "objective_before": self.search.base_objective,
+                "objective_after": self.search.objective,
+            },
             "timings_s": self.timings,
-        }  # fmt: skip
+        }
         if self.held_out is not None:
             out["held_out"] = self.held_out
             out["held_out_gain"] = {k: self.held_out["after"][k] - self.held_out["before"][k] for k in keys}
@@ -170,8 +176,9 @@ def run_optimize(
     if 0 < n_held < num_grids:
         held[np.random.default_rng(seed).permutation(num_grids)[:n_held]] = True
     known = None if cache.known.all() else cache.known
-    ev = NetworkEvaluator(scenario, base_round, cache, space, kpi, objective, sinr_weight,
-                          grid_mask=~held if held.any() else None)  # fmt: skip
+    ev = NetworkEvaluator(
+        scenario, base_round, cache, space, kpi, objective, sinr_weight, grid_mask=~held if held.any() else None
+    )
     power_before = ev.power.double().numpy().copy()
     if method == "cd":
         result = coordinate_descent(ev, restarts=restarts, seed=seed, on_cell=on_step)
@@ -187,8 +194,20 @@ def run_optimize(
         return network_kpis(power, freqs, kpi, pairs)
 
     predicted = {"before": kpis_on(power_before, known), "after": kpis_on(power_after, known)}
-    out = OptimizeResult(cache.model, objective, method, result, base, after, changes_table(base, after),
-                         predicted, power_before, power_after, known, timings)  # fmt: skip
+    out = OptimizeResult(
+        cache.model,
+        objective,
+        method,
+        result,
+        base,
+        after,
+        changes_table(base, after),
+        predicted,
+        power_before,
+        power_after,
+        known,
+        timings,
+    )
     if held.any():
         pairs_held = (cache.known if known is not None else np.ones_like(cache.known)) & held[None, :]
         if pairs_held.any():
@@ -200,8 +219,10 @@ def run_optimize(
             "before": truth_verifier.best_power(base),
             "after": truth_verifier.best_power(after),
         }
-        note = ("noiseless expectation from the traced paths (no noise, quantisation or reporting rule); "
-                f"regime {truth_verifier.regime}")  # fmt: skip
+        note = (
+            "noiseless expectation from the traced paths (no noise, quantisation or reporting rule); "
+            f"regime {truth_verifier.regime}"
+        )
         out.truth = {
             "before": kpis_on(out.truth_power["before"], known),
             "after": kpis_on(out.truth_power["after"], known),

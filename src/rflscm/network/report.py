@@ -16,10 +16,14 @@ if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
     from rflscm.network.optimize import OptimizeResult
 
-KPI_ROWS = (("coverage", "coverage ratio", 100.0, "%"), ("mean_sinr_db", "mean SS-SINR", 1.0, "dB"),
-            ("p5_sinr_db", "5th-percentile SS-SINR", 1.0, "dB"), ("overlap", "overlap ratio", 100.0, "%"),
-            ("mean_rsrp_dbm", "mean best-server RSRP", 1.0, "dBm"),
-            ("no_signal", "no signal at all", 100.0, "%"))  # fmt: skip
+KPI_ROWS = (
+    ("coverage", "coverage ratio", 100.0, "%"),
+    ("mean_sinr_db", "mean SS-SINR", 1.0, "dB"),
+    ("p5_sinr_db", "5th-percentile SS-SINR", 1.0, "dB"),
+    ("overlap", "overlap ratio", 100.0, "%"),
+    ("mean_rsrp_dbm", "mean best-server RSRP", 1.0, "dBm"),
+    ("no_signal", "no signal at all", 100.0, "%"),
+)
 
 
 def _row(label: str, unit: str, scale: float, kpis: dict[str, Any], key: str) -> str:
@@ -88,8 +92,15 @@ def gap_lines(result: OptimizeResult, summary: dict[str, Any]) -> list[str]:
     return lines
 
 
-def write_report(result: OptimizeResult, scenario: Scenario, out_dir: Path, kpi: KPIConfig, round_written: int,
-                 scenario_dir: Path, command: str = "") -> Path:  # fmt: skip
+def write_report(
+    result: OptimizeResult,
+    scenario: Scenario,
+    out_dir: Path,
+    kpi: KPIConfig,
+    round_written: int,
+    scenario_dir: Path,
+    command: str = "",
+) -> Path:
     """Write ``report.md``, ``summary.json``, ``changes.csv`` and the map PNGs into ``out_dir``."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -100,12 +111,17 @@ def write_report(result: OptimizeResult, scenario: Scenario, out_dir: Path, kpi:
     result.changes.to_csv(out_dir / "changes.csv", index=False)
     maps = _maps(result, scenario, out_dir, kpi)
     s = result.search
-    held = (f" The search scored {len(scenario.grid_ids()) - result.held_out_grids} grids and never saw the other "
-            f"{result.held_out_grids} (held out), whose predicted gain checks the recommendation."
-            if result.held_out is not None else "")  # fmt: skip
+    held = (
+        f" The search scored {len(scenario.grid_ids()) - result.held_out_grids} grids and never saw the other "
+        f"{result.held_out_grids} (held out), whose predicted gain checks the recommendation."
+        if result.held_out is not None
+        else ""
+    )
     lines = [
-        f"# rflscm optimize — {scenario.meta.name}", "",
-        verdict_markdown(summary["verdict"]), "",
+        f"# rflscm optimize — {scenario.meta.name}",
+        "",
+        verdict_markdown(summary["verdict"]),
+        "",
         f"Model **{result.model}**, objective **{result.objective}**, search **{s.method}**: "
         f"{s.evaluations} single-cell candidate evaluations in {s.time_s:.1f} s "
         f"({s.evaluations / max(s.time_s, 1e-9):.0f}/s); objective {s.base_objective:.4f} → {s.objective:.4f}.{held}",
@@ -113,7 +129,7 @@ def write_report(result: OptimizeResult, scenario: Scenario, out_dir: Path, kpi:
         f"KPIs on {summary['kpi_pairs']} ({summary['kpi_pair_count']} (cell, grid) pairs), predicted and true alike. "
         f"SS-SINR: serving cell against every other cell's best SSB beam on the same carrier plus thermal noise "
         f"per resource element (constants below). Coverage: best-server SSB RSRP ≥ {kpi.threshold_dbm:g} dBm.",
-    ]  # fmt: skip
+    ]
     if result.truth is not None:
         lines += ["", f"True KPIs: {result.truth['note']}."]
     else:
@@ -123,9 +139,15 @@ def write_report(result: OptimizeResult, scenario: Scenario, out_dir: Path, kpi:
         lines += ["### Predicted against true", "", *gap_lines(result, summary), ""]
     lines += ["## Changed cells", ""]
     lines += _changes_md(result.changes)
-    lines += ["", f"Written as round {round_written} of `{scenario_dir / 'scenario.yaml'}` (it names the original "
-              f"scenario's files by relative paths); `rflscm predict CKPT {scenario_dir} --round {round_written} "
-              f"--pairs {'measured' if result.known is not None else 'all'} --kpi` reproduces the predicted KPIs.", "", "## Maps (predicted)", ""]  # fmt: skip
+    lines += [
+        "",
+        f"Written as round {round_written} of `{scenario_dir / 'scenario.yaml'}` (it names the original "
+        f"scenario's files by relative paths); `rflscm predict CKPT {scenario_dir} --round {round_written} "
+        f"--pairs {'measured' if result.known is not None else 'all'} --kpi` reproduces the predicted KPIs.",
+        "",
+        "## Maps (predicted)",
+        "",
+    ]
     lines += [f"![{m}]({m})" for m in maps]
     lines += [
         "",
@@ -145,8 +167,10 @@ def write_report(result: OptimizeResult, scenario: Scenario, out_dir: Path, kpi:
 def _changes_md(changes: pd.DataFrame) -> list[str]:
     if len(changes) == 0:
         return ["No cell changed: the present configuration is the best found."]
-    lines = ["| cell | site | carrier (GHz) | SSB codebook | elec. tilt (°) | mech. tilt (°) | azimuth (°, clockwise from north) |",
-             "| ---: | ---: | ---: | --- | --- | --- | --- |"]  # fmt: skip
+    lines = [
+        "| cell | site | carrier (GHz) | SSB codebook | elec. tilt (°) | mech. tilt (°) | azimuth (°, clockwise from north) |",
+        "| ---: | ---: | ---: | --- | --- | --- | --- |",
+    ]
     for r in changes.itertuples(index=False):
         lines.append(
             f"| {r.cell_id} | {r.site_id} | {r.freq_hz / 1e9:g} | {r.ssb_codebook_before} → {r.ssb_codebook_after} | "
@@ -173,9 +197,17 @@ def _maps(result: OptimizeResult, scenario: Scenario, out_dir: Path, kpi: KPICon
         on = freqs == mb.freq_hz
         rows = [(label, _layers(m)) for label, m in (("before", mb), ("after", ma))]
         name = f"maps_{mb.freq_hz / 1e9:g}GHz.png"
-        kpi_maps(out_dir / name, xy, rows, cell_ids[on], cells[["x", "y"]].to_numpy()[on], after_az[on], changed[on],
-                 f"{mb.freq_hz / 1e9:g} GHz, model {result.model}: predicted before and after (arrows: after)",
-                 difference=("after − before", 0, 1))  # fmt: skip
+        kpi_maps(
+            out_dir / name,
+            xy,
+            rows,
+            cell_ids[on],
+            cells[["x", "y"]].to_numpy()[on],
+            after_az[on],
+            changed[on],
+            f"{mb.freq_hz / 1e9:g} GHz, model {result.model}: predicted before and after (arrows: after)",
+            difference=("after − before", 0, 1),
+        )
         names.append(name)
     return names
 

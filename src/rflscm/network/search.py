@@ -61,11 +61,26 @@ class NetworkEvaluator:
         grid_mask: ``[num_grids]`` grids the objective scores (None: all); the others are held out.
     """
 
-    def __init__(self, scenario: Scenario, base_round: int, cache: ApsCache, space: SearchSpace, kpi: KPIConfig,
-                 objective: str = "coverage", sinr_weight: float = 0.1,
-                 grid_mask: np.ndarray | None = None) -> None:  # fmt: skip
-        objective_value({"coverage": torch.zeros(1), "num_samples": torch.ones(1), "margin": torch.zeros(1),
-                         "mean_sinr_clipped_db": torch.zeros(1)}, objective)  # fmt: skip  # validates the name
+    def __init__(
+        self,
+        scenario: Scenario,
+        base_round: int,
+        cache: ApsCache,
+        space: SearchSpace,
+        kpi: KPIConfig,
+        objective: str = "coverage",
+        sinr_weight: float = 0.1,
+        grid_mask: np.ndarray | None = None,
+    ) -> None:
+        objective_value(
+            {
+                "coverage": torch.zeros(1),
+                "num_samples": torch.ones(1),
+                "margin": torch.zeros(1),
+                "mean_sinr_clipped_db": torch.zeros(1),
+            },
+            objective,
+        )  # validates the name
         self.cache, self.space, self.kpi = cache, space, kpi
         self.objective, self.sinr_weight = objective, sinr_weight
         self.freqs = np.array([scenario.freq_hz(int(c)) for c in cache.cell_ids])
@@ -80,8 +95,10 @@ class NetworkEvaluator:
         self.known = torch.as_tensor(known)
         self.all_known = bool(known.all())
         dirs = cache.angle_grid.directions(dtype=torch.float32)
-        self.sensing = [CellSensing(scenario, int(c), base_round, dirs[torch.as_tensor(cache.bins[i])], space.cells[i])
-                        for i, c in enumerate(cache.cell_ids)]  # fmt: skip
+        self.sensing = [
+            CellSensing(scenario, int(c), base_round, dirs[torch.as_tensor(cache.bins[i])], space.cells[i])
+            for i, c in enumerate(cache.cell_ids)
+        ]
         self.base: Config = [c.current for c in space.cells]
         self.evaluations = 0
         self.config: Config = list(self.base)
@@ -144,8 +161,9 @@ class NetworkEvaluator:
 
     def kpis(self) -> dict[str, Any]:
         """Network KPIs (pooled and per carrier) of the current configuration."""
-        return network_kpis(self.power.double().numpy(), self.freqs, self.kpi,
-                            None if self.all_known else self.known_np)  # fmt: skip
+        return network_kpis(
+            self.power.double().numpy(), self.freqs, self.kpi, None if self.all_known else self.known_np
+        )
 
 
 def _expand(samples: dict[str, torch.Tensor], n: int) -> dict[str, torch.Tensor]:
@@ -328,8 +346,26 @@ def differential_evolution(
             on_generation()
         return time.perf_counter() - t0 > time_budget_s
 
-    scipy_de(fun, bounds, x0=x0, integrality=np.ones(len(bounds), dtype=bool), popsize=popsize, seed=seed,
-             polish=False, maxiter=10**6, tol=0.0, callback=stop, init="latinhypercube")  # fmt: skip
+    scipy_de(
+        fun,
+        bounds,
+        x0=x0,
+        integrality=np.ones(len(bounds), dtype=bool),
+        popsize=popsize,
+        seed=seed,
+        polish=False,
+        maxiter=10**6,
+        tol=0.0,
+        callback=stop,
+        init="latinhypercube",
+    )
     ev.set_config(state["config"])
-    return SearchResult(state["config"], state["best"], base_obj, ev.evaluations, time.perf_counter() - t0,
-                        "scipy-differential-evolution", history)  # fmt: skip
+    return SearchResult(
+        state["config"],
+        state["best"],
+        base_obj,
+        ev.evaluations,
+        time.perf_counter() - t0,
+        "scipy-differential-evolution",
+        history,
+    )

@@ -142,8 +142,17 @@ class SearchSpace:
                     index[k] = opts.current[k]
                 config[pos] = tuple(index)
         for group in self.panels:
-            lead = next((p for p in group if any(config[p][VARIABLES.index(v)] != self.cells[p].current[VARIABLES.index(v)]
-                                                   for v in SHARED_VARIABLES)), group[0])  # fmt: skip
+            lead = next(
+                (
+                    p
+                    for p in group
+                    if any(
+                        config[p][VARIABLES.index(v)] != self.cells[p].current[VARIABLES.index(v)]
+                        for v in SHARED_VARIABLES
+                    )
+                ),
+                group[0],
+            )
             for other in group:
                 if other == lead:
                     continue
@@ -320,8 +329,11 @@ def check_physical(key: str, lo: float, hi: float, where: str) -> None:
         return
     a, b = PHYSICAL_LIMITS[key]
     if lo < a - 1e-9 or hi > b + 1e-9:
-        what = {"mech_tilt_deg": "mechanical tilt", "elec_tilt_deg": "electrical tilt",
-                "azimuth_offset_deg": "azimuth offset"}[key]  # fmt: skip
+        what = {
+            "mech_tilt_deg": "mechanical tilt",
+            "elec_tilt_deg": "electrical tilt",
+            "azimuth_offset_deg": "azimuth offset",
+        }[key]
         raise ConfigError(
             f"{where} {lo:g}:{hi:g}: the {what} must stay within the physical limits {a:g}…{b:g} degrees "
             "(docs/optimize.md)."
@@ -359,8 +371,12 @@ def _cell_options(
     cell_id = int(row.cell_id)
     current_book = str(row.ssb_codebook)
     if frozen:
-        values: dict[str, tuple[Any, ...]] = {"ssb_codebook": (current_book,), "elec_tilt_deg": (float(row.elec_tilt_deg),),
-                  "mech_tilt_deg": (float(row.mech_tilt_deg),), "azimuth_deg": (float(row.azimuth_deg),)}  # fmt: skip
+        values: dict[str, tuple[Any, ...]] = {
+            "ssb_codebook": (current_book,),
+            "elec_tilt_deg": (float(row.elec_tilt_deg),),
+            "mech_tilt_deg": (float(row.mech_tilt_deg),),
+            "azimuth_deg": (float(row.azimuth_deg),),
+        }
         return CellOptions(cell_id, values, (0, 0, 0, 0))
     books = opts.get("ssb_codebooks", "all")
     if books in (None, "all"):

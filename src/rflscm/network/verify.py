@@ -40,8 +40,9 @@ class TruthVerifier:
         ppg = scenario.meta.simulation.get("points_per_grid")
         if ppg is None:
             raise DataError("scenario.yaml `simulation.points_per_grid` is missing; the true RSRP cannot be computed.")
-        paths = read_table(folder / PATHS_FILE).astype({"power_lin": "float64", "aod_el_rad": "float64",
-                                                        "aod_az_rad": "float64"})  # fmt: skip
+        paths = read_table(folder / PATHS_FILE).astype(
+            {"power_lin": "float64", "aod_el_rad": "float64", "aod_az_rad": "float64"}
+        )
         self.scenario = scenario
         self.points_per_grid = int(ppg)
         self.groups = site_groups(paths)
@@ -65,8 +66,14 @@ class TruthVerifier:
             key = (int(cell_id), *(row[v] for v in VARIABLES))
             if key not in self._cache:
                 sub = self.groups.get((int(row["site_id"]), float(row["freq_hz"])), self.empty)
-                rsrp = path_rsrp_mw(sub, scen.antenna(int(cell_id), 0), scen.codebook(int(cell_id), "ssb", 0),
-                                    scen.wavelength_m(int(cell_id)), grid_ids, self.points_per_grid)  # fmt: skip
+                rsrp = path_rsrp_mw(
+                    sub,
+                    scen.antenna(int(cell_id), 0),
+                    scen.codebook(int(cell_id), "ssb", 0),
+                    scen.wavelength_m(int(cell_id)),
+                    grid_ids,
+                    self.points_per_grid,
+                )
                 self._cache[key] = rsrp.max(axis=1) if rsrp.shape[1] else np.zeros(len(grid_ids))
             out[i] = self._cache[key]
         return out

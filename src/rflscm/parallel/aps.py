@@ -147,8 +147,13 @@ def run_ray(engine: Engine, load: Callable[[], APSSource], chunks: list[list[Tas
 Runner = Callable[[list[list[Task]]], list[list[Answer]]]
 
 
-def fill_cache(cache: FilledAPSCache, scenario: Scenario, requests: Sequence[tuple[np.ndarray, np.ndarray]],
-               num_chunks: int, run: Runner) -> int:  # fmt: skip
+def fill_cache(
+    cache: FilledAPSCache,
+    scenario: Scenario,
+    requests: Sequence[tuple[np.ndarray, np.ndarray]],
+    num_chunks: int,
+    run: Runner,
+) -> int:
     """Answer, through ``run``, the calls ``requests`` would make on ``cache``'s source, and store them in
     ``cache``.  Returns the number of pairs filled."""
     calls = cache_misses(requests, cache.known())
@@ -166,8 +171,13 @@ def fill_cache(cache: FilledAPSCache, scenario: Scenario, requests: Sequence[tup
     return filled
 
 
-def filled_cache(model: APSSource, scenario: Scenario, requests: Sequence[tuple[np.ndarray, np.ndarray]],
-                 engine: Engine, load: Callable[[], APSSource]) -> FilledAPSCache:  # fmt: skip
+def filled_cache(
+    model: APSSource,
+    scenario: Scenario,
+    requests: Sequence[tuple[np.ndarray, np.ndarray]],
+    engine: Engine,
+    load: Callable[[], APSSource],
+) -> FilledAPSCache:
     """An APS cache of ``model`` holding, when ``engine`` is parallel, the answers to ``requests`` computed by
     Ray workers (each ``load()``-ing its own copy of the model); with one in-process worker, an empty one."""
     cache = FilledAPSCache(model)
@@ -184,8 +194,9 @@ def prediction_requests(pairs: pd.DataFrame) -> list[tuple[np.ndarray, np.ndarra
     return [(cells[b], grids[b]) for b in predict_blocks(cells)]
 
 
-def prediction_cache(model: APSSource, scenario: Scenario, pairs: pd.DataFrame, engine: Engine,
-                     load: Callable[[], APSSource]) -> FilledAPSCache:  # fmt: skip
+def prediction_cache(
+    model: APSSource, scenario: Scenario, pairs: pd.DataFrame, engine: Engine, load: Callable[[], APSSource]
+) -> FilledAPSCache:
     """The APS cache ``rflscm predict`` reads for ``pairs``, filled in parallel when ``engine`` is."""
     return filled_cache(model, scenario, prediction_requests(pairs), engine, load)
 
@@ -211,8 +222,9 @@ def evaluation_requests(
     return requests
 
 
-def evaluation_cache(model: APSSource, scenario: Scenario, protocol: Protocol, engine: Engine,
-                     load: Callable[[], APSSource]) -> FilledAPSCache:  # fmt: skip
+def evaluation_cache(
+    model: APSSource, scenario: Scenario, protocol: Protocol, engine: Engine, load: Callable[[], APSSource]
+) -> FilledAPSCache:
     """The model as :func:`rflscm.eval.run_evaluation` should get it: its APS of the test pairs computed in
     parallel when ``engine`` is (the evaluation then only reads them)."""
     requests = evaluation_requests(model, scenario, protocol) if engine.parallel else []

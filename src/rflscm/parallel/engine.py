@@ -19,13 +19,18 @@ from rflscm.errors import ConfigError
 OBJECT_STORE_BYTES = 200 * 1024**2
 
 WorkersOption = typer.Option(
-    1, "--workers", min=1, metavar="N",
+    1,
+    "--workers",
+    min=1,
+    metavar="N",
     help="Worker processes (count): 1 runs in-process; N > 1 starts a local Ray with N CPUs (needs the ray extra of rflscm).",
-)  # fmt: skip
+)
 RayAddressOption = typer.Option(
-    None, "--ray-address", metavar="ADDR",
+    None,
+    "--ray-address",
+    metavar="ADDR",
     help="Join this existing Ray cluster (host:port or 'auto') instead of starting one; --workers actors run there.",
-)  # fmt: skip
+)
 
 
 @dataclass(frozen=True)

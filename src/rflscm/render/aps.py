@@ -61,9 +61,12 @@ def accumulate_power(
 
 
 def render_power(
-    log_delta: torch.Tensor, radiance: torch.Tensor, ray: torch.Tensor, num_rays: int,
+    log_delta: torch.Tensor,
+    radiance: torch.Tensor,
+    ray: torch.Tensor,
+    num_rays: int,
     max_log_gain: float | None = 0.0,
-) -> torch.Tensor:  # fmt: skip
+) -> torch.Tensor:
     """x̃ = |Σ_q (Π δ̃) R̃_q|² ``[num_rays]`` from log δ̃ and R̃ (complex ``[S]``) of samples of rays ``ray [S]``."""
     contrib = transmittance(log_delta, ray, max_log_gain) * radiance
     return accumulate_power(contrib, ray, num_rays)

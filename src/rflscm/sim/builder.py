@@ -259,15 +259,27 @@ def make_cells(sites: np.ndarray, config: SimulationConfig, rng: np.random.Gener
         for c, freq in enumerate(config.carriers_hz):
             wl = wavelength_of(freq)
             for k, az in enumerate(config.sector_azimuths_deg):
-                rows.append({
-                    "cell_id": 100 * (s + 1) + 10 * c + k, "site_id": s + 1,
-                    "x": pos[0], "y": pos[1], "z": pos[2],
-                    "azimuth_deg": float(np.round((az + jitter[s, k]) % 360.0, 1)),
-                    "mech_tilt_deg": config.mech_tilt_deg, "elec_tilt_deg": config.elec_tilt_deg,
-                    "freq_hz": float(freq), "tx_power_dbm": config.tx_power_dbm,
-                    "array_nh": 8, "array_nv": 4, "spacing_h_m": 0.5 * wl, "spacing_v_m": 0.7 * wl,
-                    "ssb_codebook": ROUND1_CODEBOOKS[0], "csi_codebook": ROUND1_CODEBOOKS[1], "element": "tr38901",
-                })  # fmt: skip
+                rows.append(
+                    {
+                        "cell_id": 100 * (s + 1) + 10 * c + k,
+                        "site_id": s + 1,
+                        "x": pos[0],
+                        "y": pos[1],
+                        "z": pos[2],
+                        "azimuth_deg": float(np.round((az + jitter[s, k]) % 360.0, 1)),
+                        "mech_tilt_deg": config.mech_tilt_deg,
+                        "elec_tilt_deg": config.elec_tilt_deg,
+                        "freq_hz": float(freq),
+                        "tx_power_dbm": config.tx_power_dbm,
+                        "array_nh": 8,
+                        "array_nv": 4,
+                        "spacing_h_m": 0.5 * wl,
+                        "spacing_v_m": 0.7 * wl,
+                        "ssb_codebook": ROUND1_CODEBOOKS[0],
+                        "csi_codebook": ROUND1_CODEBOOKS[1],
+                        "element": "tr38901",
+                    }
+                )
     return pd.DataFrame(rows)
 
 
@@ -369,13 +381,26 @@ def trace_all(
             seconds += time.perf_counter() - start
             rx_index = table["rx_index"].to_numpy()
             table = table.drop(columns="rx_index").assign(
-                site_id=np.int32(s + 1), freq_hz=float(freq), grid_id=grid_ids[rx_index // k],
+                site_id=np.int32(s + 1),
+                freq_hz=float(freq),
+                grid_id=grid_ids[rx_index // k],
                 point_id=(rx_index % k).astype(np.int16),
-            )  # fmt: skip
+            )
             tables.append(trim_paths(table, config.truth_floor_db))
     paths = pd.concat(tables, ignore_index=True)
-    paths = paths[["site_id", "freq_hz", "grid_id", "point_id", "power_lin", "aod_el_rad", "aod_az_rad",
-                   "delay_s", "interactions"]]  # fmt: skip
+    paths = paths[
+        [
+            "site_id",
+            "freq_hz",
+            "grid_id",
+            "point_id",
+            "power_lin",
+            "aod_el_rad",
+            "aod_az_rad",
+            "delay_s",
+            "interactions",
+        ]
+    ]
     stats = {
         "trace_seconds": seconds,
         "seconds_per_1000_rx_per_carrier": 1000.0 * seconds / max(len(jobs) * len(rx), 1),
@@ -417,13 +442,18 @@ def build_scenario(
     cloud = _crop(scan, config, sites, grids)
 
     meta = ScenarioMeta(
-        name=config.name, description=config.description or f"simulated with rflscm ({backend.name})",
-        frequencies_hz=tuple(float(f) for f in config.carriers_hz), codebooks=dict(CODEBOOKS),
-        rounds={1: "cells_round1.parquet", 2: "cells_round2.parquet"}, grids="grids.parquet",
-        measurements="measurements.parquet", rsrp_threshold_dbm=config.threshold_dbm,
-        point_cloud="point_cloud.ply", truth="truth",
+        name=config.name,
+        description=config.description or f"simulated with rflscm ({backend.name})",
+        frequencies_hz=tuple(float(f) for f in config.carriers_hz),
+        codebooks=dict(CODEBOOKS),
+        rounds={1: "cells_round1.parquet", 2: "cells_round2.parquet"},
+        grids="grids.parquet",
+        measurements="measurements.parquet",
+        rsrp_threshold_dbm=config.threshold_dbm,
+        point_cloud="point_cloud.ply",
+        truth="truth",
         simulation=_provenance(backend, config, scene, changes),
-    )  # fmt: skip
+    )
     out.mkdir(parents=True, exist_ok=True)
     scenario = Scenario(out.resolve(), meta, {1: cells1, 2: cells2}, grids, empty_measurements(), cloud)
     scenario = _normalised(scenario)
@@ -498,11 +528,13 @@ def write_sample_truth(
 def _summary(scenario: Scenario, paths: pd.DataFrame) -> dict[str, float]:
     m = scenario.measurements
     return {
-        "num_cells": float(len(scenario.cells[1])), "num_grids": float(len(scenario.grids)),
-        "num_paths": float(len(paths)), "measurement_rows": float(len(m)),
+        "num_cells": float(len(scenario.cells[1])),
+        "num_grids": float(len(scenario.grids)),
+        "num_paths": float(len(paths)),
+        "measurement_rows": float(len(m)),
         "fraction_missing": float(m["rsrp_dbm"].isna().mean()) if len(m) else float("nan"),
         "reported_pairs_round1": float(len(m[m["round"] == 1].groupby(["cell_id", "grid_id"]))),
-    }  # fmt: skip
+    }
 
 
 def _normalised(scenario: Scenario) -> Scenario:

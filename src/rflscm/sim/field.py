@@ -115,9 +115,19 @@ class FieldConfig:
     @classmethod
     def ideal(cls, sigma_db: float = 2.0, quantization_db: float = 1.0, threshold_dbm: float = -120.0) -> FieldConfig:
         """Every field effect off: the ideal regime's measurements."""
-        return cls(positions="all", fading=False, accuracy_sigma_db=sigma_db, quantization_db=quantization_db,
-                   threshold_dbm=threshold_dbm, array_amp_sigma_db=0.0, array_phase_sigma_deg=0.0,
-                   ssb_detection="threshold", ssb_top_n=None, csi_serving_only=False, csi_top_n=None)  # fmt: skip
+        return cls(
+            positions="all",
+            fading=False,
+            accuracy_sigma_db=sigma_db,
+            quantization_db=quantization_db,
+            threshold_dbm=threshold_dbm,
+            array_amp_sigma_db=0.0,
+            array_phase_sigma_deg=0.0,
+            ssb_detection="threshold",
+            ssb_top_n=None,
+            csi_serving_only=False,
+            csi_top_n=None,
+        )
 
     @property
     def noise_dbm(self) -> float:
@@ -157,8 +167,9 @@ def draw_samples(
             counts = np.stack([(picks == k).sum(1) for k in range(points_per_grid)], axis=1).astype(float)
         weight = counts / counts.sum(1, keepdims=True)
         g, k = np.nonzero(weight)
-        frames.append(pd.DataFrame({"round": rnd, "grid_id": grid_ids[g], "point_id": k.astype(np.int16),
-                                    "weight": weight[g, k]}))  # fmt: skip
+        frames.append(
+            pd.DataFrame({"round": rnd, "grid_id": grid_ids[g], "point_id": k.astype(np.int16), "weight": weight[g, k]})
+        )
     return pd.concat(frames, ignore_index=True)
 
 
@@ -179,8 +190,14 @@ def path_beam_power(paths: pd.DataFrame, antenna, codebook, wavelength_m: float,
     directions = path_directions(paths)
     power = paths["power_lin"].to_numpy(np.float64)
     for start in range(0, len(paths), _CHUNK):
-        a = sensing_matrix(antenna, codebook, directions[start : start + _CHUNK], wavelength_m,
-                           dtype=torch.float64, element_gains=gains)  # fmt: skip
+        a = sensing_matrix(
+            antenna,
+            codebook,
+            directions[start : start + _CHUNK],
+            wavelength_m,
+            dtype=torch.float64,
+            element_gains=gains,
+        )
         out[start : start + _CHUNK] = a.numpy().T * power[start : start + _CHUNK, None]
     return out
 
@@ -193,8 +210,14 @@ class SampleSums:
     per grid.
     """
 
-    def __init__(self, paths: pd.DataFrame, grid_ids: np.ndarray, samples: pd.DataFrame, config: FieldConfig,
-                 rng: np.random.Generator) -> None:  # fmt: skip
+    def __init__(
+        self,
+        paths: pd.DataFrame,
+        grid_ids: np.ndarray,
+        samples: pd.DataFrame,
+        config: FieldConfig,
+        rng: np.random.Generator,
+    ) -> None:
         from scipy import sparse
 
         num_grids, num_paths = len(grid_ids), len(paths)
@@ -245,8 +268,13 @@ def _sample_points(grid_ids: np.ndarray, samples: pd.DataFrame, k: int) -> np.nd
 
 # ---- the whole measurement step ---------------------------------------------------------------------------
 def _no_channel_effects(config: FieldConfig) -> bool:
-    return (config.positions == "all" and not config.fading and config.real_element is None
-            and config.array_amp_sigma_db == 0 and config.array_phase_sigma_deg == 0)  # fmt: skip
+    return (
+        config.positions == "all"
+        and not config.fading
+        and config.real_element is None
+        and config.array_amp_sigma_db == 0
+        and config.array_phase_sigma_deg == 0
+    )
 
 
 def field_rsrp(
@@ -285,8 +313,9 @@ def field_rsrp(
     groups = site_groups(paths)
     measured, expected = [], []
     for rnd in scenario.rounds():
-        sums = {key: SampleSums(sub, grid_ids, samples[samples["round"] == rnd], config, rng)
-                for key, sub in groups.items()}  # fmt: skip
+        sums = {
+            key: SampleSums(sub, grid_ids, samples[samples["round"] == rnd], config, rng) for key, sub in groups.items()
+        }
         for cell_id in scenario.cell_ids():
             row = scenario.cell_row(int(cell_id), rnd)
             key = (int(row["site_id"]), float(row["freq_hz"]))

@@ -71,11 +71,21 @@ def bin_paths(paths: pd.DataFrame, angle_grid: AngleGrid, points_per_grid: pd.Se
         nonzero bins, sorted by (grid_id, bin).
     """
     if len(paths) == 0:
-        return pd.DataFrame({"grid_id": pd.Series(dtype="int64"), "bin": pd.Series(dtype="int32"),
-                             "power_lin": pd.Series(dtype="float64")})  # fmt: skip
+        return pd.DataFrame(
+            {
+                "grid_id": pd.Series(dtype="int64"),
+                "bin": pd.Series(dtype="int32"),
+                "power_lin": pd.Series(dtype="float64"),
+            }
+        )
     bins = angle_grid.bin_of(paths["aod_el_rad"].to_numpy(), paths["aod_az_rad"].to_numpy())
-    frame = pd.DataFrame({"grid_id": paths["grid_id"].to_numpy(np.int64), "bin": bins.astype(np.int32),
-                          "power_lin": paths["power_lin"].to_numpy(np.float64)})  # fmt: skip
+    frame = pd.DataFrame(
+        {
+            "grid_id": paths["grid_id"].to_numpy(np.int64),
+            "bin": bins.astype(np.int32),
+            "power_lin": paths["power_lin"].to_numpy(np.float64),
+        }
+    )
     aps = frame.groupby(["grid_id", "bin"], sort=True, as_index=False)["power_lin"].sum()
     if isinstance(points_per_grid, pd.Series):
         count = points_per_grid.reindex(aps["grid_id"].to_numpy()).to_numpy(dtype=np.float64)
@@ -182,10 +192,16 @@ def noiseless_rsrp(scenario: Scenario, paths: pd.DataFrame, points_per_grid: pd.
             sub = groups.get((int(row["site_id"]), float(row["freq_hz"])), empty)
             for beam_type in BEAM_TYPES:
                 if not unchanged:
-                    done[(int(cell_id), beam_type)] = to_dbm(path_rsrp_mw(
-                        sub, scenario.antenna(cell_id, rnd), scenario.codebook(cell_id, beam_type, rnd),
-                        scenario.wavelength_m(cell_id), grid_ids, points_per_grid,
-                    ))  # fmt: skip
+                    done[(int(cell_id), beam_type)] = to_dbm(
+                        path_rsrp_mw(
+                            sub,
+                            scenario.antenna(cell_id, rnd),
+                            scenario.codebook(cell_id, beam_type, rnd),
+                            scenario.wavelength_m(cell_id),
+                            grid_ids,
+                            points_per_grid,
+                        )
+                    )
                 frames.append(_long(done[(int(cell_id), beam_type)], rnd, int(cell_id), grid_ids, beam_type))
     return pd.concat(frames, ignore_index=True)
 
@@ -193,14 +209,16 @@ def noiseless_rsrp(scenario: Scenario, paths: pd.DataFrame, points_per_grid: pd.
 def _long(rsrp_dbm: np.ndarray, rnd: int, cell_id: int, grid_ids: np.ndarray, beam_type: str) -> pd.DataFrame:
     """``[num_grids, num_beams]`` → long-form rows of one (round, cell, beam type)."""
     num_grids, num_beams = rsrp_dbm.shape
-    return pd.DataFrame({
-        "round": np.full(num_grids * num_beams, rnd, dtype=np.int64),
-        "cell_id": np.full(num_grids * num_beams, cell_id, dtype=np.int64),
-        "grid_id": np.repeat(grid_ids, num_beams),
-        "beam_type": beam_type,
-        "beam_id": np.tile(np.arange(num_beams, dtype=np.int64), num_grids),
-        "rsrp_dbm": rsrp_dbm.reshape(-1),
-    })  # fmt: skip
+    return pd.DataFrame(
+        {
+            "round": np.full(num_grids * num_beams, rnd, dtype=np.int64),
+            "cell_id": np.full(num_grids * num_beams, cell_id, dtype=np.int64),
+            "grid_id": np.repeat(grid_ids, num_beams),
+            "beam_type": beam_type,
+            "beam_id": np.tile(np.arange(num_beams, dtype=np.int64), num_grids),
+            "rsrp_dbm": rsrp_dbm.reshape(-1),
+        }
+    )
 
 
 def write_truth(
@@ -217,11 +235,19 @@ def write_truth(
     is below ``rsrp_floor_dbm`` (they can never be reported).  float32 where it loses nothing that
     matters, zstd-compressed Parquet."""
     folder.mkdir(parents=True, exist_ok=True)
-    compact = paths.astype({
-        "site_id": "int32", "freq_hz": "float64", "grid_id": "int32", "point_id": "int16",
-        "power_lin": "float32", "aod_el_rad": "float32", "aod_az_rad": "float32", "delay_s": "float32",
-        "interactions": "category",
-    })  # fmt: skip
+    compact = paths.astype(
+        {
+            "site_id": "int32",
+            "freq_hz": "float64",
+            "grid_id": "int32",
+            "point_id": "int16",
+            "power_lin": "float32",
+            "aod_el_rad": "float32",
+            "aod_az_rad": "float32",
+            "delay_s": "float32",
+            "interactions": "category",
+        }
+    )
     compact.to_parquet(folder / PATHS_FILE, index=False, compression="zstd")
     aps = true_aps_table(paths, scenario.cells[1], angle_grid, points_per_grid)
     aps.to_parquet(folder / APS_FILE, index=False, compression="zstd")
@@ -229,8 +255,16 @@ def write_truth(
         best = noiseless.groupby(["round", "cell_id", "grid_id"], sort=False)["rsrp_dbm"].transform("max")
         noiseless = noiseless[(best >= rsrp_floor_dbm).to_numpy()]
     rsrp = noiseless.assign(rsrp_dbm=np.round(noiseless["rsrp_dbm"].to_numpy(), 2))
-    rsrp = rsrp.astype({"round": "int8", "cell_id": "int32", "grid_id": "int32", "beam_type": "category",
-                        "beam_id": "int16", "rsrp_dbm": "float32"})  # fmt: skip
+    rsrp = rsrp.astype(
+        {
+            "round": "int8",
+            "cell_id": "int32",
+            "grid_id": "int32",
+            "beam_type": "category",
+            "beam_id": "int16",
+            "rsrp_dbm": "float32",
+        }
+    )
     rsrp.to_parquet(folder / RSRP_FILE, index=False, compression="zstd")
 
 
@@ -249,8 +283,14 @@ def true_aps_table(
         for cell_id in np.sort(cell_ids.to_numpy()):
             frames.append(aps.assign(cell_id=np.int32(cell_id)))
     if not frames:
-        return pd.DataFrame({"cell_id": pd.Series(dtype="int32"), "grid_id": pd.Series(dtype="int32"),
-                             "bin": pd.Series(dtype="int32"), "power_lin": pd.Series(dtype="float64")})  # fmt: skip
+        return pd.DataFrame(
+            {
+                "cell_id": pd.Series(dtype="int32"),
+                "grid_id": pd.Series(dtype="int32"),
+                "bin": pd.Series(dtype="int32"),
+                "power_lin": pd.Series(dtype="float64"),
+            }
+        )
     out = pd.concat(frames, ignore_index=True)[["cell_id", "grid_id", "bin", "power_lin"]]
     out = out.astype({"cell_id": "int32", "grid_id": "int32"})
     return out.sort_values(["cell_id", "grid_id", "bin"], ignore_index=True)

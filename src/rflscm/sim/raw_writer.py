@@ -29,14 +29,40 @@ DEFAULT_ORIGIN = Origin(48.1400, 11.5700)
 START = pd.Timestamp("2024-05-01T08:00:00Z")
 """Round r's samples are taken on day r − 1 after this time, one second apart."""
 
-CELL_COLUMNS = ("round", "cell_id", "site_id", "lat", "lon", "height_m", "azimuth_deg", "mech_tilt_deg",
-                "elec_tilt_deg", "nr_arfcn", "freq_mhz", "pci", "tx_power_dbm", "array_nh", "array_nv", "spacing_h_m",
-                "spacing_v_m", "ssb_codebook", "csi_codebook", "element")  # fmt: skip
+CELL_COLUMNS = (
+    "round",
+    "cell_id",
+    "site_id",
+    "lat",
+    "lon",
+    "height_m",
+    "azimuth_deg",
+    "mech_tilt_deg",
+    "elec_tilt_deg",
+    "nr_arfcn",
+    "freq_mhz",
+    "pci",
+    "tx_power_dbm",
+    "array_nh",
+    "array_nv",
+    "spacing_h_m",
+    "spacing_v_m",
+    "ssb_codebook",
+    "csi_codebook",
+    "element",
+)
 
 
-def write_raw(scenario: Scenario, out: Path, origin: Origin | None = None, samples_per_beam: int = 5,
-              fading_db: float = 2.0, grid_size_m: float = 10.0, max_grids: int | None = None,
-              seed: int = 0) -> dict[str, Any]:  # fmt: skip
+def write_raw(
+    scenario: Scenario,
+    out: Path,
+    origin: Origin | None = None,
+    samples_per_beam: int = 5,
+    fading_db: float = 2.0,
+    grid_size_m: float = 10.0,
+    max_grids: int | None = None,
+    seed: int = 0,
+) -> dict[str, Any]:
     """Write ``samples.csv``, ``cells.csv`` and ``import.yaml`` into ``out``; returns a summary.
 
     Args:
@@ -89,8 +115,16 @@ def _cells(scenario: Scenario, origin: Origin) -> pd.DataFrame:
     return pd.concat(parts, ignore_index=True)
 
 
-def _samples(scenario: Scenario, m: pd.DataFrame, cells: pd.DataFrame, origin: Origin, n: int, fading_db: float,
-             grid_size_m: float, rng: np.random.Generator) -> pd.DataFrame:  # fmt: skip
+def _samples(
+    scenario: Scenario,
+    m: pd.DataFrame,
+    cells: pd.DataFrame,
+    origin: Origin,
+    n: int,
+    fading_db: float,
+    grid_size_m: float,
+    rng: np.random.Generator,
+) -> pd.DataFrame:
     rep = np.repeat(np.arange(len(m)), n)
     rows = m.iloc[rep]
     grid = scenario.grids.set_index("grid_id").loc[rows["grid_id"].to_numpy()]
@@ -108,9 +142,17 @@ def _samples(scenario: Scenario, m: pd.DataFrame, cells: pd.DataFrame, origin: O
     seconds = seconds - seconds[np.searchsorted(rnd, rnd)]  # each round starts at its day's START
     time = START + pd.to_timedelta(rnd - 1, unit="D") + pd.to_timedelta(seconds, unit="s")
     carrier = "nr_arfcn" if "nr_arfcn" in cells.columns else "freq_mhz"
-    return pd.DataFrame({
-        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ"), "lat": lat, "lon": lon, "height_m": height,
-        "pci": key["pci"].reindex(at).to_numpy(), carrier: key[carrier].reindex(at).to_numpy(),
-        "beam_type": rows["beam_type"].to_numpy(), "beam_index": rows["beam_id"].to_numpy(),
-        "rsrp_dbm": np.round(rsrp, 2), "round": rnd,
-    })  # fmt: skip
+    return pd.DataFrame(
+        {
+            "time": time.strftime("%Y-%m-%dT%H:%M:%SZ"),
+            "lat": lat,
+            "lon": lon,
+            "height_m": height,
+            "pci": key["pci"].reindex(at).to_numpy(),
+            carrier: key[carrier].reindex(at).to_numpy(),
+            "beam_type": rows["beam_type"].to_numpy(),
+            "beam_index": rows["beam_id"].to_numpy(),
+            "rsrp_dbm": np.round(rsrp, 2),
+            "round": rnd,
+        }
+    )

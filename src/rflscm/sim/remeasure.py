@@ -45,10 +45,23 @@ def remeasure(source: str | Path, config: SimulationConfig, out: str | Path) -> 
     """
     scenario = load_scenario(source)
     traced = trace_config(source)
-    allowed = {"measurements", "field_model", "noise_sigma_db", "quantization_db", "rsrp_threshold_dbm",
-               "detect_on", "seed", "name", "description", "truth_rsrp_margin_db"}  # fmt: skip
-    changed = [f.name for f in dataclasses.fields(SimulationConfig)
-               if f.name not in allowed and to_dict(getattr(config, f.name)) != to_dict(getattr(traced, f.name))]  # fmt: skip
+    allowed = {
+        "measurements",
+        "field_model",
+        "noise_sigma_db",
+        "quantization_db",
+        "rsrp_threshold_dbm",
+        "detect_on",
+        "seed",
+        "name",
+        "description",
+        "truth_rsrp_margin_db",
+    }
+    changed = [
+        f.name
+        for f in dataclasses.fields(SimulationConfig)
+        if f.name not in allowed and to_dict(getattr(config, f.name)) != to_dict(getattr(traced, f.name))
+    ]
     if changed:
         raise ConfigError(
             f"--from-trace re-measures the trace of {source}; these keys change the layout or the trace and need a new "
@@ -65,18 +78,27 @@ def remeasure(source: str | Path, config: SimulationConfig, out: str | Path) -> 
     out.mkdir(parents=True, exist_ok=True)
     simulation: dict[str, Any] = dict(scenario.meta.simulation)
     simulation.update(
-        measurements=config.measurements, remeasured_from=str(scenario.meta.name), seed=config.seed,
+        measurements=config.measurements,
+        remeasured_from=str(scenario.meta.name),
+        seed=config.seed,
         config=to_dict(config),
-        noise={"sigma_db": config.noise_sigma_db, "quantization_db": config.quantization_db,
-               "threshold_dbm": config.rsrp_threshold_dbm},
-    )  # fmt: skip
+        noise={
+            "sigma_db": config.noise_sigma_db,
+            "quantization_db": config.quantization_db,
+            "threshold_dbm": config.rsrp_threshold_dbm,
+        },
+    )
     simulation.pop("field", None)
     if config.measurements == "field":
         simulation["field"] = to_dict(config.field_model)
     meta = dataclasses.replace(
-        scenario.meta, name=config.name, description=config.description or scenario.meta.description,
-        rsrp_threshold_dbm=config.threshold_dbm, reporting={}, simulation=simulation,
-    )  # fmt: skip
+        scenario.meta,
+        name=config.name,
+        description=config.description or scenario.meta.description,
+        rsrp_threshold_dbm=config.threshold_dbm,
+        reporting={},
+        simulation=simulation,
+    )
     fresh = dataclasses.replace(scenario, root=out.resolve(), meta=meta)
     rng = np.random.default_rng([config.seed, REMEASURE_STREAM])
     write_measurements(fresh, paths, config, rng, out)

@@ -17,8 +17,10 @@ from rflscm.data.ingest.samples import Tally
 from rflscm.data.ingest.spec import ImportSpec
 from rflscm.errors import DataError
 
-BOOKS = {"ssb4": {"type": "ssb", "azimuths_deg": [-30.0, 30.0], "tilts_deg": [0.0, 10.0]},
-         "csi8": {"type": "dft", "n1": 8, "n2": 4, "o1": 1, "o2": 1, "beams_h": [-3, -1, 1, 3], "beams_v": [0, 1]}}  # fmt: skip
+BOOKS = {
+    "ssb4": {"type": "ssb", "azimuths_deg": [-30.0, 30.0], "tilts_deg": [0.0, 10.0]},
+    "csi8": {"type": "dft", "n1": 8, "n2": 4, "o1": 1, "o2": 1, "beams_h": [-3, -1, 1, 3], "beams_v": [0, 1]},
+}
 ORIGIN = Origin(48.14, 11.57)
 
 
@@ -28,8 +30,17 @@ def _spec(**kw) -> ImportSpec:
 
 def test_nr_arfcn_matches_3gpp_ts_38_104_table() -> None:
     # (N_REF, F_REF [MHz]) from the three ranges of TS 38.104 Table 5.4.2.1-1 and common band centres
-    known = [(0, 0.0), (422000, 2110.0), (599999, 2999.995), (600000, 3000.0), (620000, 3300.0),
-             (632628, 3489.42), (2016667, 24250.08), (2079167, 28000.08), (3279165, 99999.96)]  # fmt: skip
+    known = [
+        (0, 0.0),
+        (422000, 2110.0),
+        (599999, 2999.995),
+        (600000, 3000.0),
+        (620000, 3300.0),
+        (632628, 3489.42),
+        (2016667, 24250.08),
+        (2079167, 28000.08),
+        (3279165, 99999.96),
+    ]
     n = np.array([k for k, _ in known])
     np.testing.assert_allclose(nr_arfcn_to_hz(n), [f * 1e6 for _, f in known], rtol=0, atol=1e-3)
     np.testing.assert_array_equal(hz_to_nr_arfcn(nr_arfcn_to_hz(n)), n)
@@ -44,10 +55,17 @@ def test_earfcn_matches_3gpp_ts_36_101() -> None:
 
 def _cells() -> dict[int, pd.DataFrame]:
     # PCI 7 on 3.5 GHz twice (20 km apart), PCI 9 twice only 1.2 km apart, PCI 7 also on 2.1 GHz
-    return {1: pd.DataFrame({
-        "cell_id": [1, 2, 3, 4, 5], "x": [0.0, 20_000.0, 5000.0, 5000.0, 0.0], "y": [0.0, 0.0, 0.0, 1200.0, 0.0],
-        "pci": [7, 7, 9, 9, 7], "carrier_hz": [3.5e9, 3.5e9, 3.5e9, 3.5e9, 2.1e9],
-    })}  # fmt: skip
+    return {
+        1: pd.DataFrame(
+            {
+                "cell_id": [1, 2, 3, 4, 5],
+                "x": [0.0, 20_000.0, 5000.0, 5000.0, 0.0],
+                "y": [0.0, 0.0, 0.0, 1200.0, 0.0],
+                "pci": [7, 7, 9, 9, 7],
+                "carrier_hz": [3.5e9, 3.5e9, 3.5e9, 3.5e9, 2.1e9],
+            }
+        )
+    }
 
 
 def _samples(rows: list[tuple[float, float, int, float]]) -> pd.DataFrame:
@@ -56,16 +74,18 @@ def _samples(rows: list[tuple[float, float, int, float]]) -> pd.DataFrame:
 
 
 def test_pci_resolution_nearest_far_ambiguous_and_unknown_are_counted() -> None:
-    samples = _samples([
-        (100.0, 0.0, 7, 3.5e9),       # → cell 1 (cell 2 is 20 km away)
-        (19_000.0, 0.0, 7, 3.5e9),    # → cell 2
-        (100.0, 0.0, 7, 2.1e9 + 30e3),  # → cell 5 (carrier within 100 kHz)
-        (5000.0, 500.0, 9, 3.5e9),    # 500 m and 700 m from two PCI-9 cells: ambiguous
-        (5000.0, -3000.0, 9, 3.5e9),  # 3000 m vs 4200 m: 1.4× < 2×: ambiguous
-        (5000.0, -200.0, 9, 3.5e9),   # 200 m vs 1400 m: 7×: cell 3
-        (-11_000.0, 0.0, 7, 2.1e9),   # 11 km from the only candidate: too far
-        (0.0, 0.0, 8, 3.5e9),         # no PCI 8
-    ])  # fmt: skip
+    samples = _samples(
+        [
+            (100.0, 0.0, 7, 3.5e9),  # → cell 1 (cell 2 is 20 km away)
+            (19_000.0, 0.0, 7, 3.5e9),  # → cell 2
+            (100.0, 0.0, 7, 2.1e9 + 30e3),  # → cell 5 (carrier within 100 kHz)
+            (5000.0, 500.0, 9, 3.5e9),  # 500 m and 700 m from two PCI-9 cells: ambiguous
+            (5000.0, -3000.0, 9, 3.5e9),  # 3000 m vs 4200 m: 1.4× < 2×: ambiguous
+            (5000.0, -200.0, 9, 3.5e9),  # 200 m vs 1400 m: 7×: cell 3
+            (-11_000.0, 0.0, 7, 2.1e9),  # 11 km from the only candidate: too far
+            (0.0, 0.0, 8, 3.5e9),  # no PCI 8
+        ]
+    )
     tally = Tally()
     out = resolve_cells(samples, _cells(), {}, _spec(), tally)
     assert out["cell_id"].tolist() == [1, 2, 5, 3]
@@ -77,8 +97,20 @@ def test_pci_resolution_nearest_far_ambiguous_and_unknown_are_counted() -> None:
 
 
 def _bin_input(values: dict[tuple[int, int], list[float]]) -> pd.DataFrame:
-    rows = [{"round": 1, "cell_id": 1, "x": 10.0 * gx + 3.0, "y": 4.0, "z": 1.5, "beam_type": "ssb", "beam_id": b,
-             "rsrp_dbm": v} for (gx, b), vs in values.items() for v in vs]  # fmt: skip
+    rows = [
+        {
+            "round": 1,
+            "cell_id": 1,
+            "x": 10.0 * gx + 3.0,
+            "y": 4.0,
+            "z": 1.5,
+            "beam_type": "ssb",
+            "beam_id": b,
+            "rsrp_dbm": v,
+        }
+        for (gx, b), vs in values.items()
+        for v in vs
+    ]
     return pd.DataFrame(rows)
 
 
@@ -113,27 +145,51 @@ def test_top_n_keeps_the_strongest_beams_of_each_report() -> None:
 
 def _write_raw(tmp: Path, samples: pd.DataFrame, antenna: str = "tr38901") -> Path:
     # the headers of the planning-tool export; the codebooks come from `cell_defaults`
-    cells = pd.DataFrame({"Cell": ["A1", "A2"], "PCI": [11, 12], "EARFCN": [1300, 1300], "Latitude": [48.14, 48.14],
-                          "Longitude": [11.57, 11.57], "Height_AGL_m": [25.0, 25.0], "Azimuth": [0.0, 180.0],
-                          "M_Tilt": [2.0, 2.0], "E_Tilt": [4.0, 4.0], "Antenna": antenna})  # fmt: skip
+    cells = pd.DataFrame(
+        {
+            "Cell": ["A1", "A2"],
+            "PCI": [11, 12],
+            "EARFCN": [1300, 1300],
+            "Latitude": [48.14, 48.14],
+            "Longitude": [11.57, 11.57],
+            "Height_AGL_m": [25.0, 25.0],
+            "Azimuth": [0.0, 180.0],
+            "M_Tilt": [2.0, 2.0],
+            "E_Tilt": [4.0, 4.0],
+            "Antenna": antenna,
+        }
+    )
     cells.to_csv(tmp / "cells.csv", index=False)
     samples.to_csv(tmp / "samples.csv", index=False)
     spec = tmp / "import.yaml"
-    spec.write_text(f"samples: samples.csv\ncells: cells.csv\ncodebooks: {BOOKS}\n"
-                    "cell_defaults: {ssb_codebook: ssb4, csi_codebook: csi8}\n")  # fmt: skip
+    spec.write_text(
+        f"samples: samples.csv\ncells: cells.csv\ncodebooks: {BOOKS}\n"
+        "cell_defaults: {ssb_codebook: ssb4, csi_codebook: csi8}\n"
+    )
     return spec
 
 
 def _raw_samples(n: int = 4) -> pd.DataFrame:
     xyz = np.array([[15.0, 25.0, 1.5]] * n) + np.linspace(0, 3, n)[:, None] * [1, 1, 0]
     lat, lon, _ = enu_to_geodetic(xyz, ORIGIN)
-    return pd.DataFrame({"timestamp": [f"2024-05-01T08:00:{i:02d}" for i in range(n)], "lat": lat, "lon": lon,
-                         "PCI": 11, "freq": 1815.0, "ssb_index": 2, "rsrp_dbm": -100.0 - np.arange(n)})  # fmt: skip
+    return pd.DataFrame(
+        {
+            "timestamp": [f"2024-05-01T08:00:{i:02d}" for i in range(n)],
+            "lat": lat,
+            "lon": lon,
+            "PCI": 11,
+            "freq": 1815.0,
+            "ssb_index": 2,
+            "rsrp_dbm": -100.0 - np.arange(n),
+        }
+    )
 
 
 def test_import_of_planning_tool_columns_makes_a_checked_scenario(tmp_path: Path) -> None:
-    spec = load_spec(_write_raw(tmp_path, _raw_samples()), {"columns": {"freq_mhz": "freq"}, "beam_type": "ssb",
-                                                                  "origin": {"lat": 48.14, "lon": 11.57}})  # fmt: skip
+    spec = load_spec(
+        _write_raw(tmp_path, _raw_samples()),
+        {"columns": {"freq_mhz": "freq"}, "beam_type": "ssb", "origin": {"lat": 48.14, "lon": 11.57}},
+    )
     res = import_raw(spec, tmp_path / "sc")
     sc = load_scenario(tmp_path / "sc")
     assert sc.meta.origin == ORIGIN and res.samples_kept == 4 and res.dropped.dropped == 0
@@ -158,8 +214,11 @@ def test_import_refusals_name_file_row_and_value(tmp_path: Path) -> None:
         import_raw(load_spec(_write_raw(tmp_path, _raw_samples(), antenna="AAU5613"), dict(over)), tmp_path / "d")
     report = _raw_samples().assign(timestamp="2024-05-01T08:00:00", ssb_index=[0, 1, 2, 3])
     rule = {**over, "reporting": {"ssb": {"rule": "top_n", "top_n": 3}}, "min_samples": 1}
-    with pytest.raises(DataError, match=r"row 1: `time` = '2024-05-01T08:00:00' holds a ssb report .* 4 beams, more "
-                                        r"than the declared `reporting.ssb.top_n` = 3"):  # fmt: skip
+    with pytest.raises(
+        DataError,
+        match=r"row 1: `time` = '2024-05-01T08:00:00' holds a ssb report .* 4 beams, more "
+        r"than the declared `reporting.ssb.top_n` = 3",
+    ):
         import_raw(load_spec(_write_raw(tmp_path, report), dict(rule)), tmp_path / "c")
 
 
@@ -173,8 +232,14 @@ def test_weak_bins_set_the_threshold_or_are_dropped_and_counted(tmp_path: Path) 
 
 
 def test_rounds_from_time_ranges_and_outside_counted(tmp_path: Path) -> None:
-    samples = pd.concat([_raw_samples(), _raw_samples().assign(timestamp="2024-05-02T09:00:00", rsrp_dbm=-90.0),
-                         _raw_samples().assign(timestamp="2024-06-01T00:00:00")], ignore_index=True)  # fmt: skip
+    samples = pd.concat(
+        [
+            _raw_samples(),
+            _raw_samples().assign(timestamp="2024-05-02T09:00:00", rsrp_dbm=-90.0),
+            _raw_samples().assign(timestamp="2024-06-01T00:00:00"),
+        ],
+        ignore_index=True,
+    )
     times = {1: ("2024-05-01", "2024-05-02"), 2: ("2024-05-02", "2024-05-03")}
     over = {"columns": {"freq_mhz": "freq"}, "beam_type": "ssb", "round_times": times}
     res = import_raw(load_spec(_write_raw(tmp_path, samples), over), tmp_path / "sc")

@@ -20,8 +20,15 @@ GRID = AngleGrid(num_el=31, num_az=36, el_min_deg=-90.0, el_step_deg=6.0)
 
 def simulate(out: Path, **overrides: object) -> Path:
     """A 2-site, 2-carrier procedural scenario with 60 grids on the 31 × 36 test grid."""
-    config = SimulationConfig(num_sites=2, max_grids=60, seed=4, site_radius_m=120.0, angle_grid=GRID,
-                              point_cloud_points_per_m2=0.05, **overrides)  # fmt: skip
+    config = SimulationConfig(
+        num_sites=2,
+        max_grids=60,
+        seed=4,
+        site_radius_m=120.0,
+        angle_grid=GRID,
+        point_cloud_points_per_m2=0.05,
+        **overrides,
+    )
     build_scenario(ProceduralCity(seed=3, size_m=240.0, num_buildings=12), config, out, progress=False)
     return out
 
@@ -60,8 +67,15 @@ def on_grid_truth_scenario(root: Path, noise_db: float, seed: int = 0) -> Path:
     write_table(pd.DataFrame(rows, columns=columns), root / "measurements.csv")
     meta = yaml.safe_load((root / "scenario.yaml").read_text())
     meta["truth"] = "truth"
-    meta["simulation"] = {"angle_grid": {"num_el": GRID.num_el, "num_az": GRID.num_az, "el_min_deg": GRID.el_min_deg,
-                                         "el_step_deg": GRID.el_step_deg}, "points_per_grid": 1}  # fmt: skip
+    meta["simulation"] = {
+        "angle_grid": {
+            "num_el": GRID.num_el,
+            "num_az": GRID.num_az,
+            "el_min_deg": GRID.el_min_deg,
+            "el_step_deg": GRID.el_step_deg,
+        },
+        "points_per_grid": 1,
+    }
     (root / "scenario.yaml").write_text(yaml.safe_dump(meta))
     assert read_table(root / "measurements.csv")["rsrp_dbm"].notna().mean() > 0.5
     return root

@@ -15,20 +15,57 @@ from rflscm.eval.metrics import changed_cells
 from rflscm.models import MODEL_REGISTRY
 
 DOCUMENTED_KEYS = [
-    "mae_db.ssb.all", "mae_db.ssb.changed", "mae_db.csi.all", "mae_db.csi.changed",
-    "oracle_mae_db.ssb.all", "oracle_mae_db.ssb.changed", "oracle_mae_db.csi.all", "oracle_mae_db.csi.changed",
-    "trivial_mae_db.ssb.all", "trivial_mae_db.ssb.changed", "trivial_mae_db.csi.all", "trivial_mae_db.csi.changed",
-    "aps.nmse_db", "aps.nmse_db_median", "aps.angle_error_deg", "aps.top_k", "aps.pairs",
-    "unseen.mae_db.ssb", "unseen.mae_db.csi", "unseen.oracle_mae_db.ssb", "unseen.trivial_mae_db.csi",
-    "unseen.pairs.ssb", "counts.ssb.test_pairs", "counts.ssb.scored_pairs", "counts.ssb.beams",
-    "counts.ssb.changed_beams", "counts.csi.beams", "counts.cells", "counts.changed_cells",
-    "model.name", "model.supports_unseen_grids", "model.fingerprint", "model.fit", "protocol.name",
-    "test_round", "scenario.name", "unsupported", "timing_s.predict",
-    "noise_floor_mae_db.ssb.all", "noise_floor_mae_db.csi.changed", "bias_db.ssb.all", "bias_db.csi.changed",
-    "missing_above_bound.model.ssb", "missing_above_bound.trivial.csi", "missing_above_bound.model.pooled",
+    "mae_db.ssb.all",
+    "mae_db.ssb.changed",
+    "mae_db.csi.all",
+    "mae_db.csi.changed",
+    "oracle_mae_db.ssb.all",
+    "oracle_mae_db.ssb.changed",
+    "oracle_mae_db.csi.all",
+    "oracle_mae_db.csi.changed",
+    "trivial_mae_db.ssb.all",
+    "trivial_mae_db.ssb.changed",
+    "trivial_mae_db.csi.all",
+    "trivial_mae_db.csi.changed",
+    "aps.nmse_db",
+    "aps.nmse_db_median",
+    "aps.angle_error_deg",
+    "aps.top_k",
+    "aps.pairs",
+    "unseen.mae_db.ssb",
+    "unseen.mae_db.csi",
+    "unseen.oracle_mae_db.ssb",
+    "unseen.trivial_mae_db.csi",
+    "unseen.pairs.ssb",
+    "counts.ssb.test_pairs",
+    "counts.ssb.scored_pairs",
+    "counts.ssb.beams",
+    "counts.ssb.changed_beams",
+    "counts.csi.beams",
+    "counts.cells",
+    "counts.changed_cells",
+    "model.name",
+    "model.supports_unseen_grids",
+    "model.fingerprint",
+    "model.fit",
+    "protocol.name",
+    "test_round",
+    "scenario.name",
+    "unsupported",
+    "timing_s.predict",
+    "noise_floor_mae_db.ssb.all",
+    "noise_floor_mae_db.csi.changed",
+    "bias_db.ssb.all",
+    "bias_db.csi.changed",
+    "missing_above_bound.model.ssb",
+    "missing_above_bound.trivial.csi",
+    "missing_above_bound.model.pooled",
     "unseen.noise_floor_mae_db.ssb",
-    "unseen.bias_db.csi", "truth_mae_db.model.ssb.all", "truth_mae_db.oracle.csi.changed", "truth_mae_db.trivial.ssb.all",
-]  # fmt: skip
+    "unseen.bias_db.csi",
+    "truth_mae_db.model.ssb.all",
+    "truth_mae_db.oracle.csi.changed",
+    "truth_mae_db.trivial.ssb.all",
+]
 
 
 def get(tree: dict, dotted: str):
@@ -164,10 +201,16 @@ def test_missing_above_bound_counts_each_type_and_pools_them_by_beams() -> None:
     def result(bound: np.ndarray, model: np.ndarray, scored: np.ndarray) -> BeamResult:
         n = len(bound)
         return BeamResult(
-            pairs=pd.DataFrame({"cell_id": np.zeros(n, int), "grid_id": np.arange(n)}), measured=np.full_like(bound, np.nan),
-            model=model, trivial=np.full_like(bound, -200.0), oracle=None, seen=np.ones(n, bool), scored=scored,
-            changed=np.zeros(n, bool), bound=bound,
-        )  # fmt: skip
+            pairs=pd.DataFrame({"cell_id": np.zeros(n, int), "grid_id": np.arange(n)}),
+            measured=np.full_like(bound, np.nan),
+            model=model,
+            trivial=np.full_like(bound, -200.0),
+            oracle=None,
+            seen=np.ones(n, bool),
+            scored=scored,
+            changed=np.zeros(n, bool),
+            bound=bound,
+        )
 
     nan = np.nan
     # SSB: 4 missing beams on scored rows (one above its bound); the unscored row's beam is left out

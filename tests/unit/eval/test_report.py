@@ -47,7 +47,14 @@ def test_pair_counts_and_few_pair_marks(sim_scenario) -> None:
     res = evaluation.beams["ssb"]
     cell = int(res.pairs["cell_id"].to_numpy()[res.rows()][0])
     assert counts[str(cell)]["ssb"] == int((res.pairs["cell_id"].to_numpy()[res.rows()] == cell).sum())
-    per_cell = {"511": {"changed": True, "ssb": 14.65, "csi": None, "oracle": {"ssb": 1.0, "csi": None},
-                        "trivial": {"ssb": 3.0, "csi": None}}}  # fmt: skip
+    per_cell = {
+        "511": {
+            "changed": True,
+            "ssb": 14.65,
+            "csi": None,
+            "oracle": {"ssb": 1.0, "csi": None},
+            "trivial": {"ssb": 3.0, "csi": None},
+        }
+    }
     table = _per_cell_table(per_cell, {"511": {"ssb": 1}})
     assert "| 511 | yes | 1 ⚠ | 14.65 |" in table

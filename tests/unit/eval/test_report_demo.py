@@ -10,8 +10,14 @@ from rflscm.cli.demo import save_comparison
 
 def _metrics(mae: float, train_s: float) -> dict:
     block = {"ssb": {"all": mae, "changed": mae + 1}, "csi": {"all": mae + 2, "changed": None}}
-    return {"mae_db": block, "oracle_mae_db": block, "trivial_mae_db": block, "noise_floor_mae_db": block,
-            "bias_db": {"ssb": {"all": -0.5}, "csi": {"all": 0.25}}, "model": {"fit": {"train_time_s": train_s}}}  # fmt: skip
+    return {
+        "mae_db": block,
+        "oracle_mae_db": block,
+        "trivial_mae_db": block,
+        "noise_floor_mae_db": block,
+        "bias_db": {"ssb": {"all": -0.5}, "csi": {"all": 0.25}},
+        "model": {"fit": {"train_time_s": train_s}},
+    }
 
 
 def test_comparison_is_saved_in_three_formats(tmp_path) -> None:

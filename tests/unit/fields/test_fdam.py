@@ -67,9 +67,12 @@ def test_first_last_masks_split_concatenated_rays() -> None:
 
 
 passive = dict(
-    eps_re=st.floats(1.0, 20.0), eps_im=st.floats(0.0, 5.0), mu_re=st.floats(1.0, 5.0),
-    wavelength=st.floats(0.03, 0.5), d=st.floats(0.1, 8.0),
-)  # fmt: skip
+    eps_re=st.floats(1.0, 20.0),
+    eps_im=st.floats(0.0, 5.0),
+    mu_re=st.floats(1.0, 5.0),
+    wavelength=st.floats(0.03, 0.5),
+    d=st.floats(0.1, 8.0),
+)
 
 
 @settings(max_examples=300, deadline=None)

@@ -22,11 +22,16 @@ def data(rsrp: list[list[float]], cells: list[int]) -> PairData:
     r = torch.tensor(rsrp, dtype=torch.float32)
     p, m = r.shape
     return PairData(
-        cell_index=torch.tensor(cells), grid_ids=np.arange(100, 100 + p, dtype=np.int64),
-        grid_xyz=torch.zeros(p, 3), rsrp=r, beam_mask=torch.ones(p, m, dtype=torch.bool),
-        val_mask=torch.zeros(p, m, dtype=torch.bool), x_scale=torch.ones(p), bound=torch.full((p, m), float("nan")),
+        cell_index=torch.tensor(cells),
+        grid_ids=np.arange(100, 100 + p, dtype=np.int64),
+        grid_xyz=torch.zeros(p, 3),
+        rsrp=r,
+        beam_mask=torch.ones(p, m, dtype=torch.bool),
+        val_mask=torch.zeros(p, m, dtype=torch.bool),
+        x_scale=torch.ones(p),
+        bound=torch.full((p, m), float("nan")),
         val_pairs=torch.zeros(0, dtype=torch.long),
-    )  # fmt: skip
+    )
 
 
 def render(aps: torch.Tensor, calls: list[torch.Tensor]):
@@ -83,8 +88,9 @@ def test_the_csi_offset_is_relative_to_the_ssb_level() -> None:
 
 def test_a_round_trip_through_torch_save_with_weights_only_keeps_every_part() -> None:
     index = pd.MultiIndex.from_arrays([np.array([7, 8]), np.array([100, 102])], names=["cell_id", "grid_id"])
-    posterior = PairPosterior(index, torch.tensor([[0, 1], [2, 3]]), torch.tensor([[1.0, -2.0], [0.5, 0.0]]), 1.0,
-                              {1.0: 0.5})  # fmt: skip
+    posterior = PairPosterior(
+        index, torch.tensor([[0, 1], [2, 3]]), torch.tensor([[1.0, -2.0], [0.5, 0.0]]), 1.0, {1.0: 0.5}
+    )
     fitted = PairCorrections(torch.tensor([[1.0, 2.0], [3.0, 4.0]]), pd.Series([0.5, -1.0], index=index), posterior)
     buffer = io.BytesIO()
     torch.save(fitted.to_state(), buffer)

@@ -33,9 +33,16 @@ def scenario(tmp_path_factory: pytest.TempPathFactory):
     from rflscm.sim import ProceduralCity, SimulationConfig, build_scenario
 
     cfg = SimulationConfig(
-        name="nerf2-tiny", num_sites=1, max_grids=16, seed=3, site_radius_m=60.0, carriers_hz=(3.5e9,),
-        sector_azimuths_deg=(0.0, 180.0), point_cloud_points_per_m2=0.05, angle_grid=GRID,
-    )  # fmt: skip
+        name="nerf2-tiny",
+        num_sites=1,
+        max_grids=16,
+        seed=3,
+        site_radius_m=60.0,
+        carriers_hz=(3.5e9,),
+        sector_azimuths_deg=(0.0, 180.0),
+        point_cloud_points_per_m2=0.05,
+        angle_grid=GRID,
+    )
     out = tmp_path_factory.mktemp("nerf2") / "scen"
     build_scenario(ProceduralCity(seed=2, size_m=160.0, num_buildings=6), cfg, out, progress=False)
     return load_scenario(out)

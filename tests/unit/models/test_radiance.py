@@ -103,8 +103,15 @@ def test_the_pair_inputs_are_the_concatenated_encodings_and_the_decoder_still_le
     logs = torch.stack((torch.log1p(dist / 4.0), torch.log1p(along / 4.0), miss), -1) / scale
     half = torch.nn.functional.normalize(to_grid - direction, dim=-1)
     spec = specularity(surface, half).clamp(0.0, 1.0)
-    want = torch.cat([positional_encoding(to_grid, DIR_FREQS), positional_encoding(half, DIR_FREQS),
-                      positional_encoding(logs, POS_FREQS), torch.stack([spec**p for p in SPECULAR_POWERS], -1)], -1)  # fmt: skip
+    want = torch.cat(
+        [
+            positional_encoding(to_grid, DIR_FREQS),
+            positional_encoding(half, DIR_FREQS),
+            positional_encoding(logs, POS_FREQS),
+            torch.stack([spec**p for p in SPECULAR_POWERS], -1),
+        ],
+        -1,
+    )
     torch.testing.assert_close(got, want, atol=3e-5, rtol=1e-5)
     assert (
         float(decoder._pair_inputs(to_grid, dist, along, miss, direction, None)[:, -len(SPECULAR_POWERS) :].abs().max())

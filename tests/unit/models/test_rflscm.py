@@ -88,8 +88,14 @@ def test_resume_continues_exactly(scenario, tmp_path) -> None:
     with pytest.raises(Interrupt):
         fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=stop_at(4), checkpoint_path=ckpt)
     resumed = []
-    fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=lambda m: resumed.append(m["total"]),
-                                checkpoint_path=ckpt, resume=True)  # fmt: skip
+    fit(
+        RFLSCM.build(cfg, GRID),
+        scenario,
+        progress=False,
+        callback=lambda m: resumed.append(m["total"]),
+        checkpoint_path=ckpt,
+        resume=True,
+    )
     assert resumed == reference[4:]
     with pytest.raises(CheckpointError, match="another config"):
         fit(
@@ -157,8 +163,12 @@ def test_prior_needs_a_point_cloud(scenario) -> None:
 def test_coarse_model_is_frozen_once_alpha_is_one_and_its_selection_is_remembered(scenario) -> None:
     model = RFLSCM.build(tiny_config(train={"steps": 9}), GRID)
     snapshots = []
-    fit(model, scenario, progress=False,
-              callback=lambda m: snapshots.append([p.detach().clone() for p in model.stages["coarse"].parameters()]))  # fmt: skip
+    fit(
+        model,
+        scenario,
+        progress=False,
+        callback=lambda m: snapshots.append([p.detach().clone() for p in model.stages["coarse"].parameters()]),
+    )
     after_ramp = snapshots[6:]  # α = 1 from step 6 (warm-up 4, ramp 2)
     assert all(torch.equal(a, b) for snap in after_ramp[1:] for a, b in zip(after_ramp[0], snap))
     assert model._train.selection is not None

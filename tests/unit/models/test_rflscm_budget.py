@@ -70,20 +70,47 @@ def test_hand_over_and_alpha_follow_the_position_not_the_step(scenario) -> None:
 
 def test_budget_resume_continues_from_the_saved_time_and_refuses_another_budget(scenario, tmp_path) -> None:
     clock, seen, reference = StepClock(10.0), [], []
-    fit(timed_model(clock, seen), scenario, progress=False, budget_s=100.0, clock=clock,
-        callback=lambda m: reference.append(m["total"]))  # fmt: skip
+    fit(
+        timed_model(clock, seen),
+        scenario,
+        progress=False,
+        budget_s=100.0,
+        clock=clock,
+        callback=lambda m: reference.append(m["total"]),
+    )
 
     ckpt = tmp_path / "run.ckpt"
     clock, seen = StepClock(10.0), []
     with pytest.raises(Interrupt):
-        fit(timed_model(clock, seen), scenario, progress=False, budget_s=100.0, clock=clock, callback=stop_at(4),
-            checkpoint_path=ckpt)  # fmt: skip
+        fit(
+            timed_model(clock, seen),
+            scenario,
+            progress=False,
+            budget_s=100.0,
+            clock=clock,
+            callback=stop_at(4),
+            checkpoint_path=ckpt,
+        )
     clock, seen, resumed = StepClock(10.0), [], []
-    fit(timed_model(clock, seen), scenario, progress=False, budget_s=100.0, clock=clock, checkpoint_path=ckpt,
-        resume=True, callback=lambda m: resumed.append(m["total"]))  # fmt: skip
+    fit(
+        timed_model(clock, seen),
+        scenario,
+        progress=False,
+        budget_s=100.0,
+        clock=clock,
+        checkpoint_path=ckpt,
+        resume=True,
+        callback=lambda m: resumed.append(m["total"]),
+    )
     # the fake clock makes the resumed run's times those of the uninterrupted one (a real clock would not)
     assert seen[0][:2] == (4, 3.2) and resumed == reference[4:]
     for budget, text in ((120.0, "a 120 s budget"), (None, "a step schedule")):
         with pytest.raises(CheckpointError, match=f"trained to a 100 s budget, this run asks for {text}"):
-            fit(RFLSCM.build(tiny_config(), GRID), scenario, progress=False, budget_s=budget, checkpoint_path=ckpt,
-                resume=True)  # fmt: skip
+            fit(
+                RFLSCM.build(tiny_config(), GRID),
+                scenario,
+                progress=False,
+                budget_s=budget,
+                checkpoint_path=ckpt,
+                resume=True,
+            )

@@ -126,17 +126,35 @@ def test_init_voxel_m_sets_the_starting_resolution_of_an_upsampling_schedule(sce
 
 # --- options removed in issue 11 ------------------------------------------------------------------------------
 OLD_DEFAULTS = {  # the 30 removed options at their defaults before issue 11 (written out, not read from the tables)
-    "field": {"max_resolution": 256, "delta_basis": "per_channel", "feature_basis": "per_component", "init_scale": 0.1,
-              "delta_init_scale": 0.2, "learn_mu": True, "init_loss_db": 0.01},
-    "decoder": {"dir_freqs": 6, "pos_freqs": 4, "grid_freqs": 6, "grid_features": True, "specular_powers": [1, 4, 16, 64],
-                "specular_voxel_m": 4.0, "wavelength_freqs": 1, "output": "polar", "spreading_prior": True,
-                "source_decay": 2.0, "init_radiance_db": -30.0, "init_level_db": -6.0},
+    "field": {
+        "max_resolution": 256,
+        "delta_basis": "per_channel",
+        "feature_basis": "per_component",
+        "init_scale": 0.1,
+        "delta_init_scale": 0.2,
+        "learn_mu": True,
+        "init_loss_db": 0.01,
+    },
+    "decoder": {
+        "dir_freqs": 6,
+        "pos_freqs": 4,
+        "grid_freqs": 6,
+        "grid_features": True,
+        "specular_powers": [1, 4, 16, 64],
+        "specular_voxel_m": 4.0,
+        "wavelength_freqs": 1,
+        "output": "polar",
+        "spreading_prior": True,
+        "source_decay": 2.0,
+        "init_radiance_db": -30.0,
+        "init_level_db": -6.0,
+    },
     "prior": {"radius_m": None, "density_threshold": None, "beta": None, "skip_below": 0.0},
     "render": {"num_samples": None, "inclusive": True, "max_log_gain": 0.0, "min_weight": 1e-5},
     "hitam": {"fine_init": "copy_coarse"},
     "loss": {"floor_db": -80.0},
     "train": {"val_beam_fraction": 0.25},
-}  # fmt: skip
+}
 REMOVED = [(s, k) for s, keys in OLD_DEFAULTS.items() for k in keys]
 
 

@@ -128,8 +128,15 @@ def test_pair_anchors_centre_each_training_pairs_errors_in_both_rounds_and_survi
         pred = model.predict_rsrp(scenario, 1, beam_type, pairs)[:, : measured.shape[1]]
         diff = measured - pred
         rows, beams = np.nonzero(np.isfinite(diff))
-        frames.append(pd.DataFrame({"cell_id": pairs["cell_id"].to_numpy()[rows],
-                                    "grid_id": pairs["grid_id"].to_numpy()[rows], "err": diff[rows, beams]}))  # fmt: skip
+        frames.append(
+            pd.DataFrame(
+                {
+                    "cell_id": pairs["cell_id"].to_numpy()[rows],
+                    "grid_id": pairs["grid_id"].to_numpy()[rows],
+                    "err": diff[rows, beams],
+                }
+            )
+        )
     medians = pd.concat(frames).groupby(["cell_id", "grid_id"])["err"].median()
     assert len(medians) == len(anchors) and float(medians.abs().max()) < 0.05
     # round 2 (the changed antennas): the same pair moves by its anchor; a grid never measured does not move
@@ -142,8 +149,9 @@ def test_pair_anchors_centre_each_training_pairs_errors_in_both_rounds_and_survi
     model.corrections = dataclasses.replace(fitted, anchors=None)
     without = model.predict_rsrp(scenario, 2, "ssb", pairs)
     model.corrections = fitted
-    np.testing.assert_allclose(with_anchor - without, np.repeat(anchors.to_numpy()[:5, None], without.shape[1], 1),
-                               atol=1e-3)  # fmt: skip
+    np.testing.assert_allclose(
+        with_anchor - without, np.repeat(anchors.to_numpy()[:5, None], without.shape[1], 1), atol=1e-3
+    )
     cell = int(pairs["cell_id"][0])
     measured_grids = set(anchors.loc[cell].index)
     unmeasured = [g for g in scenario.grid_ids() if int(g) not in measured_grids][:1]
@@ -176,7 +184,11 @@ def test_damaged_pair_anchors_in_a_checkpoint_are_refused_in_one_line() -> None:
 
     good = {"cell_id": torch.tensor([1, 2]), "grid_id": torch.tensor([5, 6]), "anchor_db": torch.tensor([0.5, -1.0])}
     assert _anchors_from_state(good).loc[(2, 6)] == -1.0 and _anchors_from_state(None) is None
-    for bad in ({"cell_id": good["cell_id"]}, {**good, "grid_id": torch.tensor([5])},
-                {**good, "anchor_db": torch.tensor([float("nan"), 0.0])}, [1, 2]):  # fmt: skip
+    for bad in (
+        {"cell_id": good["cell_id"]},
+        {**good, "grid_id": torch.tensor([5])},
+        {**good, "anchor_db": torch.tensor([float("nan"), 0.0])},
+        [1, 2],
+    ):
         with pytest.raises(CheckpointError, match="pair anchors are damaged"):
             _anchors_from_state(bad)

@@ -82,8 +82,12 @@ def test_a_missing_beam_changes_nothing_versus_dropping_its_row() -> None:
 def _cell_sensing(grid: AngleGrid, mech_tilt_deg: float = 4.0) -> torch.Tensor:
     antenna = CellAntenna(azimuth_deg=120.0, mech_tilt_deg=mech_tilt_deg, elec_tilt_deg=2.0)
     wl = wavelength_of(3.5e9)
-    return torch.cat([sensing_matrix(antenna, SSBCodebook(), grid, wl, dtype=torch.float64),
-                      sensing_matrix(antenna, DFTCodebook(), grid, wl, dtype=torch.float64)])  # fmt: skip
+    return torch.cat(
+        [
+            sensing_matrix(antenna, SSBCodebook(), grid, wl, dtype=torch.float64),
+            sensing_matrix(antenna, DFTCodebook(), grid, wl, dtype=torch.float64),
+        ]
+    )
 
 
 @pytest.mark.parametrize("grid", [SMALL, AngleGrid()], ids=["13x24", "91x72"])

@@ -60,8 +60,9 @@ def test_grids_without_signal_are_floored_not_minus_infinity() -> None:
 
 def test_power_from_rsrp_table() -> None:
     rsrp = np.array([[-90.0, -95.0, np.nan], [-300.0, np.nan, np.nan]])
-    power, known = best_beam_power_from_rsrp(rsrp, np.array([11, 12]), np.array([101, 100]), np.array([11, 12]),
-                                             np.array([100, 101]))  # fmt: skip
+    power, known = best_beam_power_from_rsrp(
+        rsrp, np.array([11, 12]), np.array([101, 100]), np.array([11, 12]), np.array([100, 101])
+    )
     assert power[0, 1] == pytest.approx(1e-9) and known[0, 1] and not known[0, 0]
     k = network_kpis(power, np.array([3.5e9, 3.5e9]), KPIConfig(overlap_servers=2), known)
     assert k["overlap"] == 0.0  # the −300 dBm floor of a prediction is no signal, not a second server
@@ -77,8 +78,12 @@ def test_objectives() -> None:
 
     from rflscm.network.search import objective_value
 
-    k = {"coverage": torch.tensor(0.5), "margin": torch.tensor(1.0), "num_samples": torch.tensor(100.0),
-         "mean_sinr_clipped_db": torch.tensor(4.0)}  # fmt: skip
+    k = {
+        "coverage": torch.tensor(0.5),
+        "margin": torch.tensor(1.0),
+        "num_samples": torch.tensor(100.0),
+        "mean_sinr_clipped_db": torch.tensor(4.0),
+    }
     assert float(objective_value(k, "coverage")) == pytest.approx(0.5 + 0.004)  # tie-break < one sample (0.01)
     assert float(objective_value(k, "sinr")) == pytest.approx(4.0)
     assert float(objective_value(k, "weighted")) == pytest.approx(0.5 + 0.1 * 0.4)

@@ -18,8 +18,15 @@ from rflscm.network.report import kpi_table, verdict_markdown, write_report
 
 
 def _kpis(coverage: float, sinr: float, rsrp: float = -95.0) -> dict:
-    return {"coverage": coverage, "mean_sinr_db": sinr, "p5_sinr_db": sinr - 10, "overlap": 0.1,
-            "mean_rsrp_dbm": rsrp, "no_signal": 0.0, "per_carrier": {}}  # fmt: skip
+    return {
+        "coverage": coverage,
+        "mean_sinr_db": sinr,
+        "p5_sinr_db": sinr - 10,
+        "overlap": 0.1,
+        "mean_rsrp_dbm": rsrp,
+        "no_signal": 0.0,
+        "per_carrier": {},
+    }
 
 
 def _summary(objective: str, predicted: tuple, truth: tuple | None, held: tuple | None = None) -> dict:
@@ -69,23 +76,52 @@ def _result(scen, truth_after_cov: float) -> SimpleNamespace:
     power = np.full((n_cells, n_grids), 1e-9)
     pred = {"before": _kpis(0.90, 5.0), "after": _kpis(0.95, 6.0)}
     truth = {"before": _kpis(0.80, 2.0, -99.0), "after": _kpis(truth_after_cov, 2.1, -99.5), "note": "test"}
-    changes = pd.DataFrame({"cell_id": [11], "site_id": [1], "freq_hz": [3.5e9], "ssb_codebook_before": ["pencil"],
-                            "ssb_codebook_after": ["pencil"], "elec_tilt_deg_before": [0.0], "elec_tilt_deg_after": [0.0],
-                            "mech_tilt_deg_before": [4.0], "mech_tilt_deg_after": [8.0], "azimuth_deg_before": [60.0],
-                            "azimuth_deg_after": [60.0]})  # fmt: skip
+    changes = pd.DataFrame(
+        {
+            "cell_id": [11],
+            "site_id": [1],
+            "freq_hz": [3.5e9],
+            "ssb_codebook_before": ["pencil"],
+            "ssb_codebook_after": ["pencil"],
+            "elec_tilt_deg_before": [0.0],
+            "elec_tilt_deg_after": [0.0],
+            "mech_tilt_deg_before": [4.0],
+            "mech_tilt_deg_after": [8.0],
+            "azimuth_deg_before": [60.0],
+            "azimuth_deg_after": [60.0],
+        }
+    )
     after = cells.copy()
     after.loc[after["cell_id"] == 11, "mech_tilt_deg"] = 8.0
     search = SimpleNamespace(
         method="coordinate-descent", evaluations=10, time_s=0.1, base_objective=0.9, objective=0.95
     )
     held = {"before": _kpis(0.9, 5.0), "after": _kpis(0.93, 5.5)}
-    res = SimpleNamespace(model="wnomp", objective="coverage", search=search, cells_before=cells, cells_after=after,
-                          changes=changes, predicted=pred, power_before=power, power_after=power, known=None,
-                          truth=truth, truth_all=None, held_out=held, held_out_grids=3)  # fmt: skip
-    summary = {"kpi_pairs": "every (cell, grid) pair", "kpi_pair_count": n_cells * n_grids, "objective": "coverage",
-               "predicted": pred, "truth": truth, "held_out": held,
-               "level_gap": {k: pred["before"][k] - truth["before"][k] for k in ("coverage", "mean_sinr_db",
-                                                                                   "mean_rsrp_dbm")}}  # fmt: skip
+    res = SimpleNamespace(
+        model="wnomp",
+        objective="coverage",
+        search=search,
+        cells_before=cells,
+        cells_after=after,
+        changes=changes,
+        predicted=pred,
+        power_before=power,
+        power_after=power,
+        known=None,
+        truth=truth,
+        truth_all=None,
+        held_out=held,
+        held_out_grids=3,
+    )
+    summary = {
+        "kpi_pairs": "every (cell, grid) pair",
+        "kpi_pair_count": n_cells * n_grids,
+        "objective": "coverage",
+        "predicted": pred,
+        "truth": truth,
+        "held_out": held,
+        "level_gap": {k: pred["before"][k] - truth["before"][k] for k in ("coverage", "mean_sinr_db", "mean_rsrp_dbm")},
+    }
     summary["verdict"] = verdict(summary)
     res.summary = lambda: summary
     return res

@@ -56,8 +56,14 @@ def _one_free_cell(scen, spec_cell: dict) -> tuple:
 def test_search_finds_the_obvious_tilt(scen) -> None:
     # one path 12° below the horizon, straight along cell 11's azimuth (60° from north = 30° CCW from east):
     # the pencil beam covers it best with 12° of mechanical down-tilt.
-    space = _one_free_cell(scen, {"elec_tilt_deg": {"min": 0, "max": 0}, "azimuth_offset_deg": {"min": 0, "max": 0},
-                                  "ssb_codebooks": ["pencil"]})  # fmt: skip
+    space = _one_free_cell(
+        scen,
+        {
+            "elec_tilt_deg": {"min": 0, "max": 0},
+            "azimuth_offset_deg": {"min": 0, "max": 0},
+            "ssb_codebooks": ["pencil"],
+        },
+    )
     cache = single_bin_cache(scen, -12.0, 30.0, 1e-15)
     ev = NetworkEvaluator(scen, 1, cache, space, KPIConfig(), "sinr")
     result = coordinate_descent(ev, restarts=1)
@@ -76,10 +82,15 @@ def _brute_force(ev: NetworkEvaluator, pos: int) -> tuple[float, tuple[int, ...]
 
 
 def test_coordinate_descent_reaches_the_brute_force_optimum(scen) -> None:
-    space = _one_free_cell(scen, {"mech_tilt_deg": {"min": 0, "max": 15, "step": 1},
-                                  "elec_tilt_deg": {"min": 0, "max": 0},
-                                  "azimuth_offset_deg": {"min": -30, "max": 30, "step": 5},
-                                  "ssb_codebooks": ["pencil"]})  # fmt: skip
+    space = _one_free_cell(
+        scen,
+        {
+            "mech_tilt_deg": {"min": 0, "max": 15, "step": 1},
+            "elec_tilt_deg": {"min": 0, "max": 0},
+            "azimuth_offset_deg": {"min": -30, "max": 30, "step": 5},
+            "ssb_codebooks": ["pencil"],
+        },
+    )
     cache = single_bin_cache(scen, -8.0, 45.0, 1e-15)  # 15° off the present azimuth, 8° down
     ev = NetworkEvaluator(scen, 1, cache, space, KPIConfig(), "sinr")
     best, _ = _brute_force(ev, 0)
@@ -121,8 +132,10 @@ def test_cells_sharing_a_panel_never_get_different_azimuths(scen) -> None:
     space = build_space({"defaults": {"ssb_codebooks": ["pencil", "ssb8"]}}, cells, scen.meta.codebooks)
     assert space.panels == ((0, 1),)
     cache = single_bin_cache(scen, -12.0, 40.0, 1e-15)  # the only path is 10° off the shared azimuth
-    for search in (lambda ev: coordinate_descent(ev, restarts=2, seed=1),
-                   lambda ev: differential_evolution(ev, time_budget_s=1.0, seed=0)):  # fmt: skip
+    for search in (
+        lambda ev: coordinate_descent(ev, restarts=2, seed=1),
+        lambda ev: differential_evolution(ev, time_budget_s=1.0, seed=0),
+    ):
         ev = NetworkEvaluator(scen, 1, cache, space, KPIConfig(), "sinr")
         result = search(ev)
         a, b = (space.cells[p].config(result.config[p]) for p in (0, 1))

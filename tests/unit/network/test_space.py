@@ -104,10 +104,22 @@ def test_bad_specs(scen, spec: dict, match: str) -> None:
 
 def test_empty_when_every_range_is_the_current_value(scen) -> None:
     fixed = {"min": 4, "max": 4}
-    spec = {"cells": {11: {"mech_tilt_deg": {"min": 4, "max": 4}, "elec_tilt_deg": {"min": 0, "max": 0},
-                           "azimuth_offset_deg": {"min": 0, "max": 0}, "ssb_codebooks": ["pencil"]},
-                      12: {"mech_tilt_deg": {"min": 2, "max": 2}, "elec_tilt_deg": fixed,
-                           "azimuth_offset_deg": {"min": 0, "max": 0}, "ssb_codebooks": ["ssb8"]}}}  # fmt: skip
+    spec = {
+        "cells": {
+            11: {
+                "mech_tilt_deg": {"min": 4, "max": 4},
+                "elec_tilt_deg": {"min": 0, "max": 0},
+                "azimuth_offset_deg": {"min": 0, "max": 0},
+                "ssb_codebooks": ["pencil"],
+            },
+            12: {
+                "mech_tilt_deg": {"min": 2, "max": 2},
+                "elec_tilt_deg": fixed,
+                "azimuth_offset_deg": {"min": 0, "max": 0},
+                "ssb_codebooks": ["ssb8"],
+            },
+        }
+    }
     with pytest.raises(ConfigError, match="empty search space"):
         build_space(spec, scen.cells[1], scen.meta.codebooks)
 

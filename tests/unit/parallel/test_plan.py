@@ -30,7 +30,14 @@ class FakeSource(Predicts):
     """APS from the pair's ids and the size of the call (a batch-dependent answer, like a real model may be);
     records its calls.  Refuses cell 99."""
 
-    name, angle_grid, device, supports_unseen_grids, fingerprint, run_info = "fake", GRID, torch.device("cpu"), True, None, {}  # fmt: skip
+    name, angle_grid, device, supports_unseen_grids, fingerprint, run_info = (
+        "fake",
+        GRID,
+        torch.device("cpu"),
+        True,
+        None,
+        {},
+    )
 
     def __init__(self) -> None:
         self.calls: list[list[tuple[int, int]]] = []

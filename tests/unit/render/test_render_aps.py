@@ -71,13 +71,24 @@ def test_single_scatterer_lands_in_its_bin() -> None:
     site = torch.tensor([0.0, 0.0, 30.0])
     spot = torch.tensor([60.0, 35.0, 2.0])
     cloud = spot + 0.3 * torch.randn(200, 3)
-    prior = PointPrior.from_points(cloud.numpy(), np.array([-100.0, -100.0, -10.0]), np.array([100.0, 100.0, 50.0]),
-                                   voxel_m=2.0, radius_m=4.0, threshold=20.0, beta=0.01)  # fmt: skip
+    prior = PointPrior.from_points(
+        cloud.numpy(),
+        np.array([-100.0, -100.0, -10.0]),
+        np.array([100.0, 100.0, 50.0]),
+        voxel_m=2.0,
+        radius_m=4.0,
+        threshold=20.0,
+        beta=0.01,
+    )
     samples = build_ray_samples(site, grid.directions(), 60, 4.0, prior)
     packed = gather_samples(samples, torch.arange(grid.num_bins))
     live = packed.phi > 0
-    x = render_power(torch.zeros(int(live.sum()), dtype=torch.complex64), packed.phi[live].to(torch.complex64),
-                     packed.ray[live], grid.num_bins)  # fmt: skip
+    x = render_power(
+        torch.zeros(int(live.sum()), dtype=torch.complex64),
+        packed.phi[live].to(torch.complex64),
+        packed.ray[live],
+        grid.num_bins,
+    )
     expected = int(grid.bin_of_vectors((spot - site)[None] / (spot - site).norm())[0])
     assert int(x.argmax()) == expected
     assert float(x[expected]) > 0.3 * float(x.sum())

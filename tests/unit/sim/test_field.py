@@ -88,8 +88,12 @@ def _toy_scenario(rsrp: dict[tuple[int, int], list[float]], reporting: dict, fre
 
     freq = freq or {1: 3.5e9, 2: 3.5e9}
     cells = pd.DataFrame({"cell_id": list(freq), "freq_hz": list(freq.values())})
-    rows = [{"round": 1, "cell_id": c, "grid_id": g, "beam_type": t, "beam_id": b, "rsrp_dbm": v}
-            for (c, g), values in rsrp.items() for t in ("ssb", "csi") for b, v in enumerate(values)]  # fmt: skip
+    rows = [
+        {"round": 1, "cell_id": c, "grid_id": g, "beam_type": t, "beam_id": b, "rsrp_dbm": v}
+        for (c, g), values in rsrp.items()
+        for t in ("ssb", "csi")
+        for b, v in enumerate(values)
+    ]
     meta = type("Meta", (), {"rsrp_threshold_dbm": -120.0, "reporting": reporting_from_dict(reporting)})()
 
     class Toy:
@@ -146,8 +150,9 @@ def test_top_n_and_sinr_detection_report_exactly_the_expected_beams() -> None:
 
 def test_bounds_follow_the_declared_rule_per_report() -> None:
     rsrp = {(1, 7): [-70.0, -80.0, np.nan], (2, 7): [np.nan, -75.0, np.nan], (1, 8): [-100.0, np.nan, np.nan]}
-    toy = _toy_scenario(rsrp, {"csi": {"rule": "top_n", "top_n": 2},
-                               "ssb": {"rule": "sinr", "detection_db": -6.0, "noise_dbm": -120.0}})  # fmt: skip
+    toy = _toy_scenario(
+        rsrp, {"csi": {"rule": "top_n", "top_n": 2}, "ssb": {"rule": "sinr", "detection_db": -6.0, "noise_dbm": -120.0}}
+    )
     pairs, table = toy.rsrp_table(1, "csi")
     bound = missing_bounds(toy, 1, "csi", pairs, table)
     by_pair = {(int(c), int(g)): b for (c, g), b in zip(pairs.itertuples(index=False), bound, strict=True)}
@@ -193,8 +198,14 @@ def test_zero_array_errors_give_the_nominal_sensing_matrix() -> None:
     torch.testing.assert_close(
         sensing_matrix(antenna, book, grid, wl, dtype=torch.float64, element_gains=ones), nominal
     )
-    real = sensing_matrix(antenna, book, grid, wl, dtype=torch.float64,
-                          element_gains=array_errors(8, 4, FieldConfig(), np.random.default_rng(0)))  # fmt: skip
+    real = sensing_matrix(
+        antenna,
+        book,
+        grid,
+        wl,
+        dtype=torch.float64,
+        element_gains=array_errors(8, 4, FieldConfig(), np.random.default_rng(0)),
+    )
     assert not torch.allclose(real, nominal)
 
 
@@ -240,8 +251,9 @@ def test_drive_routes_keep_only_connected_grids_along_the_routes() -> None:
 
 
 def test_build_scenario_in_the_field_regime_directly(tmp_path: Path) -> None:
-    cfg = dataclasses.replace(TINY, measurements="field", field_model=FieldConfig(samples_per_grid=6, drive_routes=1,
-                                                                                 drive_route_grids=20))  # fmt: skip
+    cfg = dataclasses.replace(
+        TINY, measurements="field", field_model=FieldConfig(samples_per_grid=6, drive_routes=1, drive_route_grids=20)
+    )
     out = build_scenario(ProceduralCity(seed=2, size_m=260.0, num_buildings=14), cfg, tmp_path / "f", progress=False)
     sc = load_scenario(out)
     assert sc.meta.simulation["measurements"] == "field" and sc.meta.simulation["field"]["drive_routes"] == 1

@@ -54,8 +54,15 @@ def test_a_grown_city_simulates_with_cells_and_grids_in_proportion(tmp_path: Pat
     """The small preset at 7 and 14 sites, one carrier: twice the cells and twice the grids."""
     sizes = {}
     for sites in (7, 14):
-        config = SimulationConfig(num_sites=sites, max_grids=15, carriers_hz=(3.5e9,), angle_grid=GRID,
-                                  point_cloud_points_per_m2=0.02, points_per_grid=1, seed=1)  # fmt: skip
+        config = SimulationConfig(
+            num_sites=sites,
+            max_grids=15,
+            carriers_hz=(3.5e9,),
+            angle_grid=GRID,
+            point_cloud_points_per_m2=0.02,
+            points_per_grid=1,
+            seed=1,
+        )
         config = grow_procedural(config, "small")
         city = ProceduralCity.from_scene("small", seed=1, **config.backend_options)
         scenario = load_scenario(build_scenario(city, config, tmp_path / str(sites), progress=False))

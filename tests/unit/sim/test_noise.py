@@ -58,8 +58,12 @@ def test_measure_keeps_pairs_with_a_reported_beam_and_all_their_beams() -> None:
 
 
 def test_cells_are_detected_by_their_ssb() -> None:
-    rows = [(1, 10, 1, "ssb", 0, -150.0), (1, 10, 1, "csi", 0, -80.0), (1, 10, 2, "ssb", 0, -90.0),
-            (1, 10, 2, "csi", 0, -150.0)]  # fmt: skip
+    rows = [
+        (1, 10, 1, "ssb", 0, -150.0),
+        (1, 10, 1, "csi", 0, -80.0),
+        (1, 10, 2, "ssb", 0, -90.0),
+        (1, 10, 2, "csi", 0, -150.0),
+    ]
     noiseless = pd.DataFrame(rows, columns=["round", "cell_id", "grid_id", "beam_type", "beam_id", "rsrp_dbm"])
     by_ssb = measure(noiseless, MeasurementModel(sigma_db=0.5), np.random.default_rng(0))
     assert by_ssb["grid_id"].tolist() == [2, 2]  # grid 1: only a CSI-RS beam is strong, the cell is not found

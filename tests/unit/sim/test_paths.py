@@ -60,8 +60,9 @@ def test_free_space_los_rsrp_matches_friis_through_the_pipeline(codebook, freq_h
 
 
 def test_points_per_grid_average_and_unknown_grids() -> None:
-    paths = pd.DataFrame({"grid_id": [5, 5], "power_lin": [1e-9, 1e-9], "aod_el_rad": [-0.1, -0.1],
-                          "aod_az_rad": [0.2, 0.2]})  # fmt: skip
+    paths = pd.DataFrame(
+        {"grid_id": [5, 5], "power_lin": [1e-9, 1e-9], "aod_el_rad": [-0.1, -0.1], "aod_az_rad": [0.2, 0.2]}
+    )
     antenna, cb = CellAntenna(azimuth_deg=80.0), SSBCodebook()
     one = path_rsrp_mw(paths.iloc[:1], antenna, cb, 0.1, np.array([5, 9]), 1)
     avg = path_rsrp_mw(paths, antenna, cb, 0.1, np.array([5, 9]), pd.Series([4, 4], index=[5, 9]))
@@ -71,10 +72,14 @@ def test_points_per_grid_average_and_unknown_grids() -> None:
 
 def test_true_aps_sums_to_mean_path_power_per_grid() -> None:
     rng = np.random.default_rng(0)
-    paths = pd.DataFrame({
-        "grid_id": rng.integers(0, 5, 300), "power_lin": rng.lognormal(-20, 2, 300),
-        "aod_el_rad": rng.uniform(-1.5, 1.5, 300), "aod_az_rad": rng.uniform(-np.pi, np.pi, 300),
-    })  # fmt: skip
+    paths = pd.DataFrame(
+        {
+            "grid_id": rng.integers(0, 5, 300),
+            "power_lin": rng.lognormal(-20, 2, 300),
+            "aod_el_rad": rng.uniform(-1.5, 1.5, 300),
+            "aod_az_rad": rng.uniform(-np.pi, np.pi, 300),
+        }
+    )
     grid = AngleGrid(num_el=19, num_az=24, el_min_deg=-90.0, el_step_deg=10.0)
     aps = bin_paths(paths, grid, 4)
     assert aps["bin"].between(0, grid.num_bins - 1).all() and (aps["power_lin"] > 0).all()
@@ -84,8 +89,7 @@ def test_true_aps_sums_to_mean_path_power_per_grid() -> None:
 
 
 def test_trim_drops_paths_far_below_the_strongest_of_their_receiver() -> None:
-    paths = pd.DataFrame({"grid_id": [1, 1, 1, 2], "point_id": [0, 0, 1, 0],
-                          "power_lin": [1.0, 1e-7, 1e-7, 0.0]})  # fmt: skip
+    paths = pd.DataFrame({"grid_id": [1, 1, 1, 2], "point_id": [0, 0, 1, 0], "power_lin": [1.0, 1e-7, 1e-7, 0.0]})
     kept = trim_paths(paths, 60.0)
     assert kept["power_lin"].tolist() == [1.0, 1e-7]  # point 1 keeps its only path; zero power dropped
     assert len(trim_paths(paths, 50.0)) == 2 and len(trim_paths(paths, 80.0)) == 3

@@ -19,8 +19,9 @@ from rflscm.sim import ProceduralCity, SimulationConfig, build_scenario
 from rflscm.sim.truth import load_true_aps
 
 GRID = AngleGrid(num_el=31, num_az=36, el_min_deg=-90.0, el_step_deg=6.0)
-CONFIG = SimulationConfig(num_sites=2, max_grids=40, seed=4, site_radius_m=120.0, angle_grid=GRID,
-                          point_cloud_points_per_m2=0.05)  # fmt: skip
+CONFIG = SimulationConfig(
+    num_sites=2, max_grids=40, seed=4, site_radius_m=120.0, angle_grid=GRID, point_cloud_points_per_m2=0.05
+)
 
 
 @pytest.fixture(scope="module")
@@ -75,8 +76,9 @@ def subset(scenario, cell_ids: np.ndarray, grid_ids: np.ndarray):
     )
 
 
-@pytest.mark.parametrize("grid", [None, AngleGrid(num_el=10, num_az=12, el_min_deg=-90.0, el_step_deg=20.0)],
-                         ids=["native", "rebinned"])  # fmt: skip
+@pytest.mark.parametrize(
+    "grid", [None, AngleGrid(num_el=10, num_az=12, el_min_deg=-90.0, el_step_deg=20.0)], ids=["native", "rebinned"]
+)
 def test_oracle_of_a_subset_scenario_matches_the_full_scenario_by_id(scenario, grid, tmp_path: Path) -> None:
     # every other cell and every third grid: ids left out lie between and around the kept ones, so
     # truth rows matched by position instead of by id would land on a kept neighbour

@@ -80,8 +80,11 @@ def test_top_n_penalty_is_zero_for_a_prediction_that_respects_the_per_report_bou
     rsrp_dbm = np.array([[-70.0, -80.0, NAN, NAN], [-95.0, NAN, NAN, NAN]])  # report 1 full, report 2 not
     pairs = pd.DataFrame({"cell_id": [1, 1], "grid_id": [5, 6]})
     toy = type("Toy", (), {})()
-    toy.meta = type("Meta", (), {"rsrp_threshold_dbm": -120.0, "reporting": reporting_from_dict(
-        {"csi": {"rule": "top_n", "top_n": 2}})})()  # fmt: skip
+    toy.meta = type(
+        "Meta",
+        (),
+        {"rsrp_threshold_dbm": -120.0, "reporting": reporting_from_dict({"csi": {"rule": "top_n", "top_n": 2}})},
+    )()
     toy.num_beams = lambda cell, beam_type, round=1: 4
     bound_dbm = missing_bounds(toy, 1, "csi", pairs, rsrp_dbm)
     np.testing.assert_array_equal(bound_dbm, [[NAN, NAN, -80.0, -80.0], [NAN, -120.0, -120.0, -120.0]])

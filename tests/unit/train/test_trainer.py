@@ -159,8 +159,11 @@ def test_budget_must_be_positive_and_resume_must_keep_it() -> None:
             budget_trainer(budget_s=bad, step_s=1.0)
     _, trainer = budget_trainer(budget_s=60.0, step_s=1.0)
     trainer.check_budget({"budget_s": 60.0}, "run.ckpt")  # the same budget resumes
-    with pytest.raises(CheckpointError, match=r"run.ckpt: cannot resume: it was trained to a 120 s budget, this run "
-                       r"asks for a 60 s budget; resume with --minutes 2"):  # fmt: skip
+    with pytest.raises(
+        CheckpointError,
+        match=r"run.ckpt: cannot resume: it was trained to a 120 s budget, this run "
+        r"asks for a 60 s budget; resume with --minutes 2",
+    ):
         trainer.check_budget({"budget_s": 120.0}, "run.ckpt")
     with pytest.raises(CheckpointError, match=r"a step schedule \(no budget\), this run asks for a 60 s budget"):
         trainer.check_budget({}, "run.ckpt")  # a step-mode checkpoint (also one from before budget mode)

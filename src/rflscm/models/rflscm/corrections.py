@@ -134,8 +134,13 @@ def fit_corrections(
     pairs = torch.nonzero(data.observed.any(1)).squeeze(1)
     if not (cfg.pair_anchors or cfg.pair_posterior):  # the level alone: a few pairs per cell
         return PairCorrections(fit.levels(fit.render_pairs(fit.level_picks(), top=False)))
-    bar = tqdm(total=pairs.numel() * (2 if cfg.pair_posterior else 1), desc="pair corrections", unit="pair",
-               disable=not progress, leave=False)  # fmt: skip
+    bar = tqdm(
+        total=pairs.numel() * (2 if cfg.pair_posterior else 1),
+        desc="pair corrections",
+        unit="pair",
+        disable=not progress,
+        leave=False,
+    )
     rendered = fit.render_pairs(pairs, top=cfg.pair_posterior, bar=bar)
     levels = fit.levels(rendered) if cfg.calibrate_levels else None
     lam, scores = math.inf, {}

@@ -194,8 +194,9 @@ class RadianceDecoder(nn.Module):
     box_lo: torch.Tensor
     box_hi: torch.Tensor
 
-    def __init__(self, cfg: DecoderConfig, feature_dim: int, frame: SceneFrame, step_m: float,
-                 head_hidden: int | None = None) -> None:  # fmt: skip
+    def __init__(
+        self, cfg: DecoderConfig, feature_dim: int, frame: SceneFrame, step_m: float, head_hidden: int | None = None
+    ) -> None:
         """``head_hidden``: width of the layers after the first (default ``cfg.hidden``; NeRF²'s radiance
         head narrows to 128)."""
         super().__init__()
@@ -227,8 +228,15 @@ class RadianceDecoder(nn.Module):
         parts.append(grid_features)
         return torch.cat(parts, dim=-1)
 
-    def _pair_inputs(self, to_grid: torch.Tensor, dist: torch.Tensor, along: torch.Tensor, miss: torch.Tensor,
-                     direction: torch.Tensor, surface: torch.Tensor | None) -> torch.Tensor:  # fmt: skip
+    def _pair_inputs(
+        self,
+        to_grid: torch.Tensor,
+        dist: torch.Tensor,
+        along: torch.Tensor,
+        miss: torch.Tensor,
+        direction: torch.Tensor,
+        surface: torch.Tensor | None,
+    ) -> torch.Tensor:
         """Per (query, sample) inputs ``[J, ·]``: PE of the unit vector to the grid, of the half-vector
         (∥ the surface normal of a specular reflection), of the scaled log-distances and sⁿ of the
         specularity s = hᵀ T h given the structure tensors ``surface [J, 6]`` (0 without them).
@@ -257,10 +265,17 @@ class RadianceDecoder(nn.Module):
         return out.T
 
     def forward(
-        self, features: torch.Tensor, points: torch.Tensor, along_m: torch.Tensor,
-        rays: RayBatch, queries: Queries, join_query: torch.Tensor, join_sample: torch.Tensor,
-        grid_features: torch.Tensor, surface: torch.Tensor | None = None,
-    ) -> torch.Tensor:  # fmt: skip
+        self,
+        features: torch.Tensor,
+        points: torch.Tensor,
+        along_m: torch.Tensor,
+        rays: RayBatch,
+        queries: Queries,
+        join_query: torch.Tensor,
+        join_sample: torch.Tensor,
+        grid_features: torch.Tensor,
+        surface: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """Complex R ``[J]`` for (query, sample) pairs ``join_query, join_sample [J]``, from per-sample features
         ``[L, D]``, positions ``[L, 3]`` [m], along-ray distances ``[L]`` [m], ``grid_features`` 𝓜(p_l)
         per query ``[Qn, D]`` and with ``surface`` the structure tensors per sample ``[L, 6]``."""
@@ -299,9 +314,13 @@ class RadianceStage(nn.Module):
     """Fields (δ + FDAM, 𝓜), decoder 𝒬 and the renderer for a batch of rays."""
 
     def __init__(
-        self, fields: SceneFields, medium: PassiveMedium, decoder: RadianceDecoder, render_cfg: RenderConfig,
+        self,
+        fields: SceneFields,
+        medium: PassiveMedium,
+        decoder: RadianceDecoder,
+        render_cfg: RenderConfig,
         surfaces: nn.Module | None = None,
-    ) -> None:  # fmt: skip
+    ) -> None:
         super().__init__()
         self.fields, self.decoder = fields, decoder
         self.medium, self.render_cfg = medium, render_cfg

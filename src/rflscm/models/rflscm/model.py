@@ -83,8 +83,13 @@ class RFLSCM(LSCMModel):
     tensors a closer fit than 100 steps at 0.05 in half the time, on both scenes measured
     (``scripts/attenuation_init_probe.py``)."""
 
-    def __init__(self, config: RFLSCMConfig, angle_grid: AngleGrid, device: torch.device | str = "cpu",
-                 fields: FieldFactory | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        config: RFLSCMConfig,
+        angle_grid: AngleGrid,
+        device: torch.device | str = "cpu",
+        fields: FieldFactory | None = None,
+    ) -> None:
         """``fields`` builds each stage's fields (default: RF-LSCM's VM tensors from ``config.field``)."""
         super().__init__(angle_grid, device)
         self.config = config
@@ -106,8 +111,12 @@ class RFLSCM(LSCMModel):
         self._train: TrainContext | None = None
 
     @classmethod
-    def build(cls, config: str | Path | dict[str, Any] | None = None, angle_grid: AngleGrid | None = None,
-              device: torch.device | str = "cpu") -> RFLSCM:  # fmt: skip
+    def build(
+        cls,
+        config: str | Path | dict[str, Any] | None = None,
+        angle_grid: AngleGrid | None = None,
+        device: torch.device | str = "cpu",
+    ) -> RFLSCM:
         """A fresh model from a preset (``"quick"``, ``"full"``), a YAML path, a mapping or ``None``."""
         return cls(load_rflscm_config(config, cls.config_class, cls.config_family), angle_grid or AngleGrid(), device)
 
@@ -164,9 +173,16 @@ class RFLSCM(LSCMModel):
         check_scene_box(cfg, lo, hi)
         grids = scenario.grids
         self.scene = SceneInfo(
-            cell_ids, cell_xyz, wavelengths, grids["grid_id"].to_numpy(np.int64), grids[["x", "y", "z"]].to_numpy(np.float64),
-            r_ref, a_ref, make_frame(cfg, lo, hi, cell_xyz, wavelengths, dist), visible_bins(a_mw, cfg.render.min_gain_db),
-        )  # fmt: skip
+            cell_ids,
+            cell_xyz,
+            wavelengths,
+            grids["grid_id"].to_numpy(np.int64),
+            grids[["x", "y", "z"]].to_numpy(np.float64),
+            r_ref,
+            a_ref,
+            make_frame(cfg, lo, hi, cell_xyz, wavelengths, dist),
+            visible_bins(a_mw, cfg.render.min_gain_db),
+        )
         prior = make_prior(cfg, scenario, lo, hi)
         self.prior = prior.to(self.device) if prior is not None else None
         surfaces = make_surfaces(scenario, lo, hi, seed=cfg.train.seed)
@@ -265,9 +281,17 @@ class RFLSCM(LSCMModel):
         d, c = self._training().data, self.config.loss
         pred = torch.einsum("bmk,bk->bm", a_sel, x)
         return lscm_loss(
-            pred, d.rsrp[pairs], d.beam_mask[pairs], x, d.x_scale[pairs], d.bound[pairs],
-            c.fidelity, c.sparsity, c.missing_penalty, floor=10.0 ** (FLOOR_DB / 10.0),
-        )  # fmt: skip
+            pred,
+            d.rsrp[pairs],
+            d.beam_mask[pairs],
+            x,
+            d.x_scale[pairs],
+            d.bound[pairs],
+            c.fidelity,
+            c.sparsity,
+            c.missing_penalty,
+            floor=10.0 ** (FLOOR_DB / 10.0),
+        )
 
     def training_losses(self, pairs: torch.Tensor, position: float) -> dict[str, Any]:
         """HiTAM loss (1 − α) L⁽¹⁾ + α L⁽²⁾ of a batch of pair indices ``pairs [B]``, α at schedule ``position``."""
@@ -309,9 +333,11 @@ class RFLSCM(LSCMModel):
         d, memo = train.data, train.selection
         if memo is None:
             width = hitam.top_k * hitam.beta**2
-            memo = (torch.zeros(d.num_pairs, width, dtype=torch.long, device=self.device),
-                    torch.zeros(d.num_pairs, width, dtype=torch.bool, device=self.device),
-                    torch.zeros(d.num_pairs, dtype=torch.bool, device=self.device))  # fmt: skip
+            memo = (
+                torch.zeros(d.num_pairs, width, dtype=torch.long, device=self.device),
+                torch.zeros(d.num_pairs, width, dtype=torch.bool, device=self.device),
+                torch.zeros(d.num_pairs, dtype=torch.bool, device=self.device),
+            )
             train.selection = memo
         bins, valid, known = memo
         todo = pairs[~known[pairs]].unique()
@@ -417,9 +443,15 @@ class RFLSCM(LSCMModel):
         train = self._training()
         assert self.scene is not None
         self.corrections = fit_corrections(
-            self.config.corrections, train.data, train.num_ssb, np.asarray(self.scene.cell_ids), self._render_training,
-            self._training().columns, self.config.train.seed, progress,
-        )  # fmt: skip
+            self.config.corrections,
+            train.data,
+            train.num_ssb,
+            np.asarray(self.scene.cell_ids),
+            self._render_training,
+            self._training().columns,
+            self.config.train.seed,
+            progress,
+        )
 
     @torch.no_grad()
     def _render_training(self, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -44,9 +44,14 @@ _DB = 10.0 / math.log(10.0)
 
 
 def fit_gains(
-    cols: torch.Tensor, x: torch.Tensor, rest: torch.Tensor, resid_db: torch.Tensor, mask: torch.Tensor,
-    lam: float, iterations: int = ITERATIONS,
-) -> torch.Tensor:  # fmt: skip
+    cols: torch.Tensor,
+    x: torch.Tensor,
+    rest: torch.Tensor,
+    resid_db: torch.Tensor,
+    mask: torch.Tensor,
+    lam: float,
+    iterations: int = ITERATIONS,
+) -> torch.Tensor:
     """Per-bin gains [dB] ``v [B, n]`` minimising Σ_m∈mask (e_m(v))² + λ ‖v‖² per pair.
 
     Args:
@@ -92,8 +97,15 @@ class LambdaChoice:
     error_sum: dict[float, float] = field(default_factory=dict)
     count: int = 0
 
-    def add(self, cols: torch.Tensor, x: torch.Tensor, rest: torch.Tensor, resid_db: torch.Tensor,
-            mask: torch.Tensor, held: torch.Tensor) -> None:  # fmt: skip
+    def add(
+        self,
+        cols: torch.Tensor,
+        x: torch.Tensor,
+        rest: torch.Tensor,
+        resid_db: torch.Tensor,
+        mask: torch.Tensor,
+        held: torch.Tensor,
+    ) -> None:
         """Fit every candidate on ``mask & ~held`` and score it on ``mask & held``."""
         score = mask & held
         n = int(score.sum())

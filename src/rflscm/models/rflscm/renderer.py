@@ -64,8 +64,16 @@ class APSRenderer:
         stages: ``{"coarse", "fine"}`` (HiTAM) or ``{"fine"}`` rendering stages.
     """
 
-    def __init__(self, config: RFLSCMConfig, angle_grid: AngleGrid, hitam: HiTAM | None, scene: SceneInfo,
-                 prior: nn.Module | None, stages: nn.ModuleDict, device: torch.device) -> None:  # fmt: skip
+    def __init__(
+        self,
+        config: RFLSCMConfig,
+        angle_grid: AngleGrid,
+        hitam: HiTAM | None,
+        scene: SceneInfo,
+        prior: nn.Module | None,
+        stages: nn.ModuleDict,
+        device: torch.device,
+    ) -> None:
         self.config, self.angle_grid, self.hitam, self.scene = config, angle_grid, hitam, scene
         self.prior, self.stages, self.device = prior, stages, device
         self.cache = RayCache()
@@ -150,8 +158,15 @@ class APSRenderer:
             rays.visible = fine
         return rays.visible
 
-    def power_on(self, stage: str, kind: RayKind, cells: torch.Tensor, grid_xyz: torch.Tensor,
-                 bins: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:  # fmt: skip
+    def power_on(
+        self,
+        stage: str,
+        kind: RayKind,
+        cells: torch.Tensor,
+        grid_xyz: torch.Tensor,
+        bins: torch.Tensor,
+        valid: torch.Tensor,
+    ) -> torch.Tensor:
         """x̃ ``[B, K]`` of pairs (``cells [B]``, ``grid_xyz [B, 3]``) at directions ``bins [B, K]`` of ``kind``,
         rendered where ``valid`` and the cell sees the direction, 0 elsewhere."""
         valid = valid & self.visible(kind)[cells[:, None], bins]

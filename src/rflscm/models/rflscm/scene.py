@@ -67,10 +67,16 @@ class SceneInfo:
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "cell_ids": self.cell_ids, "cell_xyz": self.cell_xyz, "wavelength_m": self.wavelength_m,
-            "grid_ids": self.grid_ids, "grid_xyz": self.grid_xyz, "r_ref_mw": self.r_ref_mw,
-            "a_ref_mw": self.a_ref_mw, "frame": self.frame.to_dict(), "visible": self.visible,
-        }  # fmt: skip
+            "cell_ids": self.cell_ids,
+            "cell_xyz": self.cell_xyz,
+            "wavelength_m": self.wavelength_m,
+            "grid_ids": self.grid_ids,
+            "grid_xyz": self.grid_xyz,
+            "r_ref_mw": self.r_ref_mw,
+            "a_ref_mw": self.a_ref_mw,
+            "frame": self.frame.to_dict(),
+            "visible": self.visible,
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SceneInfo:
@@ -142,8 +148,14 @@ def check_scene_box(cfg: Any, lo: np.ndarray, hi: np.ndarray) -> None:
         )
 
 
-def make_frame(cfg: RFLSCMConfig, lo: np.ndarray, hi: np.ndarray, cell_xyz: np.ndarray, wavelengths: np.ndarray,
-               pair_distances: np.ndarray) -> SceneFrame:  # fmt: skip
+def make_frame(
+    cfg: RFLSCMConfig,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    cell_xyz: np.ndarray,
+    wavelengths: np.ndarray,
+    pair_distances: np.ndarray,
+) -> SceneFrame:
     """Q (enough to reach the farthest corner of the box from every cell), reference wavelength and distance."""
     q = num_samples_for(torch.as_tensor(lo), torch.as_tensor(hi), torch.as_tensor(cell_xyz), cfg.render.step_m)
     return SceneFrame(
@@ -200,8 +212,9 @@ def surfaces_from_state(state: dict[str, Any] | None) -> SurfaceOrientation | No
     return SurfaceOrientation(state["grid"].float(), state["box_lo"], state["box_hi"])
 
 
-def building_targets(cfg: RFLSCMConfig, scenario: Scenario, prior: PointPrior, max_points: int = 30_000,
-                     seed: int = 0) -> tuple[torch.Tensor, torch.Tensor] | None:  # fmt: skip
+def building_targets(
+    cfg: RFLSCMConfig, scenario: Scenario, prior: PointPrior, max_points: int = 30_000, seed: int = 0
+) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Points ``[n, 3]`` near the scan and their building share ``[n]`` ∈ [0, 1] (building-point count over
     D_th), for initialising the attenuation; ``None`` without building-classified points."""
     cloud = scenario.point_cloud
