@@ -12,6 +12,7 @@ import pandas as pd
 import yaml
 
 from rflscm.config import from_dict, to_dict
+from rflscm.data.cells import CELL_COLUMNS
 from rflscm.data.geo import Origin
 from rflscm.data.ingest.binning import bin_samples, grids_of, keep_top_n
 from rflscm.data.ingest.cellist import cell_origin, cells_frame, copy_elements, read_cell_list
@@ -23,25 +24,6 @@ from rflscm.data.meta import RSRP_MIN_DBM, ScenarioMeta, meta_from_dict
 from rflscm.data.reporting import BEAM_TYPES, reporting_from_dict
 from rflscm.errors import DataError
 
-SCENARIO_CELL_COLUMNS = (
-    "cell_id",
-    "site_id",
-    "x",
-    "y",
-    "z",
-    "azimuth_deg",
-    "mech_tilt_deg",
-    "elec_tilt_deg",
-    "freq_hz",
-    "tx_power_dbm",
-    "array_nh",
-    "array_nv",
-    "spacing_h_m",
-    "spacing_v_m",
-    "ssb_codebook",
-    "csi_codebook",
-    "element",
-)
 DEFAULT_THRESHOLD_DBM = -120.0
 """rsrp_threshold_dbm without one given: this, or the weakest kept bin rounded down when that is lower (a low
 threshold claims little about missing beams; a high one would claim they were all weaker than it)."""
@@ -203,7 +185,7 @@ def _write(
     ext = ".csv" if table_format == "csv" else ".parquet"
     out.mkdir(parents=True, exist_ok=True)
     for rnd, table in cells.items():
-        write_table(table[[c for c in SCENARIO_CELL_COLUMNS if c in table.columns]], out / f"cells_round{rnd}{ext}")
+        write_table(table[[c for c in CELL_COLUMNS if c in table.columns]], out / f"cells_round{rnd}{ext}")
         copy_elements(table, folders[rnd], out)
     write_table(cells[1][["cell_id", "cell_name", "pci", "carrier_hz"]], out / f"{CELL_MAP_FILE}{ext}")
     write_table(grids, out / f"grids{ext}")
