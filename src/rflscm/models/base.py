@@ -125,45 +125,23 @@ class LSCMModel(abc.ABC):
         positions for grids the model has not seen (field models need them).
         Raises :class:`UnsupportedError` where the model has no answer."""
 
-    # --- prediction, shared --------------------------------------------------------------------
+    # --- prediction, shared (one implementation for models, the oracle and caches: rflscm.models.source) ---
     def checked_aps(
         self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None
     ) -> torch.Tensor:
         """:meth:`aps`, refusing an answer that is not finite and ≥ 0 (never write NaN or drop beams silently)."""
-        x = self.aps(cell_ids, grid_ids, grid_xyz)
-        bad = ~torch.isfinite(x) | (x < 0)
-        if bool(bad.any()):
-            pair = int(torch.nonzero(bad.any(1))[0, 0])
-            raise NonFiniteError(
-                f"the {self.name} model answered a non-finite or negative APS for (cell {int(cell_ids[pair])}, grid "
-                f"{int(grid_ids[pair])}) ({int(bad.any(1).sum())} of {len(x)} pairs); its checkpoint is damaged or "
-                "its training diverged: retrain it with the `train` command."
-            )
-        return x
+        from rflscm.models.source import checked_aps
+
+        return checked_aps(self, cell_ids, grid_ids, grid_xyz)
 
     def predict_rsrp(
         self, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, chunk: int = 4096
     ) -> np.ndarray:
         """Predicted RSRP [dBm] ``[num_pairs, max_beams]`` (NaN past a cell's codebook size) under the
         antenna configuration of ``round`` for ``pairs`` (columns ``cell_id``, ``grid_id``)."""
-        cell_ids = pairs["cell_id"].to_numpy()
-        grid_ids = pairs["grid_id"].to_numpy()
-        grid_xyz = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
-        max_beams = (
-            max(scenario.codebook(c, beam_type, round).num_beams for c in np.unique(cell_ids)) if len(pairs) else 0
-        )
-        out = np.full((len(pairs), max_beams), np.nan)
-        for cell in np.unique(cell_ids):
-            rows = np.flatnonzero(cell_ids == cell)
-            a = scenario.sensing(cell, beam_type, self.angle_grid, round=round, device=self.device)  # [beams, bins]
-            for start in range(0, len(rows), chunk):
-                sel = rows[start : start + chunk]
-                with torch.no_grad():
-                    x = self.checked_aps(cell_ids[sel], grid_ids[sel], grid_xyz[sel])  # [pairs, bins]
-                    power_mw = (x.to(a.dtype) @ a.T).clamp_min(MIN_POWER_MW)
-                out[sel, : a.shape[0]] = 10.0 * np.log10(power_mw.cpu().double().numpy())
-        offset = self.level_offset_db(cell_ids, beam_type)
-        return out if offset is None else out + offset[:, None]
+        from rflscm.models.source import predict_rsrp
+
+        return predict_rsrp(self, scenario, round, beam_type, pairs, chunk)
 
     def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
         """dB added to every ``beam_type`` prediction of each pair's cell ``cell_ids [P]`` on top of A x (a level

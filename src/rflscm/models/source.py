@@ -89,7 +89,7 @@ def predict_rsrp(
 ) -> np.ndarray:
     """Predicted RSRP [dBm] ``[num_pairs, max_beams]`` (NaN past a cell's codebook size) of ``source`` under the
     antenna configuration of ``round`` for ``pairs`` (columns ``cell_id``, ``grid_id``): r = A′ x in dB plus the
-    source's level offset (the same computation as :meth:`LSCMModel.predict_rsrp`)."""
+    source's level offset (:meth:`LSCMModel.predict_rsrp` calls this)."""
     cell_ids = pairs["cell_id"].to_numpy()
     grid_ids = pairs["grid_id"].to_numpy()
     grid_xyz = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
