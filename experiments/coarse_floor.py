@@ -2,7 +2,9 @@
 
 The true APS is summed per β × β block and sensed through the block-mean columns of A (what the
 coarse stage renders and trains on), and through the paper's representative columns, beside the
-fine-bin oracle.  Round 1, SSB and CSI-RS pooled.
+fine-bin oracle.  Round 1, SSB and CSI-RS pooled.  HiTAM lost its representative mode in commit
+908988d; the representative columns are picked here from ``AngleGrid.coarse(β).representative_bins()``,
+as that mode did.
 
 Usage: python experiments/coarse_floor.py [MAX_CELLS]   (about a minute for 12 cells on 2 cores)
 """
@@ -33,7 +35,7 @@ def main(max_cells: int) -> None:
     truth = load_true_aps(scen, grid)
     cells = scen.cell_ids()[:max_cells]
     for beta in (2, 3):
-        block, rep = HiTAM(grid, beta, 16), HiTAM(grid, beta, 16, coarse_bins="representative")
+        block, rep_bins = HiTAM(grid, beta, 16), grid.coarse(beta).representative_bins()
         errs: dict[str, list[np.ndarray]] = {"fine": [], "block": [], "representative": []}
         for beam_type in BEAM_TYPES:
             pairs, rsrp = scen.rsrp_table(1, beam_type)
@@ -45,10 +47,12 @@ def main(max_cells: int) -> None:
                 measured = rsrp[rows][:, : a.shape[0]]
                 errs["fine"].append(abs_errors_db(x @ a.T, measured))
                 errs["block"].append(abs_errors_db(x_block @ block.coarse_columns(a[None])[0].T, measured))
-                errs["representative"].append(abs_errors_db(x_block @ rep.coarse_columns(a[None])[0].T, measured))
+                errs["representative"].append(abs_errors_db(x_block @ a[:, rep_bins].T, measured))
         mae = {k: float(np.concatenate(v).mean()) for k, v in errs.items()}
-        print(f"beta={beta}: fine oracle {mae['fine']:.2f} dB, coarse block-mean {mae['block']:.2f} dB, "
-              f"representative {mae['representative']:.2f} dB  ({len(cells)} cells)")  # fmt: skip
+        print(
+            f"beta={beta}: fine oracle {mae['fine']:.2f} dB, coarse block-mean {mae['block']:.2f} dB, "
+            f"representative {mae['representative']:.2f} dB  ({len(cells)} cells)"
+        )
 
 
 if __name__ == "__main__":

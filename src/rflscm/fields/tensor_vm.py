@@ -3,14 +3,14 @@
 𝒢 = Σ_{r=1}^{R} ( v_r^X ∘ M_r^{YZ} ∘ b¹ + v_r^Y ∘ M_r^{XZ} ∘ b² + v_r^Z ∘ M_r^{XY} ∘ b³ )
 
 with a vector per axis, a matrix per orthogonal plane and a learnable basis
-vector per mode mapping to the D output channels (``basis="per_mode"``, the
-paper's form).  ``basis="per_component"`` gives every rank-1 component its own
-basis vector (TensoRF's appearance basis matrix), which is strictly more
-expressive for wide latent features.  ``basis="per_channel"`` gives every output
-channel its own R components per mode and its own per-mode scalars b^m_c (the
-paper's form with a diagonal basis): channels with very different gradient
-scales (e.g. a loss and a phase-like index) then never share a factor, so Adam
-moves each at its own pace.  Look-ups interpolate with
+mapping to the D output channels.  The paper's form has one basis vector per mode
+b¹, b², b³ ∈ ℝᴰ; the model uses two variants of it.  ``basis="per_component"``
+gives every rank-1 component its own basis vector (TensoRF's appearance basis
+matrix), which is strictly more expressive for wide latent features.
+``basis="per_channel"`` gives every output channel its own R components per mode
+and its own per-mode scalars b^m_c (the paper's form with a diagonal basis):
+channels with very different gradient scales (e.g. a loss and a phase-like
+index) then never share a factor, so Adam moves each at its own pace.  Look-ups interpolate with
 ``torch.nn.functional.grid_sample``: bilinear on the planes, linear on the lines
 (``align_corners=True``: grid point i of an axis sits at lo + i·(hi − lo)/(res − 1)).
 """
@@ -44,8 +44,8 @@ class TensorVM(nn.Module):
         resolution: grid points per axis (X, Y, Z).
         rank: number of rank-1 components per mode (R₁ or R₂ in the paper).
         out_dim: output channels D.
-        basis: ``"per_mode"`` (paper: b¹, b², b³ ∈ ℝᴰ), ``"per_component"`` (ℝ^{3R×D}) or
-            ``"per_channel"`` (R components per mode and channel, b^m_c ∈ ℝ, initialised to 1).
+        basis: ``"per_component"`` (ℝ^{3R×D}) or ``"per_channel"`` (R components per mode and channel,
+            b^m_c ∈ ℝ, initialised to 1).  (The paper's ``per_mode`` basis, b^m ∈ ℝᴰ, left with issue 11.)
         init_scale: standard deviation of the initial vector and matrix entries.
     """
 
@@ -59,7 +59,7 @@ class TensorVM(nn.Module):
         resolution: tuple[int, int, int],
         rank: int,
         out_dim: int,
-        basis: Literal["per_mode", "per_component", "per_channel"] = "per_mode",
+        basis: Literal["per_component", "per_channel"],
         init_scale: float = 0.1,
     ) -> None:
         super().__init__()
@@ -81,7 +81,7 @@ class TensorVM(nn.Module):
         if basis == "per_channel":
             self.basis = nn.Parameter(torch.ones(3, out_dim))
         else:
-            num_in = 3 if basis == "per_mode" else 3 * rank
+            num_in = 3 * rank
             self.basis = nn.Parameter(torch.randn(num_in, out_dim) / num_in**0.5)
 
     def normalise(self, points: torch.Tensor) -> torch.Tensor:
@@ -104,8 +104,6 @@ class TensorVM(nn.Module):
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """Field values ``[S, D]`` at world points ``[S, 3]`` [m]."""
         comp = self.components(points)  # [S, 3, R]  (R·D for per_channel)
-        if self.basis_kind == "per_mode":
-            return comp.sum(-1) @ self.basis  # Σ_r v M, then b^m  (paper eq. (20))
         if self.basis_kind == "per_channel":
             per_channel = comp.view(comp.shape[0], 3, self.out_dim, self.rank).sum(-1)  # [S, 3, D]
             return (per_channel * self.basis).sum(1)

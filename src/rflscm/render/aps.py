@@ -47,15 +47,9 @@ def transmittance(log_delta: torch.Tensor, ray: torch.Tensor, max_log_gain: floa
     return torch.exp(torch.complex(cum.real.clamp(max=max_log_gain), cum.imag))
 
 
-def accumulate_power(
-    contrib: torch.Tensor, target: torch.Tensor, num_targets: int, coherent: bool = True
-) -> torch.Tensor:
-    """x̃ ``[num_targets]`` from complex ``contrib [J]`` of targets ``target [J]``: |Σ contributions|² (the
-    paper's eq. (18), ``coherent``) or Σ |contribution|² (``coherent=False``: the scatterers of one angular
-    bin add in power, as the binned paths of a measured or ray-traced APS do)."""
-    power = contrib.real.square() + contrib.imag.square()
-    if not coherent:
-        return torch.zeros(num_targets, dtype=power.dtype, device=power.device).index_add(0, target, power)
+def accumulate_power(contrib: torch.Tensor, target: torch.Tensor, num_targets: int) -> torch.Tensor:
+    """x̃ ``[num_targets]`` from complex ``contrib [J]`` of targets ``target [J]``: |Σ contributions|², the
+    coherent sum of the paper's eq. (18)."""
     s = torch.zeros(num_targets, dtype=contrib.dtype, device=contrib.device).index_add(0, target, contrib)
     return s.real.square() + s.imag.square()
 
