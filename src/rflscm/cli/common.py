@@ -188,15 +188,26 @@ def budget_seconds(minutes: float | None, option: str = "--minutes") -> float | 
 
 
 def budget_summary(summary: dict[str, float]) -> str | None:
-    """One line on a time-budget training run (None for a run without a budget)."""
+    """One line on a time-budget training run (None for a run without a budget): the training, the pass after it
+    (how many training pairs got their own corrections) and the whole fit against the budget."""
     budget = summary.get("budget_s")
     if budget is None:
         return None
     stopped = "the budget stopped it" if summary.get("stopped_by_budget") else "it stopped before the budget"
-    return (
+    line = (
         f"trained {summary['steps']:.0f} steps ({summary['passes']:.1f} passes) in {summary['train_time_s']:.1f} s "
         f"of a {budget / 60:g}-minute budget; {stopped}"
     )
+    if "finish_s" in summary:
+        line += f"; the pass after training took {summary['finish_s']:.1f} s"
+        pairs, corrected = summary.get("training_pairs"), summary.get("corrected_pairs")
+        if pairs is not None and corrected is not None:
+            line += f" and corrected {corrected:.0f} of {pairs:.0f} training pairs"
+            if corrected < pairs:
+                line += " (the others keep the level correction: give more `--minutes` to correct them all)"
+    if "total_s" in summary:
+        line += f"; {summary['total_s']:.1f} s in all"
+    return line
 
 
 def budget_note(summary: dict[str, float]) -> str | None:

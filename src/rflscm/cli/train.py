@@ -125,6 +125,7 @@ def train(
         split_seed=(split_seed, 0, SEED_MAX),
     )
     guard_outputs({"--out": out}, [*scenario_inputs(scenario), *config_inputs(config)], force=force, resume=resume)
+    t0 = time.perf_counter()  # a --minutes budget counts from here: loading the scenario is part of it
     console = Console(stderr=True)
     if model not in MODEL_REGISTRY:
         valid = ", ".join(sorted(MODEL_REGISTRY))
@@ -147,19 +148,19 @@ def train(
         budget_s = None
     elif budget_s is not None:
         console.print(f"time budget: {minutes:g} min (data preparation included)")
-    t0 = time.perf_counter()
     fitted.run_info["interrupted"] = True  # every checkpoint saved during training says so, until the last one
     try:
         summary = fit_with_protocol(
-            fitted, scen, proto, progress=progress, checkpoint_path=out, resume=resume, budget_s=budget_s
+            fitted, scen, proto, progress=progress, checkpoint_path=out, resume=resume, budget_s=budget_s, started=t0
         )
     except Interrupted as exc:
         raise Interrupted(exc.signum, interrupted_note(out, scenario)) from None
-    fitted.run_info.pop("interrupted")
+    if not isinstance(fitted, Trainable):  # a step-by-step model's fit wrote its finished checkpoint itself
+        fitted.run_info.pop("interrupted")
+        fitted.run_info["fit"] = {**{k: float(v) for k, v in summary.items()}, "train_time_s": time.perf_counter() - t0}
+        kept = read_checkpoint(out).get("train_state") if out.is_file() else None
+        fitted.save(out, train_state=kept)
     elapsed = time.perf_counter() - t0
-    fitted.run_info["fit"] = {**{k: float(v) for k, v in summary.items()}, "train_time_s": elapsed}
-    kept = read_checkpoint(out).get("train_state") if out.is_file() else None  # the trainer's last save
-    fitted.save(out, train_state=kept)
     console.print(f"wrote {out} in {elapsed:.1f} s")
     if (line := budget_summary(summary)) is not None:
         console.print(line)

@@ -37,6 +37,10 @@ class LoopConfig(Protocol):
         """Learning rates decay exponentially to this fraction at the end of the schedule."""
 
     @property
+    def finish_share(self) -> float:
+        """Budget mode: the most of the budget that the model's pass after training may take."""
+
+    @property
     def val_every(self) -> int:
         """Steps between validation MAEs."""
 

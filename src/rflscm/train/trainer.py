@@ -11,7 +11,10 @@ dedicated generator, optionally in groups of ``pairs_per_cell`` pairs that share
 
 The schedule (learning-rate decay, and through the model HiTAM's warm-up and ramp and the tensor
 upsampling) follows a *progress* fraction p ∈ [0, 1]: p = step / ``train.steps`` (step mode), or
-p = min(1, elapsed / budget) when :func:`fit` is given a time budget (budget mode).  The learning-rate
+p = min(1, elapsed / training time) when :func:`fit` is given a time budget (budget mode).  A budget is a
+promise for the whole fit: the training time is the budget less the time kept for the model's pass after
+training (``finish_training``), which the model estimates (``finish_seconds``, measured on one chunk) and which
+may take at most ``train.finish_share`` of the budget; that pass is then given the time left, to the budget's end.  The learning-rate
 factor is ``lr_decay ** p``; the model sees the *schedule position* p · ``train.steps`` (in units of the
 nominal schedule's steps; exactly the step in step mode), so ``train.steps`` is the length of the
 nominal schedule in both modes.  In step mode everything is a pure function of the step, so a
@@ -52,7 +55,9 @@ class Trainable(Protocol):
     * :meth:`resume_from` — load weights and schedule position from a checkpoint payload (refusing a
       foreign one); the trainer state saved beside them is the trainer's own (``payload["train_state"]``);
     * :meth:`finish_training` — once after the last step (before the final checkpoint): work that only the
-      trained weights need (RF-LSCM's level correction and pair corrections; ``progress``: show a bar);
+      trained weights need (RF-LSCM's level correction and pair corrections; ``progress``: show a bar); in budget
+      mode given ``time_left``, the seconds left of the budget, which it must respect;
+    * :meth:`finish_seconds` — the seconds :meth:`finish_training` would need for all of its work, measured now;
     * :meth:`save` — the checkpoint, with the trainer state written beside the model's;
     * ``train_config`` (the loop's knobs) and :meth:`decoder_evals` (a work counter for throughput).
 
@@ -79,7 +84,11 @@ class Trainable(Protocol):
 
     def save(self, path: str | Path, train_state: dict[str, Any] | None = None) -> Path: ...
 
-    def finish_training(self, progress: bool = False) -> None: ...
+    def finish_training(
+        self, progress: bool = False, time_left: Callable[[], float] | None = None, clock: Callable[[], float] = ...
+    ) -> None: ...
+
+    def finish_seconds(self, clock: Callable[[], float] = ...) -> float: ...
 
 
 def fit(
@@ -91,8 +100,11 @@ def fit(
     resume: bool = False,
     budget_s: float | None = None,
     clock: Callable[[], float] = time.perf_counter,
+    started: float | None = None,
 ) -> dict[str, float]:
-    """Learn ``model`` from the round-1 measurements of ``scenario``; returns a summary.
+    """Learn ``model`` from the round-1 measurements of ``scenario``; returns a summary (a :class:`Trainable`
+    model also records it in ``run_info["train"]`` and ``run_info["fit"]``, whose ``train_time_s`` is then the whole
+    fit's, and drops ``run_info["interrupted"]`` before its last checkpoint).
 
     A :class:`Trainable` model is trained by a :class:`Trainer` (checkpoints written atomically to
     ``checkpoint_path`` every few steps; with ``resume`` it continues from that file, exactly in step
@@ -100,12 +112,14 @@ def fit(
     apply to it).  ``callback`` receives periodic metrics.  The model's fingerprint, when not set
     already (a protocol sets the full scenario's), becomes ``scenario``'s.
 
-    With ``budget_s`` (seconds of wall time, counted on ``clock`` from the start of this call, data
-    preparation included) the schedule follows the elapsed fraction of the budget instead of the step
-    count, and training stops after the first step that ends at or past the budget (see
-    :class:`Trainer`); ``train.steps`` is then only the length of the nominal schedule.
+    With ``budget_s`` (seconds of wall time, counted on ``clock`` from ``started``, default the start of this
+    call, data preparation included) the whole fit, the pass after training and the last checkpoint included,
+    ends within the budget: training stops after the first step that ends at or past its share (the budget less
+    the time kept for the pass after training, see the module's docstring), the schedule follows the elapsed
+    fraction of that share instead of the step count (``train.steps`` is then only the length of the nominal
+    schedule), and the pass after training gets the time left.
     """
-    started = clock()
+    started = clock() if started is None else started
     checked_budget(budget_s)  # before minutes of data preparation
     if model.fingerprint is None:
         model.fingerprint = scenario.fingerprint()
@@ -122,6 +136,10 @@ def fit(
             raise CheckpointError(f"{checkpoint_path}: cannot resume: the checkpoint holds no optimizer state.")
         trainer.check_budget(state, checkpoint_path)
         trainer.load_state_dict(state)
+    time_left = None
+    if budget_s is not None:
+        kept = min(FINISH_SAFETY * model.finish_seconds(clock), model.train_config.finish_share * budget_s)
+        trainer.stop_s = budget_s - kept
     evals0, time0 = model.decoder_evals(), clock()
     summary = trainer.run(
         progress=progress,
@@ -130,11 +148,27 @@ def fit(
         started=started if budget_s is not None else None,
     )
     summary["decoder_evals_per_s"] = (model.decoder_evals() - evals0) / max(clock() - time0, 1e-9)
-    model.finish_training(progress=progress)
+    finish0 = clock()
+    if budget_s is not None:
+        end = finish0 + budget_s - trainer.elapsed_s - (SAVE_SAFETY * trainer.save_s if checkpoint_path else 0.0)
+        time_left = lambda: end - clock()  # noqa: E731
+    model.finish_training(progress=progress, time_left=time_left, clock=clock)
+    summary["finish_s"] = clock() - finish0
+    summary.update(model.run_info.get("corrections", {}))  # how many training pairs the pass corrected
+    summary["total_s"] = clock() - started
+    model.run_info["train"] = {k: float(v) for k, v in summary.items()}
+    model.run_info["fit"] = {**model.run_info["train"], "train_time_s": summary["total_s"]}
+    model.run_info.pop("interrupted", None)  # the last checkpoint is the finished model's
     if checkpoint_path is not None:
         trainer.save(checkpoint_path)
-    model.run_info["train"] = {k: float(v) for k, v in summary.items()}
     return summary
+
+
+FINISH_SAFETY = 1.2
+"""The time kept for the pass after training is this many times the model's estimate (its measurement is of one
+chunk, and the pass also takes its residuals and λ choice); ``train.finish_share`` caps it."""
+SAVE_SAFETY = 1.5
+"""The pass after training leaves this many times the latest checkpoint's writing time for the final checkpoint."""
 
 
 def checked_budget(budget_s: float | None) -> float | None:
@@ -147,9 +181,10 @@ def checked_budget(budget_s: float | None) -> float | None:
 class Trainer:
     """Adam over named parameter groups, exponential learning-rate decay, periodic validation and checkpoints.
 
-    Step mode (``budget_s`` None) runs ``cfg.steps`` steps.  Budget mode runs until ``budget_s`` seconds
-    of ``clock`` have passed (at least one step); the progress p = min(1, elapsed / budget_s) drives the
-    schedule, reaching its end (p = 1, position ``cfg.steps``) when the budget is spent.
+    Step mode (``budget_s`` None) runs ``cfg.steps`` steps.  Budget mode runs until ``stop_s`` seconds of
+    ``clock`` have passed (at least one step): the training's share of the budget, ``budget_s`` unless :func:`fit`
+    keeps time for the pass after training; the progress p = min(1, elapsed / stop_s) drives the schedule,
+    reaching its end (p = 1, position ``cfg.steps``) when the share is spent.
     """
 
     def __init__(
@@ -163,6 +198,10 @@ class Trainer:
     ) -> None:
         self.model, self.cfg = model, cfg
         self.budget_s, self.clock = checked_budget(budget_s), clock
+        self.stop_s = budget_s
+        """Budget mode: the training's share of the budget [s] (the schedule and the stop follow it)."""
+        self.save_s = 0.0
+        """Seconds the latest checkpoint took to write."""
         self.train_pairs = train_pairs.cpu()
         self.groups = groups.cpu() if groups is not None else None
         self.step = 0
@@ -188,10 +227,10 @@ class Trainer:
 
     def progress(self) -> float:
         """Schedule progress p ∈ [0, 1] of the next step: ``step / steps`` (step mode) or the spent fraction of
-        the budget, ``min(1, elapsed_s / budget_s)`` (budget mode)."""
-        if self.budget_s is None:
+        the training's share of the budget, ``min(1, elapsed_s / stop_s)`` (budget mode)."""
+        if self.stop_s is None:
             return self.step / max(self.cfg.steps, 1)
-        return min(1.0, self.elapsed_s / self.budget_s)
+        return min(1.0, self.elapsed_s / max(self.stop_s, 1e-9))
 
     def position(self) -> float:
         """Schedule position of the next step, p · ``cfg.steps`` in units of the nominal schedule's steps
@@ -205,10 +244,10 @@ class Trainer:
         return self.cfg.lr_decay**progress
 
     def finished(self) -> bool:
-        """Step mode: ``cfg.steps`` done; budget mode: the budget spent (and at least one step done)."""
-        if self.budget_s is None:
+        """Step mode: ``cfg.steps`` done; budget mode: the training's share spent (and at least one step done)."""
+        if self.stop_s is None:
             return self.step >= self.cfg.steps
-        return self.step > 0 and self.elapsed_s >= self.budget_s
+        return self.step > 0 and self.elapsed_s >= self.stop_s
 
     def passes(self, steps: int) -> float:
         """How many times ``steps`` steps show the model each training pair, on average."""
@@ -283,7 +322,9 @@ class Trainer:
         self.elapsed_s = float(state.get("elapsed_s", 0.0))
 
     def save(self, path: str | Path) -> None:
+        begun = self.clock()
         self.model.save(path, train_state=self.state_dict())
+        self.save_s = self.clock() - begun
 
     # --- the loop -------------------------------------------------------------------------------
     def train_step(self) -> dict[str, float]:
@@ -310,7 +351,7 @@ class Trainer:
     ) -> dict[str, float]:
         """Train until :meth:`finished`; returns a summary.  ``started`` is the ``clock`` reading the elapsed
         time counts from (default: now; :func:`fit` passes its own start in budget mode)."""
-        cfg, budget = self.cfg, self.budget_s
+        cfg, budget = self.cfg, self.stop_s
         bar = self._progress_bar(progress)
         losses: dict[str, float] = {}
         start = (self.clock() if started is None else started) - self.elapsed_s
@@ -344,8 +385,10 @@ class Trainer:
             "final_loss": losses.get("total", float("nan")),
             "val_mae_db": self.last_val_mae,
         }
-        if budget is not None:
-            summary.update(budget_s=budget, stopped_by_budget=float(self.elapsed_s >= budget))
+        if budget is not None and self.budget_s is not None:
+            summary.update(
+                budget_s=self.budget_s, train_budget_s=budget, stopped_by_budget=float(self.elapsed_s >= budget)
+            )
         return summary
 
     def _progress_bar(self, progress: bool) -> Any:
@@ -356,6 +399,7 @@ class Trainer:
         if self.budget_s is None:
             desc = f"rflscm train ({self.passes(self.cfg.steps):.1f} passes over {n} pairs)"
             return tqdm(total=self.cfg.steps, initial=self.step, disable=not progress, desc=desc, dynamic_ncols=True)
-        desc = f"rflscm train ({self.budget_s / 60:g} min budget, {n} pairs)"
+        assert self.stop_s is not None
+        desc = f"rflscm train ({self.budget_s / 60:g} min budget, {self.stop_s:.0f} s of it training, {n} pairs)"
         fmt = "{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]"
-        return tqdm(total=self.budget_s, disable=not progress, desc=desc, dynamic_ncols=True, bar_format=fmt)
+        return tqdm(total=self.stop_s, disable=not progress, desc=desc, dynamic_ncols=True, bar_format=fmt)

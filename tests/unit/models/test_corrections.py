@@ -102,3 +102,41 @@ def test_a_round_trip_through_torch_save_with_weights_only_keeps_every_part() ->
     assert PairCorrections.from_state(None, K) == PairCorrections()
     with pytest.raises(CheckpointError, match="pair corrections are damaged"):
         PairCorrections.from_state([1, 2], K)  # type: ignore[arg-type]
+
+
+def test_within_a_deadline_the_pass_corrects_the_pairs_that_fit_and_the_rest_keep_the_level() -> None:
+    """Every render costs 1 s of a fake clock. The level's pairs come first, then chunks of the others while the
+    slowest chunk so far (× CHUNK_MARGIN) still fits; pairs left over have no anchor; with time enough, every pair
+    gets the anchor a pass without a deadline gives it."""
+    from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL, PAIR_CHUNK
+
+    num = 200
+    gen = torch.Generator().manual_seed(1)
+    aps = torch.rand(num, K, generator=gen) + 0.1
+    rsrp = (aps.sum(1, keepdim=True) * 10 ** (torch.randn(num, 2, generator=gen) / 10)).tolist()
+    cells = [i % 2 for i in range(num)]
+    now = [0.0]
+
+    def costly(pairs: torch.Tensor):
+        now[0] += 1.0
+        return render(aps, [])(pairs)
+
+    cfg = CorrectionsConfig(pair_posterior=False)
+    args = (cfg, data(rsrp, cells), 1, np.array([7, 8]), costly, columns)
+    full = fit_corrections(*args, seed=0)
+    assert full.anchors is not None and len(full.anchors) == num
+    now[0] = 0.0
+    cut = fit_corrections(*args, seed=0, time_left=lambda: 2.6 - now[0], clock=lambda: now[0])
+    assert cut.anchors is not None and cut.corrected_pairs() == 2 * LEVEL_PAIRS_PER_CELL + PAIR_CHUNK
+    assert set(cut.anchors.index) <= set(full.anchors.index)
+    np.testing.assert_allclose(cut.anchors.to_numpy(), full.anchors.loc[cut.anchors.index].to_numpy(), atol=1e-5)
+    torch.testing.assert_close(cut.levels, full.levels)  # the level's pairs are always in
+    uncorrected = sorted(set(full.anchors.index) - set(cut.anchors.index))[:3]
+    ids, grids = (np.array(v) for v in zip(*uncorrected))
+    out = cut.apply(torch.full((3, K), 0.25), ids - 7, ids, grids)
+    assert cut.levels is not None
+    torch.testing.assert_close(out[:, 0], 0.25 * 10 ** (cut.levels[ids - 7, 0] / 10))  # the level only
+    now[0] = 0.0
+    ample = fit_corrections(*args, seed=0, time_left=lambda: 1e9 - now[0], clock=lambda: now[0])
+    assert ample.anchors is not None
+    pd.testing.assert_series_equal(ample.anchors.sort_index(), full.anchors.sort_index(), atol=1e-5)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
+
 import pytest
 import torch
 from tiny_rflscm import Interrupt, stop_at, tiny_config
@@ -114,3 +117,45 @@ def test_budget_resume_continues_from_the_saved_time_and_refuses_another_budget(
                 checkpoint_path=ckpt,
                 resume=True,
             )
+
+
+def test_a_budget_keeps_time_for_the_pass_after_training_and_gives_it_the_rest(scenario) -> None:
+    """The fit ends within the budget: the model's estimate of its pass (capped by ``train.finish_share``) is taken
+    off the training, the schedule spans what is left, and the pass is told the seconds left to the budget's end."""
+    for share, estimate, stop in ((0.5, 30.0, 64.0), (0.2, 30.0, 80.0), (0.5, 0.0, 100.0)):
+        clock, seen, left = StepClock(10.0), [], []
+        model = timed_model(clock, seen)
+        model.config = dataclasses.replace(
+            model.config, train=dataclasses.replace(model.config.train, finish_share=share)
+        )
+        model.finish_seconds = lambda clock, e=estimate: e  # type: ignore[method-assign]
+        model.finish_training = lambda progress=False, time_left=None, clock=None, seen=left: seen.append(time_left())  # type: ignore[method-assign]
+        summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock)
+        # kept = min(1.2 × estimate, share × budget); steps of 10 s stop at the first end at or past the rest
+        steps = math.ceil(stop / 10.0)
+        assert summary["steps"] == steps and summary["train_budget_s"] == pytest.approx(stop)
+        assert [p for _, p, _ in seen] == pytest.approx([k * 10.0 / stop * 8 for k in range(steps)])
+        assert left == [pytest.approx(100.0 - 10.0 * steps)] and summary["total_s"] == 10.0 * steps
+        assert model.run_info["fit"]["train_time_s"] == summary["total_s"]
+
+
+def test_finish_share_must_be_a_fraction() -> None:
+    from rflscm.errors import ConfigError
+    from rflscm.models.rflscm.config import TrainConfig
+
+    for bad in (0.0, 1.0, -0.1, 1.5):
+        with pytest.raises(ConfigError, match=r"`train.finish_share` must be in \(0, 1\)"):
+            TrainConfig(finish_share=bad)
+
+
+def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
+    """``finish_seconds`` times one chunk of the real pass on the clock it is given and scales it to every pair."""
+    from rflscm.models.rflscm.corrections import pass_pairs
+
+    model = RFLSCM.build(tiny_config(), GRID)
+    model.prepare(scenario)
+    ticks = iter(range(100))
+    estimate = model.finish_seconds(lambda: float(next(ticks)))  # one tick per clock read: 1 s for the chunk
+    data = model._training().data
+    chunk = min(int(data.observed.any(1).sum()), 64)
+    assert estimate == pytest.approx(pass_pairs(data) / chunk)

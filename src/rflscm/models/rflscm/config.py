@@ -299,6 +299,10 @@ class TrainConfig:
     """Adam learning rate per parameter group (names from the model)."""
     lr_decay: float = 0.1
     """Learning rates decay exponentially to this fraction at the last step (1: constant)."""
+    finish_share: float = 0.5
+    """In a time-budget run, the pass after training (the pair corrections) may take at most this share of the
+    budget; where the model measures that it needs more, the pass covers the pairs that fit in it and the others
+    keep the level correction only (:mod:`~rflscm.models.rflscm.corrections`)."""
     val_pairs: int = 128
     """Pairs with held-aside round-1 beams (a quarter of each pair's reported beams, never trained on) for the
     running validation MAE (0: none)."""
@@ -312,6 +316,8 @@ class TrainConfig:
                 raise ConfigError(f"`train.{name}` must be >= 1 (got {getattr(self, name)}).")
         if not 0 < self.lr_decay <= 1:
             raise ConfigError(f"`train.lr_decay` must be in (0, 1] (got {self.lr_decay}).")
+        if not 0 < self.finish_share < 1:
+            raise ConfigError(f"`train.finish_share` must be in (0, 1) (got {self.finish_share}).")
         for name, value in self.lr.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ConfigError(

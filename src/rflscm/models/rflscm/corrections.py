@@ -15,11 +15,17 @@ After training, predictions carry (each switched in the config's ``corrections``
 Validation beams are used by none, so the trainer's validation MAE stays a held-aside score of the field alone.
 :func:`fit_corrections` renders every training pair with reports once; :class:`PairCorrections` holds the
 result, applies it and saves it on its own (tensors only).
+
+Within a time budget (``time_left``) the pass is sized to the time left: the pairs the levels and λ are measured
+on come first, then the other pairs in a seeded random order (spread over cells and grids), a chunk at a time,
+while a chunk still fits; the pairs left over keep the level correction only (no anchor, no posterior).
+:func:`seconds_per_pair` measures the pass's cost on one chunk, so that a budget run can keep time for it.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -33,6 +39,7 @@ from rflscm.models.rflscm.config import CorrectionsConfig
 from rflscm.models.rflscm.posterior import (
     HOLDOUT,
     LAMBDA_PAIRS,
+    LAMBDAS,
     POSTERIOR_BINS,
     LambdaChoice,
     PairPosterior,
@@ -50,6 +57,10 @@ RenderFn = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tens
 """Training pairs ``[B]`` → their sparse APS ``(bins [B, K], values [B, K])`` and predicted reports ``[B, M]``."""
 ColumnsFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """``(cells [B], bins [B, K])`` → normalised A columns ``[B, M, K]``."""
+TimeLeftFn = Callable[[], float]
+"""Seconds left for the pass (a budget run's deadline); the pass stops starting chunks that would not fit."""
+CHUNK_MARGIN = 1.25
+"""A further chunk is started only when the time left exceeds this many times the slowest chunk so far."""
 
 
 @dataclass
@@ -79,6 +90,12 @@ class PairCorrections:
         if self.posterior is not None:
             out = self.posterior.apply(out, cells, grids)
         return out
+
+    def corrected_pairs(self) -> float:
+        """How many training pairs carry their own correction (an anchor, or else a posterior)."""
+        if self.anchors is not None:
+            return float(len(self.anchors))
+        return float(len(self.posterior.index)) if self.posterior is not None else 0.0
 
     def level_offset_db(self, cell_index: np.ndarray, beam_type: str) -> np.ndarray | None:
         """CSI-RS predictions carry each cell's CSI-RS level relative to its SSB one (the APS carries the SSB one)."""
@@ -122,10 +139,14 @@ def fit_corrections(
     columns: ColumnsFn,
     seed: int,
     progress: bool = False,
+    time_left: TimeLeftFn | None = None,
+    clock: Callable[[], float] = time.perf_counter,
 ) -> PairCorrections:
     """Fit the switched-on corrections of the training ``data`` (``num_ssb`` SSB beams first, ``cell_ids`` of its
     cell indices) from one render of its pairs with reports (``render``, ``columns`` at the final weights;
-    ``seed`` draws the posterior's held-aside reports; ``progress``: a bar)."""
+    ``seed`` draws the posterior's held-aside reports and, within a budget, the order of the pairs; ``progress``: a
+    bar).  With ``time_left`` (seconds left, read on ``clock``'s time) the pass is sized to it: see the module's
+    docstring; without it every pair with reports is corrected (the result does not depend on ``seed``'s order)."""
     from tqdm.auto import tqdm
 
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
@@ -134,36 +155,35 @@ def fit_corrections(
     pairs = torch.nonzero(data.observed.any(1)).squeeze(1)
     if not (cfg.pair_anchors or cfg.pair_posterior):  # the level alone: a few pairs per cell
         return PairCorrections(fit.levels(fit.render_pairs(fit.level_picks(), top=False)))
-    bar = tqdm(
-        total=pairs.numel() * (2 if cfg.pair_posterior else 1),
-        desc="pair corrections",
-        unit="pair",
-        disable=not progress,
-        leave=False,
-    )
-    rendered = fit.render_pairs(pairs, top=cfg.pair_posterior, bar=bar)
+    per_pair = 2 if cfg.pair_posterior else 1  # a render, and a fit with the posterior
+    bar = tqdm(total=pairs.numel() * per_pair, desc="pair corrections", unit="pair", disable=not progress, leave=False)
+    spread = torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), LAMBDA_PAIRS)).round().long()
+    subset = pairs[spread] if cfg.pair_posterior else pairs[:0]  # the pairs λ is chosen on
+    first = pairs if time_left is None else torch.cat([fit.level_picks(), subset]).unique()
+    rendered = fit.render_pairs(first, top=cfg.pair_posterior, bar=bar)
     levels = fit.levels(rendered) if cfg.calibrate_levels else None
     lam, scores = math.inf, {}
     if cfg.pair_posterior and pairs.numel():
         # λ from held-aside reports of a spread subset of the pairs, then one fit per pair
         held = torch.rand(data.rsrp.shape, generator=torch.Generator().manual_seed(seed)) < HOLDOUT
-        subset = pairs[torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), LAMBDA_PAIRS)).round().long()]
         choice = LambdaChoice()
         for chunk in fit.chunks(rendered, rendered.rows_of(subset.unique()), levels):
             choice.add(*chunk.fit_inputs(), chunk.resid, chunk.mask, held[chunk.pairs.cpu()].to(chunk.resid.device))
         lam, scores = choice.best(), choice.mae_db()
-    anchors, gains, bins_of = [], [], []
     fitting = cfg.pair_posterior and math.isfinite(lam)
-    every = torch.arange(pairs.numel(), device=pairs.device)
-    for chunk in fit.chunks(rendered, every, levels, fitting):
+    done, anchors, gains, bins_of = [], [], [], []
+    later = _later_pairs(pairs, first, seed)
+    for chunk in fit.corrected_chunks(rendered, later, levels, fitting, time_left, clock, bar):
+        done.append(chunk.pairs)
         anchors.append(chunk.anchor)
         if chunk.top_bins is not None:
             gains.append(fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, lam).cpu())
             bins_of.append(chunk.top_bins.cpu())
-        bar.update(chunk.pairs.numel() if cfg.pair_posterior else 0)
+        bar.update(chunk.pairs.numel() * (per_pair - 1))
     bar.close()
-    ids = np.asarray(cell_ids, np.int64)[data.cell_index.cpu().numpy()[pairs.cpu().numpy()]]
-    index = pd.MultiIndex.from_arrays([ids, data.grid_ids[pairs.cpu().numpy()]], names=["cell_id", "grid_id"])
+    kept = torch.cat(done).cpu().numpy() if done else np.zeros(0, np.int64)
+    ids = np.asarray(cell_ids, np.int64)[data.cell_index.cpu().numpy()[kept]]
+    index = pd.MultiIndex.from_arrays([ids, data.grid_ids[kept]], names=["cell_id", "grid_id"])
     median = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)
     anchor_series = pd.Series(median, index=index, name="anchor_db") if cfg.pair_anchors else None
     if not cfg.pair_posterior:
@@ -174,6 +194,46 @@ def fit_corrections(
         return PairCorrections(levels, anchor_series, posterior)
     gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
     return PairCorrections(levels, anchor_series, PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores))
+
+
+@torch.no_grad()
+def seconds_per_pair(
+    cfg: CorrectionsConfig,
+    data: PairData,
+    num_ssb: int,
+    num_cells: int,
+    render: RenderFn,
+    columns: ColumnsFn,
+    clock: Callable[[], float] = time.perf_counter,
+) -> float:
+    """Seconds of ``clock`` the corrections' pass spends per training pair: one chunk of spread pairs with reports
+    rendered, its residuals taken and (posterior on) its gains fitted once; 0 when every correction is off."""
+    if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
+        return 0.0
+    pairs = torch.nonzero(data.observed.any(1)).squeeze(1)
+    if not pairs.numel():
+        return 0.0
+    pick = pairs[torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), PAIR_CHUNK)).round().long()].unique()
+    fit = _Fit(cfg, data, num_ssb, num_cells, render, columns)
+    started = clock()
+    rendered = fit.render_pairs(pick, top=cfg.pair_posterior)
+    for chunk in fit.chunks(rendered, torch.arange(pick.numel(), device=pick.device), None, cfg.pair_posterior):
+        if cfg.pair_posterior:
+            fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, LAMBDAS[0])
+    return (clock() - started) / pick.numel()
+
+
+def pass_pairs(data: PairData) -> int:
+    """Pair renders of a whole corrections pass (pairs with reports, plus the λ choice's fits counted as renders)."""
+    pairs = int(data.observed.any(1).sum())
+    return pairs + len(LAMBDAS) * min(pairs, LAMBDA_PAIRS)
+
+
+def _later_pairs(pairs: torch.Tensor, first: torch.Tensor, seed: int) -> torch.Tensor:
+    """``pairs`` not in ``first``, in a seeded random order (empty when ``first`` holds them all)."""
+    rest = pairs[~torch.isin(pairs, first)]
+    order = torch.randperm(rest.numel(), generator=torch.Generator().manual_seed(seed))
+    return rest[order.to(rest.device)]
 
 
 @dataclass
@@ -306,6 +366,34 @@ class _Fit:
                 chunk.cols = self.columns(cells, chunk.top_bins)
                 chunk.rest = (pred - torch.einsum("bmk,bk->bm", chunk.cols, chunk.top_x)).clamp_min(0.0)
             yield chunk
+
+    def corrected_chunks(
+        self,
+        rendered: _Rendered,
+        later: torch.Tensor,
+        levels: torch.Tensor | None,
+        with_columns: bool,
+        time_left: TimeLeftFn | None,
+        clock: Callable[[], float],
+        bar: object = None,
+    ) -> Iterator[_PairChunk]:
+        """Every row of ``rendered``, then the ``later`` pairs rendered ``PAIR_CHUNK`` at a time (sorted within a
+        chunk), as :meth:`chunks`; with ``time_left`` a chunk is started only while ``CHUNK_MARGIN`` times the slowest
+        chunk so far still fits (the rendered rows count their render in their first chunk's time)."""
+        rows = torch.arange(rendered.pairs.numel(), device=rendered.pairs.device)
+        slowest = 0.0
+        for start in range(0, rows.numel(), PAIR_CHUNK):
+            begun = clock()
+            yield from self.chunks(rendered, rows[start : start + PAIR_CHUNK], levels, with_columns)
+            slowest = max(slowest, clock() - begun)
+        for start in range(0, later.numel(), PAIR_CHUNK):
+            if time_left is not None and time_left() < CHUNK_MARGIN * slowest:
+                return
+            begun = clock()
+            part = later[start : start + PAIR_CHUNK].sort().values
+            more = self.render_pairs(part, top=with_columns, bar=bar)
+            yield from self.chunks(more, torch.arange(part.numel(), device=part.device), levels, with_columns)
+            slowest = max(slowest, clock() - begun)
 
 
 def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:

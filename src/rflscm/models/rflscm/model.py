@@ -19,6 +19,8 @@ The decisions where the paper is silent are listed in the package docstring (:mo
 from __future__ import annotations
 
 import math
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, cast
 
@@ -44,7 +46,14 @@ from rflscm.models.rflscm.config import (
     TrainConfig,
     load_rflscm_config,
 )
-from rflscm.models.rflscm.corrections import PAIR_CHUNK, PairCorrections, fit_corrections
+from rflscm.models.rflscm.corrections import (
+    PAIR_CHUNK,
+    PairCorrections,
+    TimeLeftFn,
+    fit_corrections,
+    pass_pairs,
+    seconds_per_pair,
+)
 from rflscm.models.rflscm.fields import (
     FieldFactory,
     RadianceDecoder,
@@ -437,9 +446,15 @@ class RFLSCM(LSCMModel):
             return None
         return self.corrections.level_offset_db(self.scene.cell_index(np.asarray(cell_ids)), beam_type)
 
-    def finish_training(self, progress: bool = False) -> None:
+    def finish_training(
+        self,
+        progress: bool = False,
+        time_left: TimeLeftFn | None = None,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
         """After the last step: fit the pair corrections that predictions and the checkpoint carry, once (one
-        render of every training pair; ``progress``: a bar)."""
+        render of every training pair; ``progress``: a bar).  With ``time_left`` (seconds left on ``clock``, a budget
+        run's) the pass is sized to the time left (:func:`~rflscm.models.rflscm.corrections.fit_corrections`)."""
         train = self._training()
         assert self.scene is not None
         self.corrections = fit_corrections(
@@ -451,21 +466,50 @@ class RFLSCM(LSCMModel):
             self._training().columns,
             self.config.train.seed,
             progress,
+            time_left,
+            clock,
         )
+        cfg = self.config.corrections
+        if cfg.pair_anchors or cfg.pair_posterior:  # per-pair corrections: how many pairs the pass reached
+            self.run_info["corrections"] = {
+                "training_pairs": float(int(train.data.observed.any(1).sum())),
+                "corrected_pairs": self.corrections.corrected_pairs(),
+            }
+
+    def finish_seconds(self, clock: Callable[[], float] = time.perf_counter) -> float:
+        """Estimated seconds of ``clock`` that :meth:`finish_training` needs for every training pair, from one chunk
+        of the pass measured now at the final schedule position (the refinement model's render)."""
+        train = self._training()
+        assert self.scene is not None
+        final = float(self.config.train.steps)
+        per_pair = seconds_per_pair(
+            self.config.corrections,
+            train.data,
+            train.num_ssb,
+            len(self.scene.cell_ids),
+            lambda pairs: self._render_training(pairs, final),
+            train.columns,
+            clock,
+        )
+        return per_pair * pass_pairs(train.data)
 
     @torch.no_grad()
-    def _render_training(self, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The current APS of training ``pairs [B]`` in sparse form ``(fine bins [B, K], values [B, K])`` and their
-        predicted round-1 reports ``[B, M]`` (normalised); during HiTAM's warm-up through the coarse columns, which
-        give the same A x as the coarse APS spread over its blocks, on ~β² fewer columns."""
+    def _render_training(
+        self, pairs: torch.Tensor, position: float | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The APS of training ``pairs [B]`` at schedule ``position`` (default: the latest step's) in sparse form
+        ``(fine bins [B, K], values [B, K])`` and their predicted round-1 reports ``[B, M]`` (normalised); during
+        HiTAM's warm-up through the coarse columns, which give the same A x as the coarse APS spread over its blocks,
+        on ~β² fewer columns."""
         d, R = self._training().data, self._renderer()
+        position = self.position if position is None else position
         cells, xyz = d.cell_index[pairs], d.grid_xyz[pairs]
         a_coarse = self._training().a_coarse
-        if self.hitam is not None and a_coarse is not None and self.position < self.hitam.warmup_steps:
+        if self.hitam is not None and a_coarse is not None and position < self.hitam.warmup_steps:
             coarse = R.coarse_power(cells, xyz)
             bins, values = R.coarse_as_fine(coarse)
             return bins, values, torch.einsum("bmk,bk->bm", a_coarse[cells], coarse)
-        bins, values = R.output(cells, xyz, self.position)
+        bins, values = R.output(cells, xyz, position)
         return bins, values, torch.einsum("bmk,bk->bm", self._training().columns(cells, bins), values)
 
     # --- persistence (:mod:`~rflscm.models.rflscm.checkpoint`) ---------------------------------------
