@@ -20,7 +20,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import typer
 
 from rflscm import __version__
-from rflscm.cli.common import Interrupted, ThreadsOption, set_threads
+from rflscm.cli.common import Interrupted, ThreadsOption, mark_command_start, set_threads
 from rflscm.errors import RflscmError
 from rflscm.runtime import keep_freed_memory
 
@@ -91,6 +91,7 @@ def _report_interrupted(exc: Interrupted) -> None:
 
 def main() -> None:
     """Console-script entry point."""
+    mark_command_start()
     _register_commands()
     previous: dict[signal.Signals, signal._HANDLER] = {}
     for signum in (signal.SIGINT, signal.SIGTERM):  # both are failures, never a silent exit 0

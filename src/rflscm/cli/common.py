@@ -6,6 +6,7 @@ import json
 import math
 import os
 import random
+import time
 from enum import StrEnum
 from pathlib import Path
 
@@ -175,6 +176,20 @@ def set_threads(threads: int | None) -> int | None:
 
 FEW_PASSES = 4.0
 """Below this many passes over the training pairs a radiance-field model is far from trained (BENCHMARKS.md)."""
+
+
+_COMMAND_START: list[float] = []
+
+
+def mark_command_start() -> None:
+    """Remember now as the start of the command being run (:func:`command_start`); the entry point calls it first."""
+    _COMMAND_START[:] = [time.perf_counter()]
+
+
+def command_start() -> float:
+    """``time.perf_counter()`` at the start of the running command (now, when it was not marked): a ``--minutes``
+    budget counts from there, so that the libraries' import and the scenario's loading are inside it."""
+    return _COMMAND_START[0] if _COMMAND_START else time.perf_counter()
 
 
 def budget_seconds(minutes: float | None, option: str = "--minutes") -> float | None:

@@ -21,6 +21,7 @@ from rflscm.cli.common import (
     budget_seconds,
     budget_summary,
     check_numbers,
+    command_start,
     resolve_device,
     seed_everything,
 )
@@ -125,7 +126,7 @@ def train(
         split_seed=(split_seed, 0, SEED_MAX),
     )
     guard_outputs({"--out": out}, [*scenario_inputs(scenario), *config_inputs(config)], force=force, resume=resume)
-    t0 = time.perf_counter()  # a --minutes budget counts from here: loading the scenario is part of it
+    t0 = command_start()  # a --minutes budget counts from the command's start: imports and loading are part of it
     console = Console(stderr=True)
     if model not in MODEL_REGISTRY:
         valid = ", ".join(sorted(MODEL_REGISTRY))
