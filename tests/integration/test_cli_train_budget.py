@@ -42,7 +42,10 @@ def test_train_to_a_budget_records_it_and_resume_must_keep_it(
     assert "time budget: 0.01 min" in text and "of a 0.01-minute budget; the budget stopped it" in text
     train = load_model(ckpt).run_info["train"]
     assert train["budget_s"] == pytest.approx(0.6) and train["stopped_by_budget"] == 1.0 and train["steps"] >= 1
-    assert train["train_time_s"] >= 0.6  # it ran to the budget (from the start of fit), whatever the step count
+    assert train["train_time_s"] >= train["train_budget_s"]  # it trained to its share, whatever the step count
+    # the share is the budget less the time kept for the pass after training, which the summary line reports
+    assert train["train_budget_s"] < train["budget_s"] and train["total_s"] >= train["train_time_s"] + train["finish_s"]
+    assert "the pass after training took" in text and "s in all" in text
     code, _, err = run_cli([*base, "--minutes", "0.02", "--resume"], monkeypatch, capsys)
     last = err.strip().splitlines()[-1]  # after the "training …" lines
     assert code == 2 and "Traceback" not in err and last.startswith("CheckpointError: "), err
@@ -56,3 +59,17 @@ def test_minutes_does_not_apply_to_wnomp(scenario_dir: Path, tmp_path: Path, mon
     assert code == 0, err
     assert "note: --minutes does not apply to wnomp" in " ".join(err.split()) and ckpt.is_file()
     assert "budget_s" not in (load_model(ckpt).run_info.get("fit") or {})
+
+
+def test_the_demo_gives_rflscm_what_wnomp_left_and_at_least_a_floor() -> None:
+    import io
+
+    from rich.console import Console
+
+    from rflscm.cli.demo import MIN_RFLSCM_S, rflscm_budget
+
+    text = io.StringIO()
+    console = Console(file=text, width=200)
+    assert rflscm_budget(170.0, console) == 170.0 and text.getvalue() == ""
+    assert rflscm_budget(-3.0, console) == MIN_RFLSCM_S
+    assert "WNOMP left 0 s of the budget" in text.getvalue() and "will run over" in text.getvalue()

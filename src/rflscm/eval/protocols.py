@@ -56,6 +56,11 @@ class TestSet:
     round: int
     tables: dict[str, tuple[pd.DataFrame, np.ndarray]]
 
+    def pairs(self) -> pd.DataFrame:
+        """The distinct (``cell_id``, ``grid_id``) pairs tested, over every beam type."""
+        both = pd.concat([pairs[["cell_id", "grid_id"]] for pairs, _ in self.tables.values()], ignore_index=True)
+        return both.drop_duplicates(ignore_index=True)
+
 
 def _round1_rows(scenario: Scenario) -> pd.DataFrame:
     m = scenario.measurements

@@ -50,6 +50,7 @@ __all__ = [
     "MIN_POWER_MW",
     "MODEL_REGISTRY",
     "LSCMModel",
+    "PassCost",
     "TrainingPlan",
     "UnsupportedError",
     "load_model",
@@ -67,6 +68,17 @@ class TrainingPlan:
     """long ``[P]``: indices of the training pairs (the model's own numbering)."""
     groups: torch.Tensor | None = None
     """long ``[P]``: a group key per pair (batches come in runs of ``pairs_per_cell`` of one group), or None."""
+
+
+@dataclass(frozen=True)
+class PassCost:
+    """An iteratively trained model's measured cost of its pass after training (the trainer's ``Trainable``
+    protocol, ``finish_seconds``): what a time budget keeps for it, and for renders after the fit."""
+
+    total_s: float
+    """Seconds the whole pass would take (every training pair)."""
+    per_pair_s: float
+    """Seconds per rendered pair (the pass's own rate; an evaluation's renders cost about as much)."""
 
 
 class NonFiniteError(RflscmError):

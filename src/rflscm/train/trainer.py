@@ -34,7 +34,7 @@ import torch
 from torch import nn
 
 from rflscm.errors import CheckpointError, ConfigError
-from rflscm.models.base import LSCMModel, TrainingPlan, discard_partial_save, read_checkpoint
+from rflscm.models.base import LSCMModel, PassCost, TrainingPlan, discard_partial_save, read_checkpoint
 from rflscm.train.config import LoopConfig
 
 if TYPE_CHECKING:
@@ -57,7 +57,8 @@ class Trainable(Protocol):
     * :meth:`finish_training` — once after the last step (before the final checkpoint): work that only the
       trained weights need (RF-LSCM's level correction and pair corrections; ``progress``: show a bar); in budget
       mode given ``time_left``, the seconds left of the budget, which it must respect;
-    * :meth:`finish_seconds` — the seconds :meth:`finish_training` would need for all of its work, measured now;
+    * :meth:`finish_seconds` — what :meth:`finish_training` would cost for all of its work (seconds, and seconds per
+      rendered pair), measured now;
     * :meth:`save` — the checkpoint, with the trainer state written beside the model's;
     * ``train_config`` (the loop's knobs) and :meth:`decoder_evals` (a work counter for throughput).
 
@@ -88,7 +89,7 @@ class Trainable(Protocol):
         self, progress: bool = False, time_left: Callable[[], float] | None = None, clock: Callable[[], float] = ...
     ) -> None: ...
 
-    def finish_seconds(self, clock: Callable[[], float] = ...) -> float: ...
+    def finish_seconds(self, clock: Callable[[], float] = ...) -> PassCost: ...
 
 
 def fit(
@@ -101,6 +102,8 @@ def fit(
     budget_s: float | None = None,
     clock: Callable[[], float] = time.perf_counter,
     started: float | None = None,
+    after_pairs: int = 0,
+    after_s: float = 0.0,
 ) -> dict[str, float]:
     """Learn ``model`` from the round-1 measurements of ``scenario``; returns a summary (a :class:`Trainable`
     model also records it in ``run_info["train"]`` and ``run_info["fit"]``, whose ``train_time_s`` is then the whole
@@ -117,7 +120,9 @@ def fit(
     ends within the budget: training stops after the first step that ends at or past its share (the budget less
     the time kept for the pass after training, see the module's docstring), the schedule follows the elapsed
     fraction of that share instead of the step count (``train.steps`` is then only the length of the nominal
-    schedule), and the pass after training gets the time left.
+    schedule), and the pass after training gets the time left.  A caller with work of its own after the fit inside
+    the same budget (the demo's evaluation) names it: ``after_pairs`` pairs it will render (at the model's measured
+    cost per pair) and ``after_s`` seconds of other work; the fit keeps that time free too.
     """
     started = clock() if started is None else started
     checked_budget(budget_s)  # before minutes of data preparation
@@ -136,10 +141,12 @@ def fit(
             raise CheckpointError(f"{checkpoint_path}: cannot resume: the checkpoint holds no optimizer state.")
         trainer.check_budget(state, checkpoint_path)
         trainer.load_state_dict(state)
-    time_left = None
+    time_left, after = None, 0.0
     if budget_s is not None:
-        kept = min(FINISH_SAFETY * model.finish_seconds(clock), model.train_config.finish_share * budget_s)
-        trainer.stop_s = budget_s - kept
+        cost = model.finish_seconds(clock)
+        after = FINISH_SAFETY * (after_pairs * cost.per_pair_s + after_s)
+        kept = min(FINISH_SAFETY * cost.total_s, model.train_config.finish_share * budget_s)
+        trainer.stop_s = budget_s - after - kept
     evals0, time0 = model.decoder_evals(), clock()
     summary = trainer.run(
         progress=progress,
@@ -150,7 +157,8 @@ def fit(
     summary["decoder_evals_per_s"] = (model.decoder_evals() - evals0) / max(clock() - time0, 1e-9)
     finish0 = clock()
     if budget_s is not None:
-        end = finish0 + budget_s - trainer.elapsed_s - (SAVE_SAFETY * trainer.save_s if checkpoint_path else 0.0)
+        saving = SAVE_SAFETY * trainer.save_s if checkpoint_path else 0.0
+        end = finish0 + budget_s - after - trainer.elapsed_s - saving
         time_left = lambda: end - clock()  # noqa: E731
     model.finish_training(progress=progress, time_left=time_left, clock=clock)
     summary["finish_s"] = clock() - finish0

@@ -39,6 +39,9 @@ def test_adjust_trains_on_round_1_and_tests_on_round_2(sim_scenario) -> None:
     assert set(zip(pairs["cell_id"], pairs["grid_id"])) <= _pairs(sim_scenario, 2)
     with pytest.raises(DataError, match="round 3"):
         AdjustProtocol(test_round=3).test_set(sim_scenario)
+    # the distinct pairs over both beam types (CSI-RS is reported on fewer pairs than SSB, never on others)
+    both = test.pairs()
+    assert set(zip(both["cell_id"], both["grid_id"])) == _pairs(sim_scenario, 2) and not both.duplicated().any()
 
 
 def test_unseen_holds_out_whole_grids(sim_scenario) -> None:

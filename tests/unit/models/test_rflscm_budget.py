@@ -13,6 +13,7 @@ from rflscm.data import load_scenario
 from rflscm.data.examples import tiny_scenario
 from rflscm.errors import CheckpointError
 from rflscm.geometry import AngleGrid
+from rflscm.models.base import PassCost
 from rflscm.models.rflscm import RFLSCM
 from rflscm.train import fit
 
@@ -128,7 +129,7 @@ def test_a_budget_keeps_time_for_the_pass_after_training_and_gives_it_the_rest(s
         model.config = dataclasses.replace(
             model.config, train=dataclasses.replace(model.config.train, finish_share=share)
         )
-        model.finish_seconds = lambda clock, e=estimate: e  # type: ignore[method-assign]
+        model.finish_seconds = lambda clock, e=estimate: PassCost(e, 0.5)  # type: ignore[method-assign]
         model.finish_training = lambda progress=False, time_left=None, clock=None, seen=left: seen.append(time_left())  # type: ignore[method-assign]
         summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock)
         # kept = min(1.2 × estimate, share × budget); steps of 10 s stop at the first end at or past the rest
@@ -158,4 +159,17 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
     estimate = model.finish_seconds(lambda: float(next(ticks)))  # one tick per clock read: 1 s for the chunk
     data = model._training().data
     chunk = min(int(data.observed.any(1).sum()), 64)
-    assert estimate == pytest.approx(pass_pairs(data) / chunk)
+    assert estimate.per_pair_s == pytest.approx(1 / chunk)
+    assert estimate.total_s == pytest.approx(pass_pairs(data) / chunk)
+
+
+def test_work_after_the_fit_is_kept_out_of_the_budget(scenario) -> None:
+    """``after_pairs`` renders at the measured cost per pair and ``after_s`` seconds are kept free as well (×1.2)."""
+    clock, seen, left = StepClock(10.0), [], []
+    model = timed_model(clock, seen)
+    model.finish_seconds = lambda clock: PassCost(10.0, 0.5)  # type: ignore[method-assign]
+    model.finish_training = lambda progress=False, time_left=None, clock=None: left.append(time_left())  # type: ignore[method-assign]
+    summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_pairs=20, after_s=5.0)
+    # kept after the fit: 1.2 × (20 × 0.5 + 5) = 18 s; for the pass 1.2 × 10 = 12 s; training stops at 70 s
+    assert summary["train_budget_s"] == pytest.approx(70.0) and summary["steps"] == 7
+    assert left == [pytest.approx(100.0 - 18.0 - 70.0)]

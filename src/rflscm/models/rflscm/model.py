@@ -33,7 +33,7 @@ from rflscm.fields import PassiveMedium, TensorVM
 from rflscm.fields.point_prior import PointPrior
 from rflscm.fields.surfaces import SurfaceOrientation
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import LSCMModel, TrainingPlan, register_model
+from rflscm.models.base import LSCMModel, PassCost, TrainingPlan, register_model
 from rflscm.models.pairs import build_pair_data, reference_power, stacked_sensing
 from rflscm.models.rflscm import checkpoint
 from rflscm.models.rflscm.config import (
@@ -476,8 +476,8 @@ class RFLSCM(LSCMModel):
                 "corrected_pairs": self.corrections.corrected_pairs(),
             }
 
-    def finish_seconds(self, clock: Callable[[], float] = time.perf_counter) -> float:
-        """Estimated seconds of ``clock`` that :meth:`finish_training` needs for every training pair, from one chunk
+    def finish_seconds(self, clock: Callable[[], float] = time.perf_counter) -> PassCost:
+        """What :meth:`finish_training` would cost for every training pair, in seconds of ``clock``, from one chunk
         of the pass measured now at the final schedule position (the refinement model's render)."""
         train = self._training()
         assert self.scene is not None
@@ -491,7 +491,7 @@ class RFLSCM(LSCMModel):
             train.columns,
             clock,
         )
-        return per_pair * pass_pairs(train.data)
+        return PassCost(per_pair * pass_pairs(train.data), per_pair)
 
     @torch.no_grad()
     def _render_training(
