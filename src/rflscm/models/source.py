@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, Protocol, cast, runtime_checkable
 import numpy as np
 import pandas as pd
 import torch
+from tqdm.auto import tqdm
 
 from rflscm.models.base import MIN_POWER_MW, LSCMModel, NonFiniteError, content_hash, to_plain
 
@@ -84,6 +85,10 @@ def checked_aps(
     return x
 
 
+PROGRESS_PAIRS = 2000
+"""Predictions of at least this many pairs show a progress bar with an ETA (on a terminal)."""
+
+
 def predict_rsrp(
     source: APSSource, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, chunk: int = 4096
 ) -> np.ndarray:
@@ -95,6 +100,13 @@ def predict_rsrp(
     grid_xyz = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
     max_beams = max(scenario.codebook(c, beam_type, round).num_beams for c in np.unique(cell_ids)) if len(pairs) else 0
     out = np.full((len(pairs), max_beams), np.nan)
+    bar = tqdm(
+        total=len(pairs),
+        desc=f"predicting {beam_type.upper()} RSRP",
+        unit="pair",
+        leave=False,
+        disable=None if len(pairs) >= PROGRESS_PAIRS else True,  # None: on a terminal only
+    )
     for cell in np.unique(cell_ids):
         rows = np.flatnonzero(cell_ids == cell)
         a = scenario.sensing(cell, beam_type, source.angle_grid, round=round, device=source.device)  # [beams, bins]
@@ -104,6 +116,8 @@ def predict_rsrp(
                 x = checked_aps(source, cell_ids[sel], grid_ids[sel], grid_xyz[sel])  # [pairs, bins]
                 power_mw = (x.to(a.dtype) @ a.T).clamp_min(MIN_POWER_MW)
             out[sel, : a.shape[0]] = 10.0 * np.log10(power_mw.cpu().double().numpy())
+            bar.update(len(sel))
+    bar.close()
     offset = source.level_offset_db(cell_ids, beam_type)
     return out if offset is None else out + offset[:, None]
 

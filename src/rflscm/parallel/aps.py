@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 import torch
+from tqdm.auto import tqdm
 
 from rflscm.data import BEAM_TYPES
 from rflscm.errors import ConfigError, RflscmError, UnsupportedError
@@ -136,7 +137,9 @@ def run_ray(engine: Engine, load: Callable[[], APSSource], chunks: list[list[Tas
         threads = torch.get_num_threads()
         actors = [worker.remote(load, threads) for _ in range(max(1, min(engine.workers, len(chunks))))]
         try:
-            return list(ActorPool(actors).map(lambda actor, chunk: actor.answer.remote(chunk), chunks))
+            answers = ActorPool(actors).map(lambda actor, chunk: actor.answer.remote(chunk), chunks)
+            desc = f"rendering APS on {len(actors)} Ray workers"
+            return list(tqdm(answers, total=len(chunks), desc=desc, unit="chunk", leave=False, disable=None))
         except ray.exceptions.RayError as exc:
             cause = getattr(exc, "cause", None)
             if isinstance(cause, RflscmError):
