@@ -84,6 +84,11 @@ class SimulationConfig:
     max_grids: int = 800
     grid_radius_m: float | None = None
     """Keep only grids within this distance of the area centre [m] (the nearest ``max_grids`` anyway)."""
+    trace_range_m: float | None = None
+    """Each site is traced only to the receivers within this horizontal distance [m] (farther ones get no path
+    from it: its cells are never heard there); ``null`` traces every receiver from every site.  Makes the
+    trace, the truth and the measurements grow linearly with the sites (set for a grown city, see
+    :func:`grow_procedural`)."""
     # --- measurement model ---
     measurements: Literal["ideal", "field"] = "ideal"
     """``ideal``: the keys below (noise on the expectation over all points); ``field``: :class:`FieldConfig`
@@ -132,6 +137,7 @@ class SimulationConfig:
             (0.0 <= self.round2_codebook_fraction <= 1.0, "`round2_codebook_fraction` must be in 0…1"),
             (bool(self.rotation_azimuth_deg) and bool(self.rotation_tilt_deg), "rotation lists must not be empty"),
             (self.point_cloud_points_per_m2 > 0, "`point_cloud_points_per_m2` must be > 0"),
+            (self.trace_range_m is None or self.trace_range_m > 0, "`trace_range_m` must be > 0 m or null"),
         ]
         for ok, message in checks:
             if not ok:
@@ -156,6 +162,11 @@ class SimulationConfig:
         return self.field_model.threshold_dbm if self.measurements == "field" else self.rsrp_threshold_dbm
 
 
+GROWN_TRACE_RANGE_M = 500.0
+"""Trace range of a grown procedural city [m].  On the grown 19-site city traced without a range, 1.1 % of the
+detected (cell, grid) pairs lay beyond 500 m and 0.06 % beyond 600 m (docs/DECISIONS.md, issue 29)."""
+
+
 # ---- layout: sites, cells, grids ---------------------------------------------------------------------
 def grow_procedural(config: SimulationConfig, scene: str, scale_grids: bool = True) -> SimulationConfig:
     """``config`` for a procedural city that grows with ``num_sites`` at the default density.
@@ -163,7 +174,9 @@ def grow_procedural(config: SimulationConfig, scene: str, scale_grids: bool = Tr
     Up to the default site count (7), or with explicit ``sites``, ``config`` is returned unchanged.  Beyond it,
     by the factor f = num_sites / 7: the scene's area and building count × f (``backend_options`` ``size_m``,
     ``num_buildings``; values set there win), ``site_radius_m`` × √f and, when ``scale_grids``, ``max_grids``
-    × f, so that cells (3 per site and carrier) and grids both grow linearly with the sites.
+    × f, so that cells (3 per site and carrier) and grids both grow linearly with the sites.  ``trace_range_m``,
+    when not set, becomes :data:`GROWN_TRACE_RANGE_M`, so that a cell is heard over a bounded area and the
+    trace, the truth and the measurements grow linearly too (not with the square of the sites).
     """
     from rflscm.sim.procedural import grown_scene_options
 
@@ -177,6 +190,7 @@ def grow_procedural(config: SimulationConfig, scene: str, scale_grids: bool = Tr
         backend_options=options,
         site_radius_m=config.site_radius_m * float(np.sqrt(factor)),
         max_grids=round(config.max_grids * factor) if scale_grids else config.max_grids,
+        trace_range_m=config.trace_range_m if config.trace_range_m is not None else GROWN_TRACE_RANGE_M,
     )
 
 
@@ -375,7 +389,12 @@ def trace_all(
     k = config.points_per_grid
     jobs = [(s, c, f) for s in range(len(sites)) for c, f in enumerate(config.carriers_hz)]
     takes_progress = "progress" in inspect.signature(backend.trace).parameters
-    tables, seconds, num_paths = [], 0.0, 0
+    in_range = None
+    if config.trace_range_m is not None:
+        in_range = [
+            np.flatnonzero(np.hypot(rx[:, 0] - site[0], rx[:, 1] - site[1]) <= config.trace_range_m) for site in sites
+        ]
+    tables, seconds, num_paths, traced = [], 0.0, 0, 0
     with tqdm(jobs, desc=f"tracing {backend.name}", unit="trace", disable=not progress, leave=True) as bar:
         for s, c, freq in bar:
             bar.set_postfix_str(f"site {s + 1}, {freq / 1e9:g} GHz")
@@ -384,9 +403,24 @@ def trace_all(
                 label = f"site {s + 1}, {freq / 1e9:g} GHz"
                 kwargs["progress"] = lambda done, total, label=label: bar.set_postfix_str(f"{label}, rx {done}/{total}")
             start = time.perf_counter()
-            table = backend.trace(sites[s], rx, freq, seed=int(config.seed * 1000 + 10 * s + c), **kwargs)
+            near = in_range[s] if in_range is not None else None
+            if near is not None and len(near) == 0:  # no receiver within range of this site
+                from rflscm.sim.backend import empty_path_table
+
+                table = empty_path_table()
+            else:
+                table = backend.trace(
+                    sites[s],
+                    rx if near is None else rx[near],
+                    freq,
+                    seed=int(config.seed * 1000 + 10 * s + c),
+                    **kwargs,
+                )
             seconds += time.perf_counter() - start
+            traced += len(rx) if near is None else len(near)
             rx_index = table["rx_index"].to_numpy()
+            if near is not None:
+                rx_index = near[rx_index]
             table = table.drop(columns="rx_index").assign(
                 site_id=np.int32(s + 1),
                 freq_hz=float(freq),
@@ -402,7 +436,7 @@ def trace_all(
     paths = pd.concat(tables, ignore_index=True) if sink is None else None
     stats = {
         "trace_seconds": seconds,
-        "seconds_per_1000_rx_per_carrier": 1000.0 * seconds / max(len(jobs) * len(rx), 1),
+        "seconds_per_1000_rx_per_carrier": 1000.0 * seconds / max(traced, 1),
         "paths_per_grid": num_paths / max(len(jobs) * len(grid_ids), 1),
     }
     return paths, stats

@@ -125,3 +125,44 @@ def test_a_scenario_with_any_detection_streams_too(tmp_path: Path) -> None:
     truth = pd.read_parquet(out / "truth" / RSRP_FILE)
     assert len(truth) == 2 * len(sc.cell_ids()) * len(sc.grid_ids()) * 40  # no floor: every row
     assert len(sc.measurements) > 0
+
+
+def test_a_trace_range_drops_only_the_far_receivers(built: Path, tmp_path: Path) -> None:
+    """With ``trace_range_m`` a site's paths are those of the full trace at the receivers within range: same
+    rows, same values; a range beyond every receiver changes nothing."""
+    backend = ProceduralCity(seed=2, size_m=260.0, num_buildings=14)
+    sc = load_scenario(built)
+    sites = sc.cells[1].drop_duplicates("site_id")[["x", "y", "z"]].to_numpy()
+    rng = np.random.default_rng(0)
+    rx = np.column_stack([rng.uniform(-120, 120, (200, 2)), np.full(200, 1.5)])
+    rx = rx[backend.is_outdoor(rx[:, :2])]
+    grid_ids = np.arange(len(rx)) // TINY.points_per_grid
+    config = dataclasses.replace(TINY, points_per_grid=1)
+    whole, _ = trace_all(backend, sites, rx, np.arange(len(rx)), config, progress=False)
+    near, _ = trace_all(
+        backend, sites, rx, np.arange(len(rx)), dataclasses.replace(config, trace_range_m=80.0), progress=False
+    )
+    far = np.hypot(
+        rx[whole["grid_id"].to_numpy(), 0] - sites[whole["site_id"].to_numpy() - 1, 0],
+        rx[whole["grid_id"].to_numpy(), 1] - sites[whole["site_id"].to_numpy() - 1, 1],
+    )
+    assert 0 < len(near) < len(whole) and len(grid_ids) == len(rx)
+    expected = whole[far <= 80.0].reset_index(drop=True)
+    pd.testing.assert_frame_equal(near.reset_index(drop=True), expected, check_exact=True)
+    every, _ = trace_all(
+        backend, sites, rx, np.arange(len(rx)), dataclasses.replace(config, trace_range_m=1e4), progress=False
+    )
+    pd.testing.assert_frame_equal(every, whole, check_exact=True)
+    empty, _ = trace_all(backend, sites + 1e5, rx, np.arange(len(rx)), dataclasses.replace(config, trace_range_m=1.0))
+    assert len(empty) == 0
+    with pytest.raises(Exception, match="trace_range_m"):
+        dataclasses.replace(config, trace_range_m=0.0)
+
+
+def test_a_grown_city_gets_a_trace_range_and_the_default_one_none() -> None:
+    from rflscm.sim.builder import GROWN_TRACE_RANGE_M, grow_procedural
+
+    assert grow_procedural(SimulationConfig(), "city").trace_range_m is None  # default city: every receiver
+    grown = grow_procedural(SimulationConfig(num_sites=19), "city")
+    assert grown.trace_range_m == GROWN_TRACE_RANGE_M
+    assert grow_procedural(SimulationConfig(num_sites=19, trace_range_m=300.0), "city").trace_range_m == 300.0
