@@ -55,3 +55,22 @@ def test_growth_exponent_and_plan_checks() -> None:
         B10Plan(rflscm_minutes=0.0)
     load_all()
     assert "b10" in BENCHMARKS
+
+
+def test_plan_from_config_yaml_and_command_line(tmp_path: Path) -> None:
+    from rflscm.bench import BenchContext
+    from rflscm.bench.b10_scale import FULL_SITES, QUICK_SITES, plan_of
+
+    def ctx(**kw) -> BenchContext:
+        return BenchContext(size=kw.pop("size", "quick"), seeds=1, out_dir=tmp_path, device="cpu", scenario=None, **kw)
+
+    assert plan_of(ctx()).sites == QUICK_SITES and plan_of(ctx(size="full")).sites == FULL_SITES
+    yaml_file = tmp_path / "b10.yaml"
+    yaml_file.write_text("sites: [5, 9]\ngrids_per_site: 6\nscene: ground\nrflscm_minutes: 2\n")
+    plan = plan_of(ctx(config=str(yaml_file)))
+    assert (plan.sites, plan.grids_per_site, plan.scene, plan.rflscm_minutes) == ((5, 9), 6, "ground", 2)
+    plan = plan_of(ctx(config=str(yaml_file), sites=(3,), minutes=1.5))
+    assert plan.sites == (3,) and plan.rflscm_minutes == 1.5 and plan.grids_per_site == 6
+    yaml_file.write_text("sites: [5]\ngrid: 6\n")
+    with pytest.raises(ConfigError, match="unknown B10 key"):
+        plan_of(ctx(config=str(yaml_file)))

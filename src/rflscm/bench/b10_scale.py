@@ -266,13 +266,36 @@ def _plot(rows: list[dict[str, Any]], root: Path) -> str | None:
     return save_figure(fig, ctx, "b10_scale")
 
 
+PLAN_KEYS = ("sites", "grids_per_site", "scene", "carriers", "rflscm_minutes", "timeout_s")
+"""Keys of a ``--config`` YAML of B10 (the :class:`B10Plan` fields; the command line's --sites and
+--rflscm-minutes win)."""
+
+
 def plan_of(ctx: BenchContext) -> B10Plan:
-    """The plan of ``rflscm bench b10``: the size's sites unless ``--sites`` gave them; RF-LSCM with
-    ``--rflscm-minutes``."""
+    """The plan of ``rflscm bench b10``: ``--config`` YAML (keys :data:`PLAN_KEYS`), then ``--sites`` and
+    ``--rflscm-minutes``; sites default to the size's list; threads are the parent's."""
     import torch
 
-    sites = ctx.sites or (FULL_SITES if ctx.size == "full" else QUICK_SITES)
-    return B10Plan(sites=tuple(int(s) for s in sites), threads=torch.get_num_threads(), rflscm_minutes=ctx.minutes)
+    from rflscm.config import load_yaml
+
+    given: dict[str, Any] = {}
+    if ctx.config is not None:
+        data = load_yaml(ctx.config)
+        if not isinstance(data, dict):
+            raise ConfigError(f"{ctx.config}: a B10 config is a mapping of {', '.join(PLAN_KEYS)}.")
+        unknown = sorted(set(data) - set(PLAN_KEYS))
+        if unknown:
+            raise ConfigError(f"{ctx.config}: unknown B10 key(s) {', '.join(unknown)}; valid: {', '.join(PLAN_KEYS)}.")
+        given = dict(data)
+    if ctx.sites:
+        given["sites"] = ctx.sites
+    if ctx.minutes is not None:
+        given["rflscm_minutes"] = ctx.minutes
+    sites = given.pop("sites", None) or (FULL_SITES if ctx.size == "full" else QUICK_SITES)
+    try:
+        return B10Plan(sites=tuple(int(s) for s in sites), threads=torch.get_num_threads(), **given)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"b10 config: {exc}.") from None
 
 
 @register_bench("b10", "Scale: time and peak memory of simulate, check, train and evaluate vs network size")

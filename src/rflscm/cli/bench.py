@@ -66,7 +66,9 @@ def bench(
     out: Path = typer.Option(Path("bench-out"), "--out", help="Output folder for JSON and plots."),
     scenario: Path | None = typer.Option(None, "--scenario", help="Scenario folder (default: the shipped one)."),
     config: str | None = typer.Option(
-        None, "--config", help="b9: the new RF-LSCM's preset or YAML file (default: the size's preset)."
+        None,
+        "--config",
+        help="b9: the new RF-LSCM's preset or YAML file (default: the size's preset); b10: a YAML of its plan.",
     ),
     baseline: str | None = typer.Option(
         None,
@@ -93,8 +95,8 @@ def bench(
         return
     if name not in BENCHMARKS:
         raise ConfigError(f"unknown benchmark {name!r}; choose one of: {', '.join(BENCHMARKS)} (or `list`).")
-    if (config is not None or baseline is not None) and name != "b9":
-        raise ConfigError("--config and --baseline apply to b9 only.")
+    if (config is not None and name not in ("b9", "b10")) or (baseline is not None and name != "b9"):
+        raise ConfigError("--config applies to b9 and b10 only, --baseline to b9 only.")
     if (sites is not None or rflscm_minutes is not None) and name != "b10":
         raise ConfigError("--sites and --rflscm-minutes apply to b10 only.")
     site_counts: tuple[int, ...] = ()
