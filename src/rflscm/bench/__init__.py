@@ -51,6 +51,7 @@ def load_all() -> None:
         b08_realism,
         b09_time_to_target,
         opt_speed,
+        render_speed,
         sensing,
         wnomp_speed,
     )

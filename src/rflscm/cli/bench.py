@@ -72,7 +72,8 @@ def bench(
         None,
         "--baseline",
         metavar="PATH",
-        help="b9 (required): folder holding the baseline model's exported src tree (a path; BENCHMARKS.md names the revision).",
+        help="b9 (required), render (optional): folder holding the baseline code's exported src tree (a path; "
+        "BENCHMARKS.md names the revision).",
     ),
     device: Device = DeviceOption,
     seed: int = SeedOption,
@@ -87,8 +88,10 @@ def bench(
         return
     if name not in BENCHMARKS:
         raise ConfigError(f"unknown benchmark {name!r}; choose one of: {', '.join(BENCHMARKS)} (or `list`).")
-    if (config is not None or baseline is not None) and name != "b9":
-        raise ConfigError("--config and --baseline apply to b9 only.")
+    if config is not None and name != "b9":
+        raise ConfigError("--config applies to b9 only.")
+    if baseline is not None and name not in ("b9", "render"):
+        raise ConfigError("--baseline applies to b9 and render only.")
     if size not in ("quick", "full"):
         raise ConfigError(f"--size must be quick or full (got {size!r}).")
     seed_everything(seed)
