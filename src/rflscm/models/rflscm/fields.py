@@ -267,11 +267,11 @@ class RadianceDecoder(nn.Module):
             half = half / half.norm(dim=-1, keepdim=True).clamp_min(1e-6)
             assert self.pair_in is not None
             out = to_grid.new_empty(self.pair_in.in_features, to_grid.shape[0])  # transposed: parts in whole rows
-            row = 0
-            for x, freqs in ((to_grid, DIR_FREQS), (half, DIR_FREQS), (logs, POS_FREQS)):
-                width = encoded_dim(x.shape[-1], freqs)
-                positional_encoding_t(x, freqs, out[row : row + width])
-                row += width
+            row = 2 * encoded_dim(3, DIR_FREQS)
+            positional_encoding_t(torch.stack((to_grid, half)), DIR_FREQS, out[:row])  # both in one pass
+            width = encoded_dim(3, POS_FREQS)
+            positional_encoding_t(logs, POS_FREQS, out[row : row + width])
+            row += width
             if surface is None:
                 out[row:] = 0.0
             else:
@@ -348,7 +348,10 @@ class RadianceDecoder(nn.Module):
             direction = part.direction.index_select(0, join_query)
             surface_j = None if surface is None else surface.index_select(0, join_sample)
             pair = self._pair_inputs(offset / dist[:, None], dist, along, miss, direction, surface_j)
-            hidden += self.pair_in(pair)
+            if torch.is_grad_enabled():
+                hidden += self.pair_in(pair)
+            else:  # one BLAS call adds the product in place (the same sums, to the bit; no [J, hidden] temporary)
+                hidden.addmm_(pair, self.pair_in.weight.T)
         out = self.mlp(hidden.relu_())  # [J, 2]
         # free-space amplitude ∝ λ / d
         log_wl = part.log_wl.index_select(0, join_query)
