@@ -54,6 +54,7 @@ def load_all() -> None:
         b09_time_to_target,
         b10_scale,
         opt_speed,
+        render_speed,
         sensing,
         wnomp_speed,
     )

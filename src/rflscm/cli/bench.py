@@ -74,7 +74,8 @@ def bench(
         None,
         "--baseline",
         metavar="PATH",
-        help="b9 (required): folder holding the baseline model's exported src tree (a path; BENCHMARKS.md names the revision).",
+        help="b9 (required), render (optional): folder holding the baseline code's exported src tree (a path; "
+        "BENCHMARKS.md names the revision).",
     ),
     sites: str | None = typer.Option(
         None, "--sites", metavar="N,N,…", help="b10: network sizes to run (site counts, comma separated)."
@@ -95,8 +96,10 @@ def bench(
         return
     if name not in BENCHMARKS:
         raise ConfigError(f"unknown benchmark {name!r}; choose one of: {', '.join(BENCHMARKS)} (or `list`).")
-    if (config is not None and name not in ("b9", "b10")) or (baseline is not None and name != "b9"):
-        raise ConfigError("--config applies to b9 and b10 only, --baseline to b9 only.")
+    if config is not None and name not in ("b9", "b10"):
+        raise ConfigError("--config applies to b9 and b10 only.")
+    if baseline is not None and name not in ("b9", "render"):
+        raise ConfigError("--baseline applies to b9 and render only.")
     if (sites is not None or rflscm_minutes is not None) and name != "b10":
         raise ConfigError("--sites and --rflscm-minutes apply to b10 only.")
     site_counts: tuple[int, ...] = ()
