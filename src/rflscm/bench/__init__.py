@@ -50,6 +50,7 @@ def load_all() -> None:
         b07_optimize,
         b08_realism,
         b09_time_to_target,
+        import_roundtrip,
         opt_speed,
         sensing,
         wnomp_speed,

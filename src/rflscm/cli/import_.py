@@ -120,7 +120,10 @@ def import_(
     ),
     name: str | None = typer.Option(None, "--name", help="Scenario name."),
     point_cloud: Path | None = typer.Option(
-        None, "--point-cloud", help="Point cloud to copy in (.ply/.las/.laz/.npy)."
+        None,
+        "--point-cloud",
+        help="Building point cloud to copy in (.ply/.las/.laz/.npy), in the import's local frame: x east, y north "
+        "(m) from the origin, z (m) above the origin's height.",
     ),
     table_format: TableFormat = typer.Option(TableFormat.parquet, "--format", help="Table format of the scenario."),
     force: bool = typer.Option(False, "--force", help="Replace --out if it is an existing scenario folder."),
@@ -191,4 +194,11 @@ def _print(result: Any, out: Path, console: Console) -> None:
         f"origin {where}; {result.cells} cells, {result.grids} grids, rounds {result.rounds}; "
         f"rsrp_threshold_dbm {result.threshold_dbm:g}{chosen}"
     )
+    if result.point_cloud_points:
+        console.print(f"point cloud: {result.point_cloud_points:,} points, copied in (frame checked against the grids)")
+    else:
+        console.print(
+            "no point cloud: the default RF-LSCM needs one for its prior; re-import with --point-cloud FILE, "
+            "or train with `--set prior.enabled=false`."
+        )
     console.print(f"[green]wrote[/green] {out} (checked). Next: `rflscm check {out}`, `rflscm train {out}`.")

@@ -15,6 +15,7 @@ from rflscm.data.ingest.binning import bin_samples, keep_top_n
 from rflscm.data.ingest.resolve import AMBIGUOUS, FAR_FROM_ID, NO_CELL, TOO_FAR, UNKNOWN_ID, resolve_cells
 from rflscm.data.ingest.samples import Tally
 from rflscm.data.ingest.spec import ImportSpec
+from rflscm.data.pointcloud import PointCloud, write_point_cloud
 from rflscm.errors import DataError
 
 BOOKS = {
@@ -294,3 +295,62 @@ def test_cell_id_samples_unknown_or_far_from_their_cell_are_counted() -> None:
     out = resolve_cells(samples, _cells(), {"A": 1}, _spec(), tally)
     assert out["cell_id"].tolist() == [1] and out["x"].tolist() == [10.0]
     assert tally.samples == {UNKNOWN_ID: 1, FAR_FROM_ID: 1}
+
+
+def _cloud(shift: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> PointCloud:
+    # ground over ±60 m (class 2) and one 20 m block (class 6), in the import's frame, moved by `shift`
+    g = np.stack(np.meshgrid(np.arange(-60.0, 61.0, 4.0), np.arange(-60.0, 61.0, 4.0)), -1).reshape(-1, 2)
+    ground = np.column_stack([g, np.zeros(len(g))])
+    block = np.stack(np.meshgrid(np.arange(30.0, 41.0, 2.0), np.arange(30.0, 41.0, 2.0), [20.0]), -1).reshape(-1, 3)
+    xyz = np.concatenate([ground, block]) + np.asarray(shift)
+    return PointCloud(xyz, np.r_[np.full(len(ground), 2), np.full(len(block), 6)])
+
+
+def test_point_cloud_is_copied_in_and_must_be_in_the_import_frame(tmp_path: Path) -> None:
+    over = {"columns": {"freq_mhz": "freq"}, "beam_type": "ssb", "origin": {"lat": 48.14, "lon": 11.57}}
+    spec = _write_raw(tmp_path, _raw_samples())
+    for name, shift in (("ok.laz", (0.0, 0.0, 0.0)), ("utm.ply", (3000.0, 0.0, 0.0)), ("msl.npy", (0, 0, 519.0))):
+        write_point_cloud(_cloud(shift), tmp_path / name)
+    res = import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "ok.laz")}), tmp_path / "a")
+    sc = load_scenario(tmp_path / "a")
+    assert sc.meta.point_cloud == "point_cloud.laz" and res.point_cloud_points == len(_cloud().xyz)
+    assert sc.point_cloud is not None and sc.point_cloud.class_counts() == _cloud().class_counts()
+    with pytest.raises(DataError, match=r"^utm.ply: covers x 2940…3060 m, .* does not overlap the imported grids"):
+        import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "utm.ply")}), tmp_path / "b")
+    with pytest.raises(DataError, match=r"^msl.npy: its ground over the grids .* z = 519.0 m, 517.5 m above"):
+        import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "msl.npy")}), tmp_path / "c")
+    (tmp_path / "cloud.txt").write_text("1 2 3\n")
+    with pytest.raises(DataError, match=r"cloud.txt: unsupported point cloud format '.txt'"):
+        import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "cloud.txt")}), tmp_path / "d")
+    assert not any((tmp_path / d).exists() for d in "bcd")
+
+
+def test_cli_refuses_a_cloud_outside_the_grids_in_one_line(tmp_path: Path, monkeypatch, capsys) -> None:
+    import sys
+
+    from rflscm.cli import main
+
+    spec = _write_raw(tmp_path, _raw_samples())
+    write_point_cloud(_cloud((0.0, -5000.0, 0.0)), tmp_path / "far.ply")
+    argv = [
+        "rflscm",
+        "import",
+        str(spec),
+        "--out",
+        str(tmp_path / "sc"),
+        "--beam-type",
+        "ssb",
+        "--col",
+        "freq_mhz=freq",
+    ]
+    monkeypatch.setattr(sys, "argv", [*argv, "--point-cloud", str(tmp_path / "far.ply")])
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.count("\n") == 1, err
+    assert "far.ply: covers" in err and "does not overlap the imported grids" in err and "local frame" in err
+    assert not (tmp_path / "sc").exists()
+    monkeypatch.setattr(sys, "argv", argv)  # no cloud: imported, and told how to train RF-LSCM without one
+    main()
+    out = " ".join(capsys.readouterr().out.split())
+    assert "no point cloud" in out and "--set prior.enabled=false" in out

@@ -16,11 +16,13 @@ from rflscm.data.cells import CELL_COLUMNS
 from rflscm.data.geo import Origin
 from rflscm.data.ingest.binning import bin_samples, grids_of, keep_top_n
 from rflscm.data.ingest.cellist import cell_origin, cells_frame, copy_elements, read_cell_list
+from rflscm.data.ingest.cloud import check_cloud_frame
 from rflscm.data.ingest.resolve import resolve_cells
 from rflscm.data.ingest.samples import Tally, read_samples
 from rflscm.data.ingest.spec import ImportSpec
 from rflscm.data.io import write_table
 from rflscm.data.meta import RSRP_MIN_DBM, ScenarioMeta, meta_from_dict
+from rflscm.data.pointcloud import read_point_cloud
 from rflscm.data.reporting import BEAM_TYPES, reporting_from_dict
 from rflscm.errors import DataError
 
@@ -48,6 +50,7 @@ class ImportResult:
     origin: Origin | None = None
     dropped: Tally = field(default_factory=Tally)
     bins_table: pd.DataFrame | None = None
+    point_cloud_points: int = 0
 
 
 def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> ImportResult:
@@ -57,6 +60,7 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
         DataError / ConfigError: a file, row or value that cannot be used (one line naming it).
     """
     res = ImportResult()
+    cloud = None if spec.point_cloud is None else read_point_cloud(spec.point_cloud)  # refused before any work
     tables, _ = read_cell_list(spec)
     origin = from_dict(Origin, spec.origin, prefix="origin") if spec.origin is not None else cell_origin(tables)
     res.origin = origin
@@ -108,6 +112,9 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
         raise DataError(f"import: no bin kept ({res.dropped.dropped} samples dropped); see the reasons above.")
     grids, grid_of_bin = grids_of(bins, spec)
     bins = bins.assign(grid_id=grid_of_bin)
+    if cloud is not None:
+        check_cloud_frame(cloud, Path(str(spec.point_cloud)).name, grids, spec.grid_size_m, origin)
+        res.point_cloud_points = cloud.num_points
     res.samples_kept, res.bins, res.grids = int(bins["samples"].sum()), len(bins), len(grids)
     res.cells, res.rounds, res.bins_table = len(cells[1]), sorted(cells), bins
     _write(out, spec, meta_dict, res, cells, folders, grids, bins, table_format)
