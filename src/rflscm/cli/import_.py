@@ -64,11 +64,25 @@ def _column_file(path: Path | None) -> dict[str, str]:
     if path is None:
         return {}
     from rflscm.config import load_yaml
+    from rflscm.data.ingest.spec import check_columns
 
-    data = load_yaml(path)
-    if not all(isinstance(v, str) for v in data.values()):
-        raise ConfigError(f"{path}: map each rflscm column name to one column name of yours, e.g. `lat: Latitude`.")
-    return {str(k): v for k, v in data.items()}
+    data = {str(k): v for k, v in load_yaml(path).items()}
+    data = data.get("columns", data) if isinstance(data.get("columns"), dict) else data
+    check_columns(data, str(path))
+    return data
+
+
+def _column_flags(base: dict[str, Any], flags: dict[str, str]) -> dict[str, Any]:
+    """``--col`` pairs over the ``--columns`` file; ``--col samples.cell_id=Serving`` maps one table's column."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in base.items()}
+    for key, value in flags.items():
+        table, dot, name = key.partition(".")
+        if dot:
+            section = out.get(table)
+            out[table] = {**(section if isinstance(section, dict) else {}), name: value}
+        else:
+            out[key] = value
+    return out
 
 
 def parse_origin(text: str) -> dict[str, float]:
@@ -88,7 +102,11 @@ def import_(
         [], "--cells", help="Cell list (one file; or one per round, in round order: repeat the option)."
     ),
     codebooks: Path | None = typer.Option(None, "--codebooks", help="YAML file with the `codebooks:` mapping."),
-    col: list[str] = typer.Option([], "--col", help="Column name mapping RFLSCM_NAME=YOUR_NAME (repeatable)."),
+    col: list[str] = typer.Option(
+        [],
+        "--col",
+        help="Column name mapping RFLSCM_NAME=YOUR_NAME (repeatable); samples.NAME=… or cells.NAME=… for one table.",
+    ),
     columns: Path | None = typer.Option(
         None, "--columns", help="YAML file mapping rflscm column names to yours, e.g. `lat: Latitude` (--col wins)."
     ),
@@ -132,7 +150,7 @@ def import_(
     from rflscm.cli.simulate import _prepare_out
     from rflscm.data import load_scenario
     from rflscm.data.ingest import import_raw, load_spec
-    from rflscm.data.ingest.spec import CELL_LIST_COLUMNS, SAMPLE_COLUMNS
+    from rflscm.data.ingest.spec import check_columns
     from rflscm.data.safe_io import guard_outputs
 
     check_numbers(
@@ -149,7 +167,7 @@ def import_(
         "samples": [str(p) for p in samples] or None,
         "cells": [str(p) for p in cells] or None,
         "codebooks": None if codebooks is None else str(codebooks),
-        "columns": {**_column_file(columns), **parse_pairs(col, "--col")},
+        "columns": _column_flags(_column_file(columns), parse_pairs(col, "--col")),
         "origin": None if origin is None else parse_origin(origin),
         "grid_size_m": grid_size,
         "min_samples": min_samples,
@@ -161,11 +179,7 @@ def import_(
         "name": name,
         "point_cloud": None if point_cloud is None else str(point_cloud),
     }
-    known = set(SAMPLE_COLUMNS) | set(CELL_LIST_COLUMNS)
-    if unknown := sorted(set(overrides["columns"]) - known):
-        raise ConfigError(
-            f"--col/--columns: unknown rflscm column name(s) {unknown}; valid: {', '.join(sorted(known))}."
-        )
+    check_columns(overrides["columns"], "--col/--columns")
     settings = load_spec(spec, overrides)
     _prepare_out(out, force)
     out.parent.mkdir(parents=True, exist_ok=True)

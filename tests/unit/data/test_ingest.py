@@ -12,11 +12,12 @@ from rflscm.data import load_scenario
 from rflscm.data.geo import Origin, enu_to_geodetic
 from rflscm.data.ingest import earfcn_to_hz, hz_to_nr_arfcn, import_raw, load_spec, nr_arfcn_to_hz
 from rflscm.data.ingest.binning import bin_samples, keep_top_n
+from rflscm.data.ingest.cellist import _cell_number
 from rflscm.data.ingest.resolve import AMBIGUOUS, FAR_FROM_ID, NO_CELL, TOO_FAR, UNKNOWN_ID, resolve_cells
 from rflscm.data.ingest.samples import Tally
 from rflscm.data.ingest.spec import ImportSpec
 from rflscm.data.pointcloud import PointCloud, write_point_cloud
-from rflscm.errors import DataError
+from rflscm.errors import ConfigError, DataError
 
 BOOKS = {
     "ssb4": {"type": "ssb", "azimuths_deg": [-30.0, 30.0], "tilts_deg": [0.0, 10.0]},
@@ -354,3 +355,57 @@ def test_cli_refuses_a_cloud_outside_the_grids_in_one_line(tmp_path: Path, monke
     main()
     out = " ".join(capsys.readouterr().out.split())
     assert "no point cloud" in out and "--set prior.enabled=false" in out
+
+
+def test_per_table_column_maps_unix_times_and_a_cell_list_without_pci(tmp_path: Path) -> None:
+    # the samples name their cell `Serving` (a name), the cell list `Cell`; a shared `lat` map for the samples
+    # only must not hide the cell list's own `Latitude`; times are Unix seconds; the cell list has no PCI
+    samples = _raw_samples().rename(columns={"lat": "GPS Lat"}).drop(columns=["PCI", "freq"])
+    samples = samples.assign(Serving="A1", timestamp=1714550400 + np.arange(4))
+    spec = _write_raw(tmp_path, samples)
+    pd.read_csv(tmp_path / "cells.csv").drop(columns="PCI").to_csv(tmp_path / "cells.csv", index=False)
+    over = {
+        "beam_type": "ssb",
+        "min_samples": 1,
+        "columns": {"lat": "GPS Lat", "samples": {"cell_id": "Serving"}},
+        "round_times": {1: ("2024-05-01T08:00:00Z", "2024-05-01T08:00:02Z"), 2: ("2024-05-01T08:00:02Z", "2024-06-01")},
+    }
+    res = import_raw(load_spec(spec, over), tmp_path / "a")
+    m = load_scenario(tmp_path / "a").measurements
+    assert res.rounds == [1, 2] and m.groupby("round").size().to_dict() == {1: 1, 2: 1}
+    assert (m["cell_id"] == 0).all() and res.samples_kept == 4
+    by_pci = _raw_samples()  # PCI + carrier samples cannot be matched to a list without PCI: one line
+    by_pci.to_csv(tmp_path / "samples.csv", index=False)
+    with pytest.raises(DataError, match=r"samples.csv row 1: names its cell by `pci` = 11, but the cell list has no"):
+        import_raw(load_spec(spec, {"beam_type": "ssb", "columns": {"freq_mhz": "freq"}}), tmp_path / "b")
+    with pytest.raises(ConfigError, match=r"import: `columns`.samples: unknown rflscm column name 'azimuth_deg'"):
+        load_spec(spec, {"columns": {"samples": {"azimuth_deg": "Az"}}})
+
+
+def test_no_bin_kept_names_every_reason_and_names_keep_their_numbers(tmp_path: Path) -> None:
+    samples = _raw_samples().assign(timestamp="2024-05-09T00:00:00Z")
+    over = {"columns": {"freq_mhz": "freq"}, "beam_type": "ssb", "round_times": {1: ("2024-05-01", "2024-05-02")}}
+    with pytest.raises(
+        DataError, match=r"^import: no bin kept; all 4 samples were dropped \(samples.csv: time outside every round"
+    ):
+        import_raw(load_spec(_write_raw(tmp_path, samples), over), tmp_path / "a")
+    ids: dict[str, int] = {}
+    got = [ids.setdefault(n, _cell_number(n, ids)) for n in ["7", "A", "007", "8", "B", "7"]]
+    assert got == [7, 8, 9, 10, 11, 7]  # numbers kept while free; a name never shares a number with another
+
+
+def test_col_flags_map_one_table_over_the_columns_file(tmp_path: Path) -> None:
+    from rflscm.cli.import_ import _column_file, _column_flags
+
+    (tmp_path / "map.yaml").write_text("columns: {lat: Latitude, cells: {cell_id: Cell}}\n")
+    base = _column_file(tmp_path / "map.yaml")
+    got = _column_flags(base, {"samples.cell_id": "Serving", "cells.pci": "PCI", "lon": "Lng"})
+    assert got == {
+        "lat": "Latitude",
+        "cells": {"cell_id": "Cell", "pci": "PCI"},
+        "samples": {"cell_id": "Serving"},
+        "lon": "Lng",
+    }
+    (tmp_path / "bad.yaml").write_text("lat: [1, 2]\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml: `lat` must be the name of your column \(text\)"):
+        _column_file(tmp_path / "bad.yaml")

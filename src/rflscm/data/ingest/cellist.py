@@ -20,10 +20,12 @@ import pandas as pd
 from rflscm.data.columns import TableRef, float_column, int_column, raise_rows, require_columns, str_column
 from rflscm.data.geo import Origin, geodetic_to_enu
 from rflscm.data.ingest.arfcn import earfcn_to_hz, nr_arfcn_to_hz
-from rflscm.data.ingest.spec import CARRIER_COLUMNS, CELL_LIST_COLUMNS, ImportSpec, canonical
+from rflscm.data.ingest.spec import CARRIER_COLUMNS, ImportSpec, canonical
 from rflscm.data.io import read_table
 from rflscm.errors import DataError
 
+NO_PCI = -1
+"""``pci`` of the cells of a list without a ``pci`` column (samples must then name cells by ``cell_id``)."""
 PASS_THROUGH = (
     "azimuth_deg",
     "mech_tilt_deg",
@@ -67,7 +69,7 @@ def read_cell_list(spec: ImportSpec, origin_of: Origin | None = None) -> tuple[d
     canonical column names, and the files read."""
     tables: dict[int, pd.DataFrame] = {}
     for rnd, name in spec.cells.items():
-        df = canonical(read_table(name), spec, CELL_LIST_COLUMNS)
+        df = canonical(read_table(name), spec, "cells")
         for key, value in spec.cell_defaults.items():
             if key not in df.columns:
                 df[key] = value
@@ -93,8 +95,9 @@ def cells_frame(df: pd.DataFrame, origin: Origin | None, ids: dict[str, int]) ->
     require_columns(
         df,
         ref,
-        ["cell_id", "height_m", "azimuth_deg", "pci"],
-        "cell_id, lat/lon or x/y, height_m, azimuth_deg, pci, a carrier, ssb_codebook, csi_codebook",
+        ["cell_id", "height_m", "azimuth_deg"],
+        "cell_id, lat/lon or x/y, height_m, azimuth_deg, a carrier, ssb_codebook, csi_codebook (and pci when the "
+        "samples name cells by PCI)",
     )
     if {"lat", "lon"} <= set(df.columns):
         if origin is None:
@@ -118,7 +121,7 @@ def cells_frame(df: pd.DataFrame, origin: Origin | None, ids: dict[str, int]) ->
             out[col] = df[col].to_numpy()
     if "element" in df.columns:
         _check_elements(df, ref, Path(str(df.attrs.get("folder", "."))))
-    out["pci"] = int_column(df, ref, "pci")
+    out["pci"] = int_column(df, ref, "pci") if "pci" in df.columns else NO_PCI
     out["carrier_hz"] = carrier_hz(df, ref)
     out["freq_hz"] = out["carrier_hz"]
     out["cell_name"] = names
@@ -148,10 +151,12 @@ def _check_elements(df: pd.DataFrame, ref: TableRef, folder: Path) -> None:
 
 
 def _cell_number(name: str, ids: dict[str, int]) -> int:
-    """A cell's number: the name itself when it is a whole number, else the next free number."""
-    if name.lstrip("-").isdigit():
+    """A cell's number: the name itself when it is a whole number not taken by another name (``007`` after
+    ``7``), else the next free number."""
+    used = set(ids.values())
+    if name.lstrip("-").isdigit() and int(name) not in used:
         return int(name)
-    return max([v for v in ids.values()] + [-1]) + 1 if ids else 0
+    return max(used | {-1}) + 1
 
 
 def copy_elements(cells: pd.DataFrame, folder: str, out: Path) -> None:

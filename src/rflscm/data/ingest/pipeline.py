@@ -15,7 +15,7 @@ from rflscm.config import from_dict, to_dict
 from rflscm.data.cells import CELL_COLUMNS
 from rflscm.data.geo import Origin
 from rflscm.data.ingest.binning import bin_samples, grids_of, keep_top_n
-from rflscm.data.ingest.cellist import cell_origin, cells_frame, copy_elements, read_cell_list
+from rflscm.data.ingest.cellist import NO_PCI, cell_origin, cells_frame, copy_elements, read_cell_list
 from rflscm.data.ingest.cloud import check_cloud_frame
 from rflscm.data.ingest.resolve import resolve_cells
 from rflscm.data.ingest.samples import Tally, read_samples
@@ -84,6 +84,13 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
         samples = samples[~orphan]
     if 1 not in cells:
         raise DataError(f"import: the samples and cell list give rounds {sorted(cells)}; round 1 is required.")
+    by_pci = (samples["pci"] >= 0).to_numpy()
+    if by_pci.any() and all((c["pci"] == NO_PCI).all() for c in cells.values()):
+        row = samples[by_pci].iloc[0]
+        raise DataError(
+            f"{row['file']} row {row['row']}: names its cell by `pci` = {row['pci']}, but the cell list has no `pci` "
+            "column; add it (map yours with --col cells.pci=NAME) or give the samples a `cell_id` column."
+        )
     samples = resolve_cells(samples, cells, ids, spec, res.dropped)
     meta_dict = _meta_dict(spec, cells, origin)
     meta = meta_from_dict(meta_dict, "import spec")
@@ -109,7 +116,10 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
         weakest = max(math.floor(bins["rsrp_dbm"].min()), RSRP_MIN_DBM)
         res.threshold_dbm, res.threshold_chosen = float(min(DEFAULT_THRESHOLD_DBM, weakest)), True
     if len(bins) == 0:
-        raise DataError(f"import: no bin kept ({res.dropped.dropped} samples dropped); see the reasons above.")
+        reasons = "; ".join(f"{why}: {n:,}" for why, n in res.dropped.samples.items())
+        raise DataError(
+            f"import: no bin kept; all {res.samples_read:,} samples were dropped ({reasons or 'no samples read'})."
+        )
     grids, grid_of_bin = grids_of(bins, spec)
     bins = bins.assign(grid_id=grid_of_bin)
     if cloud is not None:

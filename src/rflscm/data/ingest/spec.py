@@ -134,8 +134,9 @@ class ImportSpec:
     """Named codebooks, exactly as in scenario.yaml ``codebooks:``."""
     name: str = "imported"
     description: str = ""
-    columns: dict[str, str] = field(default_factory=dict)
-    """rflscm column name → the name in your files (applies to samples and cell list)."""
+    columns: dict[str, Any] = field(default_factory=dict)
+    """rflscm column name → the name in your files (applies to samples and cell list); entries under ``samples:``
+    or ``cells:`` apply to that table only (and win), e.g. ``{samples: {cell_id: Serving}, cells: {cell_id: Cell}}``."""
     cell_defaults: dict[str, Any] = field(default_factory=dict)
     """Values for cell-list columns the files lack (e.g. ``ssb_codebook: ssb8``, ``array_nh: 8``)."""
     origin: dict[str, float] | None = None
@@ -179,12 +180,26 @@ class ImportSpec:
             raise ConfigError("import: need `outlier_k` >= 0, `max_distance_m` > 0 and `ambiguity_ratio` >= 1.")
         if self.beam_type not in (None, "ssb", "csi"):
             raise ConfigError(f"import: `beam_type` must be ssb or csi (got {self.beam_type!r}).")
-        known = set(SAMPLE_COLUMNS) | set(CELL_LIST_COLUMNS)
-        unknown = sorted(set(self.columns) - known)
-        if unknown:
-            raise ConfigError(
-                f"import: `columns` has unknown rflscm name(s) {unknown}; valid: {', '.join(sorted(known))}."
-            )
+        check_columns(self.columns, "import: `columns`")
+
+
+TABLE_COLUMNS = {"samples": SAMPLE_COLUMNS, "cells": CELL_LIST_COLUMNS}
+"""The tables a ``columns:`` section may name, with their rflscm column names."""
+
+
+def check_columns(columns: dict[str, Any], where: str) -> None:
+    """A ``columns:`` mapping: rflscm name → your name (text), or ``samples:``/``cells:`` → such a mapping."""
+    for key, value in columns.items():
+        valid = TABLE_COLUMNS.get(key, (*SAMPLE_COLUMNS, *CELL_LIST_COLUMNS))
+        inner = value if key in TABLE_COLUMNS and isinstance(value, dict) else {key: value}
+        place = f"{where}.{key}" if key in TABLE_COLUMNS else where
+        for name, raw in inner.items():
+            if name not in valid:
+                raise ConfigError(
+                    f"{place}: unknown rflscm column name {name!r}; valid: {', '.join(sorted(set(valid)))}."
+                )
+            if not isinstance(raw, str) or not raw:
+                raise ConfigError(f"{place}: `{name}` must be the name of your column (text), got {raw!r}.")
 
 
 def _paths(value: Any, base: Path) -> Any:
@@ -229,10 +244,15 @@ def load_spec(path: str | Path | None, overrides: dict[str, Any]) -> ImportSpec:
         raise ConfigError(f"{where}{exc}") from None
 
 
-def canonical(df: pd.DataFrame, spec: ImportSpec, known: tuple[str, ...]) -> pd.DataFrame:
-    """``df`` with its columns renamed to rflscm names: ``spec.columns`` first, then :data:`ALIASES` and
-    case/spelling-insensitive matches of the known names; other columns are left as they are (ignored)."""
-    by_raw = {raw: name for name, raw in spec.columns.items() if name in known}
+def canonical(df: pd.DataFrame, spec: ImportSpec, table: str) -> pd.DataFrame:
+    """``df`` (a ``samples`` or ``cells`` table) with its columns renamed to rflscm names: ``spec.columns`` first
+    (the table's own section over the shared entries; an entry naming a column ``df`` lacks is for the other
+    table), then :data:`ALIASES` and case/spelling-insensitive matches of the known names; other columns are
+    left as they are (ignored)."""
+    known = TABLE_COLUMNS[table]
+    mapping = {k: v for k, v in spec.columns.items() if k not in TABLE_COLUMNS}
+    mapping.update(spec.columns.get(table) or {})
+    by_raw = {raw: name for name, raw in mapping.items() if name in known and raw in df.columns}
     rename: dict[str, str] = {}
     taken = set(by_raw.values())
     for col in map(str, df.columns):
