@@ -143,6 +143,11 @@ def import_(
         help="Building point cloud to copy in (.ply/.las/.laz/.npy), in the import's local frame: x east, y north "
         "(m) from the origin, z (m) above the origin's height.",
     ),
+    terrain: Path | None = typer.Option(
+        None,
+        "--terrain",
+        help="DEM GeoTIFF or XYZ table (x, y, z in m, local frame): cell and UE heights are above it (copied in).",
+    ),
     table_format: TableFormat = typer.Option(TableFormat.parquet, "--format", help="Table format of the scenario."),
     force: bool = typer.Option(False, "--force", help="Replace --out if it is an existing scenario folder."),
 ) -> None:
@@ -160,7 +165,7 @@ def import_(
         max_distance=(max_distance, 0.0, 1e8),
         threshold=(threshold, -300.0, 100.0),
     )
-    inputs: list[Path | None] = [spec, *samples, *cells, codebooks, columns, point_cloud]
+    inputs: list[Path | None] = [spec, *samples, *cells, codebooks, columns, point_cloud, terrain]
     refuse_inputs_inside(out, inputs)
     guard_outputs({"--out": out}, inputs, force=True, folders=("--out",))
     overrides: dict[str, Any] = {
@@ -178,6 +183,7 @@ def import_(
         "reporting": parse_reporting(reporting) or None,
         "name": name,
         "point_cloud": None if point_cloud is None else str(point_cloud),
+        "terrain": None if terrain is None else str(terrain),
     }
     check_columns(overrides["columns"], "--col/--columns")
     settings = load_spec(spec, overrides)

@@ -409,3 +409,32 @@ def test_col_flags_map_one_table_over_the_columns_file(tmp_path: Path) -> None:
     (tmp_path / "bad.yaml").write_text("lat: [1, 2]\n")
     with pytest.raises(ConfigError, match=r"bad.yaml: `lat` must be the name of your column \(text\)"):
         _column_file(tmp_path / "bad.yaml")
+
+
+def test_terrain_puts_cells_and_samples_above_the_ground(tmp_path: Path) -> None:
+    # a slope z = 500 + 0.1·x [m] as an XYZ table in the import frame; the origin at 500 m
+    u = np.arange(-100.0, 101.0, 20.0)
+    xx, yy = np.meshgrid(u, u)
+    pd.DataFrame({"x": xx.ravel(), "y": yy.ravel(), "z": 500.0 + 0.1 * xx.ravel()}).to_csv(
+        tmp_path / "dem.csv", index=False
+    )
+    samples = pd.concat([_raw_samples(), _raw_samples().assign(lat=48.2)], ignore_index=True)  # the second 6.7 km off
+    spec = _write_raw(tmp_path, samples)
+    over = {
+        "columns": {"freq_mhz": "freq"},
+        "beam_type": "ssb",
+        "origin": {"lat": 48.14, "lon": 11.57, "height_m": 500.0},
+        "terrain": str(tmp_path / "dem.csv"),
+    }
+    res = import_raw(load_spec(spec, over), tmp_path / "a")
+    sc = load_scenario(tmp_path / "a")
+    assert sc.meta.terrain == "terrain.csv" and res.dropped.samples == {
+        "dem.csv: outside the terrain (or on a nodata cell)": 4
+    }
+    np.testing.assert_allclose(sc.cells[1]["z"], [25.0, 25.0], atol=1e-6)  # at x = 0 the ground is the origin's 500 m
+    g = sc.grids.iloc[0]
+    assert g["z"] == pytest.approx(1.5 + 0.1 * (g["x"] + 1.5), abs=0.01)  # UEs 1.5 m above the slope at x 15…18
+    cells = pd.read_csv(tmp_path / "cells.csv").assign(Latitude=[48.14, 48.16])
+    cells.to_csv(tmp_path / "cells.csv", index=False)
+    with pytest.raises(DataError, match=r"^cells.csv: cell 'A2' at x = .* lies outside the terrain 'dem.csv'"):
+        import_raw(load_spec(spec, over), tmp_path / "b")

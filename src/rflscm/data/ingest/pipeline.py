@@ -17,6 +17,7 @@ from rflscm.data.geo import Origin
 from rflscm.data.ingest.binning import bin_samples, grids_of, keep_top_n
 from rflscm.data.ingest.cellist import NO_PCI, cell_origin, cells_frame, copy_elements, read_cell_list
 from rflscm.data.ingest.cloud import check_cloud_frame
+from rflscm.data.ingest.ground import cells_on_ground, read_terrain, samples_on_ground
 from rflscm.data.ingest.resolve import resolve_cells
 from rflscm.data.ingest.samples import Tally, read_samples
 from rflscm.data.ingest.spec import ImportSpec
@@ -64,6 +65,7 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
     tables, _ = read_cell_list(spec)
     origin = from_dict(Origin, spec.origin, prefix="origin") if spec.origin is not None else cell_origin(tables)
     res.origin = origin
+    terrain = None if spec.terrain is None else read_terrain(spec.terrain, origin)
     ids: dict[str, int] = {}
     cells = {r: cells_frame(df, origin, ids) for r, df in sorted(tables.items())}
     folders = {r: str(df.attrs.get("folder", ".")) for r, df in tables.items()}
@@ -74,6 +76,10 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
             folders[int(rnd)] = folders[0]
     samples = read_samples(spec, origin, res.dropped)
     res.samples_read = len(samples) + res.dropped.dropped
+    if terrain is not None:
+        name = {r: Path(spec.cells.get(r) or spec.cells.get(0) or "cells").name for r in cells}
+        cells = {r: cells_on_ground(t, terrain, origin, name[r]) for r, t in cells.items()}
+        samples = samples_on_ground(samples, terrain, origin, res.dropped)
     if 0 in cells:
         rounds = sorted(int(r) for r in samples["round"].unique()) or [1]
         cells = {r: cells[0] for r in rounds}
@@ -214,6 +220,10 @@ def _write(
     meta = {**meta_dict, "rsrp_threshold_dbm": float(res.threshold_dbm)}
     meta["rounds"] = {r: {"cells": f"cells_round{r}{ext}"} for r in cells}
     meta["grids"], meta["measurements"] = f"grids{ext}", f"measurements{ext}"
+    if spec.terrain is not None:
+        name = "terrain" + Path(spec.terrain).suffix.lower()
+        shutil.copyfile(spec.terrain, out / name)
+        meta["terrain"] = name
     if spec.point_cloud is not None:
         name = "point_cloud" + Path(spec.point_cloud).suffix.lower()
         shutil.copyfile(spec.point_cloud, out / name)
@@ -226,6 +236,7 @@ def _write(
             "outlier_k": spec.outlier_k,
             "max_distance_m": spec.max_distance_m,
             "ambiguity_ratio": spec.ambiguity_ratio,
+            "heights": "above the terrain" if spec.terrain is not None else "above flat ground at the origin's height",
             "samples_read": res.samples_read,
             "samples_kept": res.samples_kept,
             "dropped": dict(res.dropped.samples),

@@ -164,6 +164,8 @@ class ImportSpec:
     """Rounds from time ranges ``{round: [start, end)}`` (ISO times) when the samples have no ``round``."""
     point_cloud: str | None = None
     """A point cloud to copy into the scenario (.ply, .las, .laz, .npy), in the frame of the origin."""
+    terrain: str | None = None
+    """A DEM GeoTIFF or XYZ table (:mod:`rflscm.data.terrain`): heights of cells and samples are above it."""
 
     def __post_init__(self) -> None:
         if not self.samples:
@@ -209,13 +211,14 @@ def _paths(value: Any, base: Path) -> Any:
 
 
 def load_spec(path: str | Path | None, overrides: dict[str, Any]) -> ImportSpec:
-    """The spec from ``path`` (None: none) with ``overrides`` (CLI flags, paths as given) on top."""
+    """The spec from ``path`` (None: none) with ``overrides`` (CLI flags, paths as given; not changed) on top."""
+    overrides = dict(overrides)
     data: dict[str, Any] = {}
     if path is not None:
         path = Path(path)
         data = load_yaml(path)
         base = path.parent
-        for key in ("samples", "point_cloud"):
+        for key in ("samples", "point_cloud", "terrain"):
             if data.get(key) is not None:
                 data[key] = _paths(data[key], base)
         if isinstance(data.get("cells"), dict):
