@@ -14,7 +14,7 @@ from rich.table import Table
 
 from rflscm.cli import app
 from rflscm.cli.common import check_numbers, refuse_inputs_inside
-from rflscm.errors import ConfigError
+from rflscm.errors import ConfigError, DataError
 
 
 class BeamType(enum.StrEnum):
@@ -191,7 +191,12 @@ def import_(
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=f".{out.name}.", dir=out.parent) as tmp:
         result = import_raw(settings, Path(tmp) / "scenario", table_format.value)
-        load_scenario(Path(tmp) / "scenario")  # what `rflscm check` does: the import stands only if it passes
+        try:  # what `rflscm check` does: the import stands only if it passes
+            load_scenario(Path(tmp) / "scenario")
+        except DataError as exc:
+            raise DataError(
+                f"import: the scenario it wrote fails `rflscm check` (so {out} was not written): {exc}"
+            ) from None
         if out.exists():
             shutil.rmtree(out) if any(out.iterdir()) else out.rmdir()
         shutil.move(str(Path(tmp) / "scenario"), str(out))

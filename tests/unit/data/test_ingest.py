@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
+import rflscm
 from rflscm.data import load_scenario
 from rflscm.data.geo import Origin, enu_to_geodetic
 from rflscm.data.ingest import earfcn_to_hz, hz_to_nr_arfcn, import_raw, load_spec, nr_arfcn_to_hz
@@ -214,6 +216,14 @@ def test_import_refusals_name_file_row_and_value(tmp_path: Path) -> None:
         import_raw(load_spec(_write_raw(tmp_path, beyond), dict(over)), tmp_path / "b")
     with pytest.raises(DataError, match=r"cells.csv row 1 \(line 2\): `element` = 'AAU5613' names no pattern file"):
         import_raw(load_spec(_write_raw(tmp_path, _raw_samples(), antenna="AAU5613"), dict(over)), tmp_path / "d")
+    msi = "sample_65deg_3500MHz.msi"  # the 3.5 GHz pattern on 1815 MHz (EARFCN 1300) cells
+    shutil.copyfile(Path(rflscm.__file__).parent / "assets" / "antennas" / msi, tmp_path / msi)
+    with pytest.raises(
+        DataError,
+        match=r"^cells.csv row 1 \(line 2\): `element` = '.*3500MHz.msi' is measured at 3500 MHz, but this cell's "
+        r"carrier is 1815 MHz \(beyond ±10 %\); give the pattern of this band. 1 more row",
+    ):
+        import_raw(load_spec(_write_raw(tmp_path, _raw_samples(), antenna=msi), dict(over)), tmp_path / "e")
     report = _raw_samples().assign(timestamp="2024-05-01T08:00:00", ssb_index=[0, 1, 2, 3])
     rule = {**over, "reporting": {"ssb": {"rule": "top_n", "top_n": 3}}, "min_samples": 1}
     with pytest.raises(
