@@ -330,6 +330,9 @@ def test_point_cloud_is_copied_in_and_must_be_in_the_import_frame(tmp_path: Path
         import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "utm.ply")}), tmp_path / "b")
     with pytest.raises(DataError, match=r"^msl.npy: its ground over the grids .* z = 519.0 m, 517.5 m above"):
         import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "msl.npy")}), tmp_path / "c")
+    write_point_cloud(_cloud((690_000.0, 5_334_000.0, 0.0)), tmp_path / "utm33.laz")  # a UTM export, not shifted
+    with pytest.raises(DataError, match=r"^utm33.laz point 1: .* implausible .* needs the cloud in its local frame"):
+        import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "utm33.laz")}), tmp_path / "e")
     (tmp_path / "cloud.txt").write_text("1 2 3\n")
     with pytest.raises(DataError, match=r"cloud.txt: unsupported point cloud format '.txt'"):
         import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "cloud.txt")}), tmp_path / "d")

@@ -23,7 +23,7 @@ from rflscm.data.ingest.samples import Tally, read_samples
 from rflscm.data.ingest.spec import ImportSpec
 from rflscm.data.io import write_table
 from rflscm.data.meta import RSRP_MIN_DBM, ScenarioMeta, meta_from_dict
-from rflscm.data.pointcloud import read_point_cloud
+from rflscm.data.pointcloud import PointCloud, read_point_cloud
 from rflscm.data.reporting import BEAM_TYPES, reporting_from_dict
 from rflscm.errors import DataError
 
@@ -61,7 +61,7 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
         DataError / ConfigError: a file, row or value that cannot be used (one line naming it).
     """
     res = ImportResult()
-    cloud = None if spec.point_cloud is None else read_point_cloud(spec.point_cloud)  # refused before any work
+    cloud = None if spec.point_cloud is None else _read_cloud(spec.point_cloud)  # refused before any work
     tables, _ = read_cell_list(spec)
     origin = from_dict(Origin, spec.origin, prefix="origin") if spec.origin is not None else cell_origin(tables)
     res.origin = origin
@@ -135,6 +135,19 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
     res.cells, res.rounds, res.bins_table = len(cells[1]), sorted(cells), bins
     _write(out, spec, meta_dict, res, cells, folders, grids, bins, table_format)
     return res
+
+
+def _read_cloud(path: str) -> PointCloud:
+    """The import's point cloud, read as ``rflscm check`` reads it; coordinates far off say which frame is needed."""
+    try:
+        return read_point_cloud(path)
+    except DataError as exc:
+        if "implausible" not in str(exc):
+            raise
+        raise DataError(
+            f"{str(exc).rstrip('.')}. `rflscm import` needs the cloud in its local frame: x east, y north [m] from "
+            'the origin, z [m] above the origin\'s height (docs/your-own-data.md, "The building point cloud").'
+        ) from None
 
 
 def _meta_dict(spec: ImportSpec, cells: dict[int, pd.DataFrame], origin: Origin | None) -> dict[str, Any]:
