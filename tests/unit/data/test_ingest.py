@@ -451,3 +451,14 @@ def test_terrain_puts_cells_and_samples_above_the_ground(tmp_path: Path) -> None
     cells.to_csv(tmp_path / "cells.csv", index=False)
     with pytest.raises(DataError, match=r"^cells.csv: cell 'A2' at x = .* lies outside the terrain 'dem.csv'"):
         import_raw(load_spec(spec, over), tmp_path / "b")
+
+
+def test_headers_with_units_in_brackets_match_only_in_rflscm_units() -> None:
+    from rflscm.data.ingest.spec import canonical
+
+    cols = ["Latitude (deg)", "Longitude (WGS84)", "RSRP [dBm]", "Freq (MHz)", "SSB Index", "Height (ft)", "Time (UTC)"]
+    got = list(canonical(pd.DataFrame(columns=cols), _spec(), "samples").columns)
+    assert got == ["lat", "lon", "rsrp_dbm", "freq_mhz", "beam_id", "Height (ft)", "time"]  # feet stay unread
+    cols = ["Cell Name", "Azimuth (deg)", "Mech. Tilt (deg)", "E-Tilt (°)", "Lat [°]", "Height AGL (m)", "Height (cm)"]
+    got = list(canonical(pd.DataFrame(columns=cols), _spec(), "cells").columns)
+    assert got == ["cell_id", "azimuth_deg", "mech_tilt_deg", "elec_tilt_deg", "lat", "height_m", "Height (cm)"]

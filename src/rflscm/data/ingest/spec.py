@@ -250,11 +250,31 @@ def load_spec(path: str | Path | None, overrides: dict[str, Any]) -> ImportSpec:
         raise ConfigError(f"{where}{exc}") from None
 
 
+PLAIN_UNITS = {"", "deg", "degree", "degrees", "wgs84", "m", "metre", "meter", "metres", "meters", "dbm", "utc"}
+"""Bracketed units (keys) that may be left out of a column name: those rflscm's columns are in (``Height (m)``
+matches ``height_m``; ``Height (ft)`` matches nothing, so feet are never read as metres)."""
+
+
+def _unit_dropped(name: str) -> str:
+    """The key of ``name`` without a bracketed unit of :data:`PLAIN_UNITS` ("" when it has none)."""
+    units = re.findall(r"[(\[](.*?)[)\]]", name)
+    if not units or any(_key(u) not in PLAIN_UNITS for u in units):
+        return ""
+    return _key(re.sub(r"[(\[].*?[)\]]", "", name))
+
+
+def _match(key: str, known: tuple[str, ...]) -> str | None:
+    """The rflscm name whose key is ``key``, else its alias (None: none)."""
+    if not key:
+        return None
+    return next((k for k in known if _key(k) == key), None) or ALIASES.get(key)
+
+
 def canonical(df: pd.DataFrame, spec: ImportSpec, table: str) -> pd.DataFrame:
     """``df`` (a ``samples`` or ``cells`` table) with its columns renamed to rflscm names: ``spec.columns`` first
     (the table's own section over the shared entries; an entry naming a column ``df`` lacks is for the other
-    table), then :data:`ALIASES` and case/spelling-insensitive matches of the known names; other columns are
-    left as they are (ignored)."""
+    table), then :data:`ALIASES` and case/spelling-insensitive matches of the known names, also with a unit in
+    brackets left out (``Latitude (deg)``, ``RSRP [dBm]``); other columns are left as they are (ignored)."""
     known = TABLE_COLUMNS[table]
     mapping = {k: v for k, v in spec.columns.items() if k not in TABLE_COLUMNS}
     mapping.update(spec.columns.get(table) or {})
@@ -265,8 +285,7 @@ def canonical(df: pd.DataFrame, spec: ImportSpec, table: str) -> pd.DataFrame:
         if col in by_raw:
             rename[col] = by_raw[col]
             continue
-        key = _key(col)
-        name = next((k for k in known if _key(k) == key), None) or ALIASES.get(key)
+        name = _match(_key(col), known) or _match(_unit_dropped(col), known)
         if name in known and name not in taken and name not in rename.values():
             rename[col] = name
     out = df.rename(columns=rename)
