@@ -53,6 +53,7 @@ def load_all() -> None:
         b08_realism,
         b09_time_to_target,
         b10_scale,
+        import_roundtrip,
         opt_speed,
         render_speed,
         sensing,
