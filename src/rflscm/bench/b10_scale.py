@@ -259,6 +259,7 @@ def _plot(rows: list[dict[str, Any]], root: Path) -> str | None:
         ax.set_xlabel("cells [count]")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
+    fig.subplots_adjust(wspace=0.35)
     ax_t.legend(fontsize=7)
     ax_t.set_title("B10: time per stage vs network size")
     ax_m.set_title("B10: peak memory per stage vs network size")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -560,7 +561,8 @@ def write_measurements(
         detect_on = None if config.detect_on == "any" else config.detect_on
         if not paths_written:
             _write_paths(out / "truth", store)
-        measurements = stream_ideal(
+        streamed = out / ".measurements.parquet"  # appended block by block, never a whole table in memory
+        stream_ideal(
             scenario,
             store,
             config.points_per_grid,
@@ -570,8 +572,10 @@ def write_measurements(
             out / "truth",
             floor,
             config.angle_grid,
+            measurements_file=streamed,
         )
-        save_scenario(dataclasses.replace(scenario, measurements=measurements), out, table_format="parquet")
+        save_scenario(scenario, out, table_format="parquet")  # meta names measurements.parquet: written empty
+        os.replace(streamed, out / str(scenario.meta.measurements))
         return
     whole = store.frame()
     field_rng = np.random.default_rng([config.seed, 12])
@@ -672,5 +676,14 @@ def _provenance(backend, config: SimulationConfig, scene, changes) -> dict[str, 
         **({"field": to_dict(config.field_model)} if config.measurements == "field" else {}),
         "points_per_grid": config.points_per_grid,
         "round2_changes": changes,
-        "config": to_dict(config),
+        "config": _config_record(config),
     }
+
+
+def _config_record(config: SimulationConfig) -> dict[str, Any]:
+    """The config as ``scenario.yaml`` records it; ``trace_range_m`` only when set (a scenario simulated without a
+    range keeps the very file it had before the key existed)."""
+    record = to_dict(config)
+    if record.get("trace_range_m") is None:
+        record.pop("trace_range_m", None)
+    return record

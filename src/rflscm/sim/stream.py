@@ -65,7 +65,9 @@ class ParquetAppender:
     (same columns and dtypes) are buffered and flushed, so that the whole table is never in memory.  A file
     with no rows still gets the schema of ``empty`` (a frame with the columns and dtypes, no rows)."""
 
-    def __init__(self, path: Path, empty: pd.DataFrame, rows_per_group: int = _ROWS_PER_GROUP) -> None:
+    def __init__(
+        self, path: Path, empty: pd.DataFrame, rows_per_group: int = _ROWS_PER_GROUP, page_checksum: bool = False
+    ) -> None:
         import pyarrow as pa  # type: ignore[import-untyped]
         import pyarrow.parquet as pq  # type: ignore[import-untyped]
 
@@ -73,6 +75,7 @@ class ParquetAppender:
         self.rows_per_group = rows_per_group
         self._pa, self._pq = pa, pq
         self._empty = empty
+        self._checksum = page_checksum
         self._writer: Any = None
         self._schema: Any = None
         self._buffer: list[pd.DataFrame] = []
@@ -100,14 +103,16 @@ class ParquetAppender:
             table = self._pa.concat_tables([self._table(f) for f in self._buffer], promote_options="permissive")
         if self._writer is None:
             self._schema = table.schema
-            self._writer = self._pq.ParquetWriter(self.path, self._schema, compression="zstd")
+            self._writer = self._pq.ParquetWriter(
+                self.path, self._schema, compression="zstd", write_page_checksum=self._checksum
+            )
         self._writer.write_table(table.unify_dictionaries().combine_chunks().cast(self._schema))
         self._buffer, self._rows = [], 0
 
     def close(self) -> None:
         self.flush()
         if self._writer is None:  # no rows at all: the schema of the empty frame
-            self._empty.to_parquet(self.path, index=False, compression="zstd")
+            self._empty.to_parquet(self.path, index=False, compression="zstd", write_page_checksum=self._checksum)
             return
         self._writer.close()
 
@@ -283,6 +288,7 @@ def stream_ideal(
     truth: Path,
     rsrp_floor_dbm: float | None,
     angle_grid: AngleGrid,
+    measurements_file: Path | None = None,
 ) -> pd.DataFrame:
     """The ideal regime's measurements and ``truth/`` (APS and noiseless RSRP), one (round, cell) at a time.
 
@@ -291,8 +297,12 @@ def stream_ideal(
     block in the whole table's row order, which gives the same numbers), but only one cell's RSRP
     (grids × beams) is in memory besides the measurements that are kept.  A round-2 cell equal to its
     round-1 row is computed again from the same paths (the same numbers).  ``truth/paths.parquet`` is not
-    written here (the trace appends it).  Returns the measurements table.
+    written here (the trace appends it).  Returns the measurements table; with ``measurements_file`` the
+    table is appended to that Parquet file block by block instead (page checksums, as
+    :func:`rflscm.data.io.write_table` writes) and the table returned is empty.
     """
+    from rflscm.data import empty_measurements
+
     grid_ids = np.asarray(scenario.grid_ids())
     counts = pd.Series(points_per_grid, index=grid_ids)
     truth.mkdir(parents=True, exist_ok=True)
@@ -310,6 +320,9 @@ def stream_ideal(
     detect_t = None if detect_on is None else BEAM_TYPES.index(detect_on)
     empty_paths = None
     kept: list[dict[str, np.ndarray]] = []
+    sink = None
+    if measurements_file is not None:
+        sink = ParquetAppender(measurements_file, empty_measurements(), page_checksum=True)
     with ParquetAppender(truth / RSRP_FILE, empty_truth) as rsrp_file:
         for rnd in scenario.rounds():
             for cell_id, _, key in _cells_in_order(scenario, rnd):
@@ -336,6 +349,9 @@ def stream_ideal(
                 detected = heard[detect_t] if detect_t is not None else heard[0] | heard[1]
                 if detected.any():
                     kept.append(_rsrp_rows(reported, detected, rnd, cell_id, grid_ids))
+                    if sink is not None:
+                        sink.append(_measurement_frame(kept))
+                        kept = []
                 keep_truth = np.ones(len(grid_ids), dtype=bool)
                 if rsrp_floor_dbm is not None:
                     best = np.maximum(noiseless[BEAM_TYPES[0]].max(axis=1), noiseless[BEAM_TYPES[1]].max(axis=1))
@@ -356,6 +372,9 @@ def stream_ideal(
                             }
                         )
                     )
+    if sink is not None:
+        sink.close()
+        return empty_measurements()
     return _measurement_frame(kept)
 
 

@@ -74,6 +74,18 @@ def test_stream_ideal_equals_the_whole_table_path(built: Path, tmp_path: Path, s
     if spilled:
         store.remove()
         assert not (tmp_path / "spill").exists()
+        return
+    # the same measurements appended to a file block by block (what build_scenario does)
+    file = tmp_path / "m.parquet"
+    empty = stream_ideal(
+        sc, store, TINY.points_per_grid, TINY.measurement_model, np.random.default_rng(seed), "ssb",
+        tmp_path / "again", floor, TINY.angle_grid, measurements_file=file,
+    )  # fmt: skip
+    assert len(empty) == 0
+    pd.testing.assert_frame_equal(pd.read_parquet(file), expected.reset_index(drop=True), check_exact=True)
+    import pyarrow.parquet as pq
+
+    assert pq.ParquetFile(file).metadata.num_rows == len(expected)
 
 
 def test_build_streams_the_trace_and_writes_every_path(built: Path) -> None:
