@@ -34,9 +34,12 @@ from rflscm.models.rflscm.posterior import (
     HOLDOUT,
     LAMBDA_PAIRS,
     POSTERIOR_BINS,
+    WNOMP_PRIOR_DB,
     LambdaChoice,
     PairPosterior,
     fit_gains,
+    with_atoms,
+    wnomp_atoms,
 )
 
 PAIR_CHUNK = 64
@@ -122,15 +125,17 @@ def fit_corrections(
     columns: ColumnsFn,
     seed: int,
     progress: bool = False,
+    num_bins: int | None = None,
 ) -> PairCorrections:
     """Fit the switched-on corrections of the training ``data`` (``num_ssb`` SSB beams first, ``cell_ids`` of its
     cell indices) from one render of its pairs with reports (``render``, ``columns`` at the final weights;
-    ``seed`` draws the posterior's held-aside reports; ``progress``: a bar)."""
+    ``seed`` draws the posterior's held-aside reports; ``progress``: a bar; ``num_bins``: the angle grid's size,
+    which WNOMP's atoms need)."""
     from tqdm.auto import tqdm
 
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
         return PairCorrections()
-    fit = _Fit(cfg, data, num_ssb, len(cell_ids), render, columns)
+    fit = _Fit(cfg, data, num_ssb, len(cell_ids), render, columns, num_bins)
     pairs = torch.nonzero(data.observed.any(1)).squeeze(1)
     if not (cfg.pair_anchors or cfg.pair_posterior):  # the level alone: a few pairs per cell
         return PairCorrections(fit.levels(fit.render_pairs(fit.level_picks(), top=False)))
@@ -149,10 +154,10 @@ def fit_corrections(
         held = torch.rand(data.rsrp.shape, generator=torch.Generator().manual_seed(seed)) < HOLDOUT
         subset = pairs[torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), LAMBDA_PAIRS)).round().long()]
         choice = LambdaChoice()
-        for chunk in fit.chunks(rendered, rendered.rows_of(subset.unique()), levels):
+        for chunk in fit.chunks(rendered, rendered.rows_of(subset.unique()), levels, held=held):
             choice.add(*chunk.fit_inputs(), chunk.resid, chunk.mask, held[chunk.pairs.cpu()].to(chunk.resid.device))
         lam, scores = choice.best(), choice.mae_db()
-    anchors, gains, bins_of = [], [], []
+    anchors, gains, bins_of, bases = [], [], [], []
     fitting = cfg.pair_posterior and math.isfinite(lam)
     every = torch.arange(pairs.numel(), device=pairs.device)
     for chunk in fit.chunks(rendered, every, levels, fitting):
@@ -160,6 +165,8 @@ def fit_corrections(
         if chunk.top_bins is not None:
             gains.append(fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, lam).cpu())
             bins_of.append(chunk.top_bins.cpu())
+            if chunk.base is not None:
+                bases.append(chunk.stored_base().cpu())
         bar.update(chunk.pairs.numel() if cfg.pair_posterior else 0)
     bar.close()
     ids = np.asarray(cell_ids, np.int64)[data.cell_index.cpu().numpy()[pairs.cpu().numpy()]]
@@ -173,7 +180,8 @@ def fit_corrections(
         posterior = PairPosterior(empty, torch.zeros(0, 0, dtype=torch.long), torch.zeros(0, 0), lam, scores)
         return PairCorrections(levels, anchor_series, posterior)
     gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
-    return PairCorrections(levels, anchor_series, PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores))
+    base = torch.cat(bases) if bases else None
+    return PairCorrections(levels, anchor_series, PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores, base))
 
 
 @dataclass
@@ -200,7 +208,9 @@ class _PairChunk:
     """A chunk of training pairs ``pairs [B]`` as the corrections see them: ``anchor [B]`` [dB], ``resid [B, M]``
     measured − predicted [dB] after the corrections, ``mask [B, M]`` the reported training beams; with columns,
     the strongest bins ``top_bins [B, n]``, the APS there ``top_x [B, n]``, their columns ``cols [B, M, n]`` and
-    the other bins' ``rest [B, M]`` (normalised)."""
+    the other bins' ``rest [B, M]`` (normalised); with WNOMP's atoms among them, ``base [B, n]`` the prior centre
+    added at each bin (``resid`` then against the prediction with it) and ``level [B]`` [dB] the corrections
+    applied before the posterior."""
 
     pairs: torch.Tensor
     anchor: torch.Tensor
@@ -210,11 +220,18 @@ class _PairChunk:
     top_x: torch.Tensor | None = None
     cols: torch.Tensor | None = None
     rest: torch.Tensor | None = None
+    base: torch.Tensor | None = None
+    level: torch.Tensor | None = None
 
     def fit_inputs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``(cols, top_x, rest)``, the posterior's view of the chunk (made ``with_columns``)."""
+        """``(cols, prior centre, rest)``, the posterior's view of the chunk (made ``with_columns``)."""
         assert self.cols is not None and self.top_x is not None and self.rest is not None
-        return self.cols, self.top_x, self.rest
+        return self.cols, self.top_x if self.base is None else self.top_x + self.base, self.rest
+
+    def stored_base(self) -> torch.Tensor:
+        """:attr:`base` in the unit the posterior is applied in (after the level and anchor)."""
+        assert self.base is not None and self.level is not None
+        return self.base * torch.pow(10.0, self.level / 10.0)[:, None]
 
 
 @dataclass
@@ -227,6 +244,8 @@ class _Fit:
     num_cells: int
     render: RenderFn
     columns: ColumnsFn
+    num_bins: int | None = None
+    """Bins of the angle grid (WNOMP's atoms are searched over all of them)."""
 
     def render_pairs(self, pairs: torch.Tensor, top: bool, bar: object = None) -> _Rendered:
         """Render ``pairs [P]`` (sorted) ``PAIR_CHUNK`` at a time: their predicted reports and, with ``top``, their
@@ -281,10 +300,16 @@ class _Fit:
         return levels.to(d.rsrp.device)
 
     def chunks(
-        self, rendered: _Rendered, rows: torch.Tensor, levels: torch.Tensor | None, with_columns: bool = True
+        self,
+        rendered: _Rendered,
+        rows: torch.Tensor,
+        levels: torch.Tensor | None,
+        with_columns: bool = True,
+        held: torch.Tensor | None = None,
     ) -> Iterator[_PairChunk]:
         """Rows ``rows`` of ``rendered``, ``PAIR_CHUNK`` at a time: each pair's anchor and, after ``levels`` and
-        anchor, its residuals and (``with_columns``) its strongest bins with their columns."""
+        anchor, its residuals and (``with_columns``) its strongest bins with their columns, and WNOMP's atoms
+        when switched on (fitted on the reports not ``held [P, M]`` aside)."""
         d = self.data
         beam_type = (torch.arange(d.rsrp.shape[1], device=d.rsrp.device) >= self.num_ssb).long()
         for start in range(0, rows.numel(), PAIR_CHUNK):
@@ -305,7 +330,31 @@ class _Fit:
                 chunk.top_bins, chunk.top_x = rendered.top_bins[at].long(), rendered.top_x[at]
                 chunk.cols = self.columns(cells, chunk.top_bins)
                 chunk.rest = (pred - torch.einsum("bmk,bk->bm", chunk.cols, chunk.top_x)).clamp_min(0.0)
+                if self.cfg.wnomp_atoms:
+                    level = levels[cells, 0] if levels is not None else torch.zeros_like(anchor)
+                    self._add_atoms(chunk, level + anchor if self.cfg.pair_anchors else level, held)
             yield chunk
+
+    def _add_atoms(self, chunk: _PairChunk, level: torch.Tensor, held: torch.Tensor | None) -> None:
+        """Add WNOMP's atoms of the chunk's reports (not ``held`` aside) to its candidate bins; ``level [B]`` [dB]:
+        the corrections before the posterior (the reports are that much above the field's own unit)."""
+        assert chunk.top_bins is not None and chunk.top_x is not None and chunk.cols is not None
+        assert chunk.rest is not None
+        if self.num_bins is None:
+            raise ValueError("WNOMP's atoms need the angle grid's number of bins")
+        d, cells = self.data, self.data.cell_index[chunk.pairs]
+        every = torch.arange(self.num_bins, device=cells.device)[None]
+        mask = chunk.mask if held is None else chunk.mask & ~held[chunk.pairs.cpu()].to(chunk.mask.device)
+        atom_bins, atom_x = wnomp_atoms(
+            lambda c: self.columns(torch.tensor([c], device=cells.device), every)[0], cells, d.rsrp[chunk.pairs], mask
+        )
+        centre = atom_x * torch.pow(10.0, -(level[:, None] + WNOMP_PRIOR_DB) / 10.0)
+        bins, x, base = with_atoms(chunk.top_bins, chunk.top_x, atom_bins, centre.to(chunk.top_x.dtype))
+        cols = torch.cat([chunk.cols, self.columns(cells, bins[:, chunk.top_bins.shape[1] :])], 2)
+        field = torch.einsum("bmk,bk->bm", cols, x) + chunk.rest
+        raised = field + torch.einsum("bmk,bk->bm", cols, base)
+        chunk.resid = chunk.resid - 10.0 * torch.log10(raised.clamp_min(1e-30) / field.clamp_min(1e-30))
+        chunk.top_bins, chunk.top_x, chunk.cols, chunk.base, chunk.level = bins, x, cols, base, level
 
 
 def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:

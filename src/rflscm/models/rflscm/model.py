@@ -451,6 +451,7 @@ class RFLSCM(LSCMModel):
             self._training().columns,
             self.config.train.seed,
             progress,
+            num_bins=self.angle_grid.num_bins,
         )
 
     @torch.no_grad()
