@@ -12,12 +12,15 @@ Usage (from the repository root, one thread: deterministic and independent of th
 
 ``train`` runs B1 quick's RF-LSCM (seed 0, 1500 steps) and WNOMP on ``SCENARIO`` and saves the trained model with
 both MAE tables to ``OUT.pt``; ``refit`` lays each JSON object over the model's ``corrections`` config section,
-refits the corrections and prints one ``RESULT {json}`` line per variant.
+refits the corrections and prints one ``RESULT {json}`` line per variant.  Keys that start with ``_`` set the
+posterior's constants for that variant instead: ``_prior_db`` (``WNOMP_PRIOR_DB``), ``_atoms`` (``WNOMP_ATOMS``, a list),
+``_lambdas`` (the candidate λ list).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import sys
 import time
@@ -62,8 +65,16 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
     model, wnomp = saved["model"], saved["wnomp"]
     print("WNOMP", json.dumps(wnomp), "TRAINED-WITH", json.dumps(saved["rflscm"]), flush=True)
     base = model.config
+    from rflscm.models.rflscm import corrections as module
+    from rflscm.models.rflscm import posterior as post_mod
+
     for variant in variants:
-        corrections = dataclasses.replace(base.corrections, **variant)
+        consts = {k: v for k, v in variant.items() if k.startswith("_")}
+        module.WNOMP_PRIOR_DB = float(consts.get("_prior_db", post_mod.WNOMP_PRIOR_DB))
+        module.WNOMP_ATOMS = tuple(consts.get("_atoms", post_mod.WNOMP_ATOMS))
+        module.LambdaChoice = functools.partial(post_mod.LambdaChoice, lambdas=tuple(consts.get("_lambdas", post_mod.LAMBDAS)))
+        knobs = {k: v for k, v in variant.items() if not k.startswith("_")}
+        corrections = dataclasses.replace(base.corrections, **knobs)
         model.config = dataclasses.replace(base, corrections=corrections)
         t0 = time.perf_counter()
         model.finish_training()
@@ -75,6 +86,7 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
             "mae": mae,
             "minus_wnomp": {k: round(mae[k] - wnomp[k], 3) for k in mae},
             "lam": None if posterior is None else posterior.lam,
+            "candidates": None if posterior is None else int(posterior.bins.shape[1]),
             "scores": None if posterior is None else {str(k): round(v, 4) for k, v in posterior.scores.items()},
             "fit_s": round(fit_s, 1),
         }

@@ -13,7 +13,7 @@ from rflscm.errors import CheckpointError
 from rflscm.models.pairs import PairData
 from rflscm.models.rflscm.config import CorrectionsConfig
 from rflscm.models.rflscm.corrections import PairCorrections, fit_corrections
-from rflscm.models.rflscm.posterior import PairPosterior
+from rflscm.models.rflscm.posterior import WNOMP_ATOMS, PairPosterior
 
 K = 4  # bins; every beam sees every bin with gain 1, so a pair's prediction is the sum of its APS
 
@@ -164,7 +164,8 @@ def test_wnomp_atoms_let_the_posterior_reach_a_direction_the_fields_bins_miss() 
     with_, err_with = fit_atoms(True)
     assert without.posterior is not None and with_.posterior is not None
     assert without.posterior.base is None and with_.posterior.base is not None
-    assert with_.posterior.bins.shape[1] == 6 + 4  # the field's 6 bins and WNOMP_ATOMS more
+    assert with_.posterior.bins.shape[1] - 6 in WNOMP_ATOMS  # the field's 6 bins and the atoms chosen
+    assert set(with_.posterior.atom_scores) == {0, *WNOMP_ATOMS} and not without.posterior.atom_scores
     # through the changed antenna (never fitted), the posterior with the atoms is much closer to the truth
     assert err_with < 0.5 * err_without, (err_with, err_without)
     # the held-aside score that chose λ saw the atoms too (fitted without the held-aside reports)
@@ -174,6 +175,7 @@ def test_wnomp_atoms_let_the_posterior_reach_a_direction_the_fields_bins_miss() 
 def test_wnomp_atoms_are_deterministic_and_survive_a_save() -> None:
     first, err = fit_atoms(True)
     again, err_again = fit_atoms(True)
+    assert first.posterior is not None and again.posterior is not None and first.posterior.base is not None
     assert err == err_again and torch.equal(first.posterior.base, again.posterior.base)
     buffer = io.BytesIO()
     torch.save(first.to_state(), buffer)

@@ -89,7 +89,7 @@ def run(scenario, section: str | None = None, key: str | None = None, value=None
     aps = model.aps(np.array([11, 12]), np.array([100, 101])).double().sum(1).tolist()
     # the pair posterior's choice of λ on held-aside reports (it is applied only where it beats the field)
     fitted = model.corrections.posterior
-    posterior = None if fitted is None else sorted(fitted.scores.items())
+    posterior = None if fitted is None else (sorted(fitted.scores.items()), sorted(fitted.atom_scores.items()))
     return repr((tuple(history), summary["val_mae_db"], tuple(aps), posterior))  # repr: NaN compares equal
 
 

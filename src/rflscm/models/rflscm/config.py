@@ -338,10 +338,11 @@ class CorrectionsConfig:
     beats the field there; :mod:`~rflscm.models.rflscm.posterior`).  Measured after training, like the anchors; pairs
     without round-1 reports keep the field's APS."""
     wnomp_atoms: bool = False
-    """Add WNOMP's support of each training pair's reports (up to 4 atoms, the model's own sensing columns) to the
-    posterior's candidate bins, each centred on the field's value there or, where the field has less, 10 dB below
-    WNOMP's (:func:`~rflscm.models.rflscm.posterior.with_atoms`): the field's strongest bins can miss the direction
-    that a grid's reports point at.  Needs ``pair_posterior``."""
+    """Add WNOMP's support of each training pair's reports (its atoms through the model's own sensing columns) to
+    the posterior's candidate bins, each centred on the field's value there or, where the field has less, 10 dB
+    below WNOMP's (:func:`~rflscm.models.rflscm.posterior.with_atoms`): the field's strongest bins can miss the
+    direction that a grid's reports point at.  How many atoms (2, 4 or none) is chosen with λ on held-aside
+    reports.  Needs ``pair_posterior``."""
 
 
 @dataclass(frozen=True)

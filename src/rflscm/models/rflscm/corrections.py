@@ -34,6 +34,7 @@ from rflscm.models.rflscm.posterior import (
     HOLDOUT,
     LAMBDA_PAIRS,
     POSTERIOR_BINS,
+    WNOMP_ATOMS,
     WNOMP_PRIOR_DB,
     LambdaChoice,
     PairPosterior,
@@ -148,15 +149,12 @@ def fit_corrections(
     )
     rendered = fit.render_pairs(pairs, top=cfg.pair_posterior, bar=bar)
     levels = fit.levels(rendered) if cfg.calibrate_levels else None
-    lam, scores = math.inf, {}
+    lam, scores, atom_scores = math.inf, dict[float, float](), dict[int, float]()
     if cfg.pair_posterior and pairs.numel():
-        # λ from held-aside reports of a spread subset of the pairs, then one fit per pair
+        # λ (and WNOMP's atoms) from held-aside reports of a spread subset of the pairs, then one fit per pair
         held = torch.rand(data.rsrp.shape, generator=torch.Generator().manual_seed(seed)) < HOLDOUT
         subset = pairs[torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), LAMBDA_PAIRS)).round().long()]
-        choice = LambdaChoice()
-        for chunk in fit.chunks(rendered, rendered.rows_of(subset.unique()), levels, held=held):
-            choice.add(*chunk.fit_inputs(), chunk.resid, chunk.mask, held[chunk.pairs.cpu()].to(chunk.resid.device))
-        lam, scores = choice.best(), choice.mae_db()
+        fit.atoms, lam, scores, atom_scores = _choose(fit, rendered, rendered.rows_of(subset.unique()), levels, held)
     anchors, gains, bins_of, bases = [], [], [], []
     fitting = cfg.pair_posterior and math.isfinite(lam)
     every = torch.arange(pairs.numel(), device=pairs.device)
@@ -177,11 +175,14 @@ def fit_corrections(
         return PairCorrections(levels, anchor_series, None)
     if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
         empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
-        posterior = PairPosterior(empty, torch.zeros(0, 0, dtype=torch.long), torch.zeros(0, 0), lam, scores)
+        posterior = PairPosterior(
+            empty, torch.zeros(0, 0, dtype=torch.long), torch.zeros(0, 0), lam, scores, None, atom_scores
+        )
         return PairCorrections(levels, anchor_series, posterior)
     gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
     base = torch.cat(bases) if bases else None
-    return PairCorrections(levels, anchor_series, PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores, base))
+    posterior = PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores, base, atom_scores)
+    return PairCorrections(levels, anchor_series, posterior)
 
 
 @dataclass
@@ -246,6 +247,8 @@ class _Fit:
     columns: ColumnsFn
     num_bins: int | None = None
     """Bins of the angle grid (WNOMP's atoms are searched over all of them)."""
+    atoms: int = 0
+    """WNOMP's atoms per pair that :meth:`chunks` adds to the posterior's candidates (0: none)."""
 
     def render_pairs(self, pairs: torch.Tensor, top: bool, bar: object = None) -> _Rendered:
         """Render ``pairs [P]`` (sorted) ``PAIR_CHUNK`` at a time: their predicted reports and, with ``top``, their
@@ -330,7 +333,7 @@ class _Fit:
                 chunk.top_bins, chunk.top_x = rendered.top_bins[at].long(), rendered.top_x[at]
                 chunk.cols = self.columns(cells, chunk.top_bins)
                 chunk.rest = (pred - torch.einsum("bmk,bk->bm", chunk.cols, chunk.top_x)).clamp_min(0.0)
-                if self.cfg.wnomp_atoms:
+                if self.atoms:
                     level = levels[cells, 0] if levels is not None else torch.zeros_like(anchor)
                     self._add_atoms(chunk, level + anchor if self.cfg.pair_anchors else level, held)
             yield chunk
@@ -346,7 +349,11 @@ class _Fit:
         every = torch.arange(self.num_bins, device=cells.device)[None]
         mask = chunk.mask if held is None else chunk.mask & ~held[chunk.pairs.cpu()].to(chunk.mask.device)
         atom_bins, atom_x = wnomp_atoms(
-            lambda c: self.columns(torch.tensor([c], device=cells.device), every)[0], cells, d.rsrp[chunk.pairs], mask
+            lambda c: self.columns(torch.tensor([c], device=cells.device), every)[0],
+            cells,
+            d.rsrp[chunk.pairs],
+            mask,
+            self.atoms,
         )
         centre = atom_x * torch.pow(10.0, -(level[:, None] + WNOMP_PRIOR_DB) / 10.0)
         bins, x, base = with_atoms(chunk.top_bins, chunk.top_x, atom_bins, centre.to(chunk.top_x.dtype))
@@ -355,6 +362,36 @@ class _Fit:
         raised = field + torch.einsum("bmk,bk->bm", cols, base)
         chunk.resid = chunk.resid - 10.0 * torch.log10(raised.clamp_min(1e-30) / field.clamp_min(1e-30))
         chunk.top_bins, chunk.top_x, chunk.cols, chunk.base, chunk.level = bins, x, cols, base, level
+
+
+def _choose(
+    fit: _Fit, rendered: _Rendered, rows: torch.Tensor, levels: torch.Tensor | None, held: torch.Tensor
+) -> tuple[int, float, dict[float, float], dict[int, float]]:
+    """The posterior's WNOMP atoms per pair (0 or, with ``wnomp_atoms``, one of ``WNOMP_ATOMS``) and λ with the
+    least error on the ``held`` aside reports of ``rows``, the held-aside MAE [dB] of each λ with those atoms
+    (∞: no posterior, which is always a candidate) and, with ``wnomp_atoms``, the least over λ of each number of
+    atoms."""
+    choices: dict[int, LambdaChoice] = {}
+    for atoms in (0, *WNOMP_ATOMS) if fit.cfg.wnomp_atoms else (0,):
+        fit.atoms, choice = atoms, LambdaChoice()
+        for chunk in fit.chunks(rendered, rows, levels, held=held):
+            choice.add(*chunk.fit_inputs(), chunk.resid, chunk.mask, held[chunk.pairs.cpu()].to(chunk.resid.device))
+        choices[atoms] = choice
+    fit.atoms = 0
+    # λ = ∞ is no posterior: the field without atoms (with atoms, the ∞ entry would be the atoms at their centres)
+    candidates = [
+        (mae, -lam, atoms, lam)
+        for atoms, choice in choices.items()
+        for lam, mae in choice.mae_db().items()
+        if atoms == 0 or math.isfinite(lam)
+    ]
+    if not candidates:
+        return 0, math.inf, {}, {}
+    _, _, atoms, lam = min(candidates)
+    scores = choices[atoms].mae_db()
+    scores[math.inf] = choices[0].mae_db().get(math.inf, math.inf)
+    per_atoms = {a: min(c[0] for c in candidates if c[2] == a and math.isfinite(c[3])) for a in choices}
+    return atoms, lam, scores, per_atoms if fit.cfg.wnomp_atoms else {}
 
 
 def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:

@@ -41,8 +41,9 @@ LAMBDA_PAIRS = 512
 """λ is chosen on this many training pairs (spread over the pairs' order, which groups them by cell)."""
 MAX_GAIN_DB = 30.0
 """A bin's gain is kept within ±30 dB (the reports of one pair cannot justify more)."""
-WNOMP_ATOMS = 4
-"""Atoms per pair WNOMP may add to the posterior's candidate bins (``corrections.wnomp_atoms``)."""
+WNOMP_ATOMS = (2, 4)
+"""Atoms per pair WNOMP may add to the posterior's candidate bins (``corrections.wnomp_atoms``), chosen with λ on
+held-aside reports among these and none."""
 WNOMP_TOLERANCE = 0.01
 """WNOMP keeps an atom that lowers its weighted residual by this share (the WNOMP model's default)."""
 WNOMP_PRIOR_DB = 10.0
@@ -102,7 +103,7 @@ def wnomp_atoms(
     cells: torch.Tensor,
     rsrp: torch.Tensor,
     mask: torch.Tensor,
-    k_max: int = WNOMP_ATOMS,
+    k_max: int,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """WNOMP's support of each pair's reports: bins ``[B, k_max]`` (−1: none) and path gains ``[B, k_max]``.
 
@@ -111,6 +112,7 @@ def wnomp_atoms(
         cells: each pair's cell index ``[B]``.
         rsrp: the reports ``[B, M]`` in the unit of the matrix times the APS (linear).
         mask: ``[B, M]`` the reports WNOMP may read (the others are left out of its fit).
+        k_max: atoms per pair at most.
     """
     from rflscm.models.wnomp_solver import wnomp_solve
 
@@ -187,7 +189,8 @@ class PairPosterior:
     """Per-pair bin gains of the training pairs: ``bins [P, n]`` (fine bin ids) and ``gain_db [P, n]``,
     row ``i`` belonging to pair ``index[i]`` = (cell_id, grid_id); ``lam`` is the chosen λ and ``scores`` the
     held-aside MAE [dB] of every candidate; ``base [P, n]`` (with WNOMP's atoms, else None) is the APS (in the unit
-    :meth:`apply` sees) added at each bin before its gain: an atom where the field has less."""
+    :meth:`apply` sees) added at each bin before its gain: an atom where the field has less; ``atom_scores`` the
+    least held-aside MAE [dB] over λ for each number of WNOMP atoms the choice considered (empty without them)."""
 
     index: pd.MultiIndex
     bins: torch.Tensor
@@ -195,6 +198,7 @@ class PairPosterior:
     lam: float
     scores: dict[float, float]
     base: torch.Tensor | None = None
+    atom_scores: dict[int, float] = field(default_factory=dict)
 
     def apply(self, aps: torch.Tensor, cell_ids: np.ndarray, grid_ids: np.ndarray) -> torch.Tensor:
         """``aps [N, K]`` of pairs (``cell_ids``, ``grid_ids`` [N]) with each training pair's gains applied."""
@@ -229,6 +233,7 @@ class PairPosterior:
             "lam": float(self.lam),
             "scores": {str(k): float(v) for k, v in self.scores.items()},
             "base": self.base.float().cpu().clone() if self.base is not None else None,
+            "atom_scores": {str(k): float(v) for k, v in self.atom_scores.items()},
         }
 
     @classmethod
@@ -264,4 +269,5 @@ class PairPosterior:
                 raise CheckpointError(f"{damaged} (atoms' APS of another shape, negative or non-finite); retrain.")
         index = pd.MultiIndex.from_arrays([cells.numpy(), grids.numpy()], names=["cell_id", "grid_id"])
         scores = {float(k): float(v) for k, v in dict(state.get("scores") or {}).items()}  # type: ignore[call-overload]
-        return cls(index, bins, gain, lam, scores, base)
+        atom_scores = {int(k): float(v) for k, v in dict(state.get("atom_scores") or {}).items()}  # type: ignore[call-overload]
+        return cls(index, bins, gain, lam, scores, base, atom_scores)
