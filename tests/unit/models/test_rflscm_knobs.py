@@ -63,7 +63,7 @@ CHANGES = [
     ("corrections", "calibrate_levels", False),
     ("corrections", "pair_anchors", False),
     ("corrections", "pair_posterior", False),
-    ("corrections", "wnomp_atoms", True),
+    ("corrections", "wnomp_atoms", False),
 ]
 # options that bound memory or I/O only: the same results, by design
 NEUTRAL = [("render", "chunk_samples", 64), ("train", "checkpoint_every", 1)]
