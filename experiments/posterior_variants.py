@@ -7,10 +7,10 @@ WNOMP at its selected settings (as B1 and ``rflscm demo`` choose them) and the d
 
 Usage (from the repository root, one thread: deterministic and independent of the machine's load):
 
-    PYTHONPATH=src python experiments/posterior_variants.py train SCENARIO OUT.pt
+    PYTHONPATH=src python experiments/posterior_variants.py train SCENARIO OUT.pt [SEED]
     PYTHONPATH=src python experiments/posterior_variants.py refit SCENARIO OUT.pt '{}' '{"wnomp_atoms": true}' ...
 
-``train`` runs B1 quick's RF-LSCM (seed 0, 1500 steps) and WNOMP on ``SCENARIO`` and saves the trained model with
+``train`` runs B1 quick's RF-LSCM (training seed SEED, default 0; 1500 steps) and WNOMP on ``SCENARIO`` and saves the trained model with
 both MAE tables to ``OUT.pt``; ``refit`` lays each JSON object over the model's ``corrections`` config section,
 refits the corrections and prints one ``RESULT {json}`` line per variant.  Keys that start with ``_`` set the
 posterior's constants for that variant instead: ``_prior_db`` (``WNOMP_PRIOR_DB``), ``_atoms`` (``WNOMP_ATOMS``, a list),
@@ -46,9 +46,9 @@ def _data(scenario: str):
     return load_bench_data(BenchContext("quick", 1, Path("/tmp/posterior_variants"), "cpu", scenario), quick_size())
 
 
-def train(scenario: str, out: str) -> None:
+def train(scenario: str, out: str, seed: int = 0) -> None:
     data = _data(scenario)
-    run = train_and_evaluate(data, "rflscm", AdjustProtocol(), seed=0)
+    run = train_and_evaluate(data, "rflscm", AdjustProtocol(), seed=seed)
     wnomp = train_and_evaluate(data, "wnomp", AdjustProtocol(), seed=0)
     saved = {
         "model": run.model,
@@ -107,6 +107,6 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
 if __name__ == "__main__":
     torch.set_num_threads(1)
     if sys.argv[1] == "train":
-        train(sys.argv[2], sys.argv[3])
+        train(sys.argv[2], sys.argv[3], int(sys.argv[4]) if len(sys.argv) > 4 else 0)
     else:
         refit(sys.argv[2], sys.argv[3], [json.loads(v) for v in sys.argv[4:]])
