@@ -143,12 +143,13 @@ def atom_problem(seed: int = 0, pairs: int = 48, beams: int = 16, bins: int = 40
     return pair_data, render, columns, truth, a2, cells
 
 
-def fit_atoms(on: bool, seed: int = 0) -> tuple[PairCorrections, float]:
-    """The corrections fitted with or without WNOMP's atoms, and the MAE [dB] of the corrected field through the
-    changed antennas (never fitted) on every beam of every pair."""
+def fit_atoms(on: bool, seed: int = 0, visible: torch.Tensor | None = None) -> tuple[PairCorrections, float]:
+    """The corrections fitted with or without WNOMP's atoms (among the ``visible [2, 40]`` bins, default all), and
+    the MAE [dB] of the corrected field through the changed antennas (never fitted) on every beam of every pair."""
     pair_data, render, columns, truth, a2, cells = atom_problem(seed)
     cfg = CorrectionsConfig(calibrate_levels=False, wnomp_atoms=on)
-    fitted = fit_corrections(cfg, pair_data, 8, np.array([7, 8]), render, columns, seed=0, num_bins=truth.shape[1])
+    visible = torch.ones(2, truth.shape[1], dtype=torch.bool) if visible is None else visible
+    fitted = fit_corrections(cfg, pair_data, 8, np.array([7, 8]), render, columns, seed=0, visible=visible)
     field = torch.zeros_like(truth)
     bins_, x, _ = render(torch.arange(len(cells)))
     field.scatter_(1, bins_, x)
@@ -188,3 +189,14 @@ def test_wnomp_atoms_are_deterministic_and_survive_a_save() -> None:
     state["posterior"]["base"] = -state["posterior"]["base"] - 1.0
     with pytest.raises(CheckpointError, match="pair posterior is damaged"):
         PairCorrections.from_state(state, num_bins=40)
+
+
+def test_wnomp_atoms_stay_on_the_bins_a_cell_may_hold() -> None:
+    visible = torch.ones(2, 40, dtype=torch.bool)
+    visible[0, 6:] = False  # cell 0 holds the field's 6 bins only
+    fitted, _ = fit_atoms(True, visible=visible)
+    post = fitted.posterior
+    assert post is not None and post.base is not None
+    cell0 = torch.as_tensor(post.index.get_level_values("cell_id").to_numpy() == 7)
+    assert not bool(((post.bins[cell0] >= 6) & (post.base[cell0] > 0)).any())
+    assert bool(((post.bins[~cell0] >= 6) & (post.base[~cell0] > 0)).any())  # cell 1's atoms are there

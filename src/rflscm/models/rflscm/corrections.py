@@ -126,17 +126,17 @@ def fit_corrections(
     columns: ColumnsFn,
     seed: int,
     progress: bool = False,
-    num_bins: int | None = None,
+    visible: torch.Tensor | None = None,
 ) -> PairCorrections:
     """Fit the switched-on corrections of the training ``data`` (``num_ssb`` SSB beams first, ``cell_ids`` of its
     cell indices) from one render of its pairs with reports (``render``, ``columns`` at the final weights;
-    ``seed`` draws the posterior's held-aside reports; ``progress``: a bar; ``num_bins``: the angle grid's size,
-    which WNOMP's atoms need)."""
+    ``seed`` draws the posterior's held-aside reports; ``progress``: a bar; ``visible [C, N]``: the bins each
+    cell's APS may hold, among which WNOMP's atoms are searched)."""
     from tqdm.auto import tqdm
 
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
         return PairCorrections()
-    fit = _Fit(cfg, data, num_ssb, len(cell_ids), render, columns, num_bins)
+    fit = _Fit(cfg, data, num_ssb, len(cell_ids), render, columns, visible)
     pairs = torch.nonzero(data.observed.any(1)).squeeze(1)
     if not (cfg.pair_anchors or cfg.pair_posterior):  # the level alone: a few pairs per cell
         return PairCorrections(fit.levels(fit.render_pairs(fit.level_picks(), top=False)))
@@ -245,8 +245,8 @@ class _Fit:
     num_cells: int
     render: RenderFn
     columns: ColumnsFn
-    num_bins: int | None = None
-    """Bins of the angle grid (WNOMP's atoms are searched over all of them)."""
+    visible: torch.Tensor | None = None
+    """bool ``[C, N]``: the bins of the angle grid each cell's APS may hold (WNOMP's atoms are searched there)."""
     atoms: int = 0
     """WNOMP's atoms per pair that :meth:`chunks` adds to the posterior's candidates (0: none)."""
 
@@ -343,13 +343,13 @@ class _Fit:
         the corrections before the posterior (the reports are that much above the field's own unit)."""
         assert chunk.top_bins is not None and chunk.top_x is not None and chunk.cols is not None
         assert chunk.rest is not None
-        if self.num_bins is None:
-            raise ValueError("WNOMP's atoms need the angle grid's number of bins")
-        d, cells = self.data, self.data.cell_index[chunk.pairs]
-        every = torch.arange(self.num_bins, device=cells.device)[None]
+        if self.visible is None:
+            raise ValueError("WNOMP's atoms need the bins each cell may hold")
+        d, cells, visible = self.data, self.data.cell_index[chunk.pairs], self.visible.to(chunk.mask.device)
+        every = torch.arange(visible.shape[1], device=cells.device)[None]
         mask = chunk.mask if held is None else chunk.mask & ~held[chunk.pairs.cpu()].to(chunk.mask.device)
-        atom_bins, atom_x = wnomp_atoms(
-            lambda c: self.columns(torch.tensor([c], device=cells.device), every)[0],
+        atom_bins, atom_x = wnomp_atoms(  # columns of the bins a cell cannot hold are zero: never an atom
+            lambda c: self.columns(torch.tensor([c], device=cells.device), every)[0] * visible[c],
             cells,
             d.rsrp[chunk.pairs],
             mask,

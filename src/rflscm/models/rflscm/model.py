@@ -451,7 +451,7 @@ class RFLSCM(LSCMModel):
             self._training().columns,
             self.config.train.seed,
             progress,
-            num_bins=self.angle_grid.num_bins,
+            visible=torch.as_tensor(self.scene.visible, device=self.device),
         )
 
     @torch.no_grad()
