@@ -193,6 +193,9 @@ def _summary(rows: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
         out[name] = {
             "pairs_per_s": statistics.median(pairs / r[name]["wall_s"] for r in rows),
             "pairs_per_cpu_s": statistics.median(pairs / r[name]["cpu_s"] for r in rows),
+            "system_share": statistics.median(r[name]["system_s"] / r[name]["cpu_s"] for r in rows),
+            "minor_faults_per_pair": statistics.median(r[name]["minor_faults"] / pairs for r in rows),
+            "decoder_evals_per_pair": {k: v / pairs for k, v in rows[0][name].get("decoder_evals", {}).items()},
         }
     return out
 
