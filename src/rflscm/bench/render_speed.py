@@ -50,6 +50,8 @@ SCHEDULE: dict[str, Any] = {
 """Laid over the preset: a short schedule that ends past HiTAM's warm-up and ramp (the refinement model renders)."""
 PATTERNS: dict[str, tuple[tuple[int, int], int]] = {"quick": ((4, 512), 512), "full": ((8, 800), 4096)}
 """Per size: ``by_cell`` (cells, grids per cell) and ``mixed`` (pairs)."""
+BASELINE = "210ae3a"
+"""The commit before issue 29's rendering work (what BENCHMARKS compares against)."""
 ROUNDS = 3
 """Worker runs per code version (alternating with the baseline's)."""
 REFERENCE_PAIRS = 24
@@ -60,7 +62,7 @@ REFERENCE_PAIRS = 24
 def run(ctx: BenchContext) -> dict[str, Any]:
     from rflscm.bench.b09_time_to_target import baseline_src
 
-    old_src = baseline_src(ctx.baseline) if ctx.baseline is not None else None
+    old_src = baseline_src(ctx.baseline, "render", BASELINE) if ctx.baseline is not None else None
     new_src = Path(__file__).resolve().parents[2]
     out_dir = Path(ctx.out_dir)
     path, source = scenario_path(ctx)

@@ -39,3 +39,17 @@ def test_render_worker_answers_what_the_model_answers(tmp_path) -> None:
     assert _grad_reference(model, patterns)["equal"]
     summary = _summary([row, row], ["by_cell", "mixed"])
     assert summary["by_cell"]["pairs_per_cpu_s"] == len(by_cell) / row["by_cell"]["cpu_s"]
+
+
+def test_render_baseline_must_hold_an_exported_src(tmp_path) -> None:
+    import pytest
+
+    from rflscm.bench.b09_time_to_target import baseline_src
+    from rflscm.bench.render_speed import BASELINE
+    from rflscm.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=f"render: --baseline .* `git archive {BASELINE} src"):
+        baseline_src(tmp_path, "render", BASELINE)
+    (tmp_path / "src" / "rflscm").mkdir(parents=True)
+    (tmp_path / "src" / "rflscm" / "__init__.py").write_text("")
+    assert baseline_src(tmp_path, "render", BASELINE) == (tmp_path / "src").resolve()
