@@ -50,6 +50,8 @@ SCHEDULE: dict[str, Any] = {
 """Laid over the preset: a short schedule that ends past HiTAM's warm-up and ramp (the refinement model renders)."""
 PATTERNS: dict[str, tuple[tuple[int, int], int]] = {"quick": ((4, 512), 512), "full": ((8, 800), 4096)}
 """Per size: ``by_cell`` (cells, grids per cell) and ``mixed`` (pairs)."""
+BASELINE = "210ae3a"
+"""The commit before issue 29's rendering work (what BENCHMARKS compares against)."""
 ROUNDS = 3
 """Worker runs per code version (alternating with the baseline's)."""
 REFERENCE_PAIRS = 24
@@ -60,7 +62,7 @@ REFERENCE_PAIRS = 24
 def run(ctx: BenchContext) -> dict[str, Any]:
     from rflscm.bench.b09_time_to_target import baseline_src
 
-    old_src = baseline_src(ctx.baseline) if ctx.baseline is not None else None
+    old_src = baseline_src(ctx.baseline, "render", BASELINE) if ctx.baseline is not None else None
     new_src = Path(__file__).resolve().parents[2]
     out_dir = Path(ctx.out_dir)
     path, source = scenario_path(ctx)
@@ -193,6 +195,9 @@ def _summary(rows: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
         out[name] = {
             "pairs_per_s": statistics.median(pairs / r[name]["wall_s"] for r in rows),
             "pairs_per_cpu_s": statistics.median(pairs / r[name]["cpu_s"] for r in rows),
+            "system_share": statistics.median(r[name]["system_s"] / r[name]["cpu_s"] for r in rows),
+            "minor_faults_per_pair": statistics.median(r[name]["minor_faults"] / pairs for r in rows),
+            "decoder_evals_per_pair": {k: v / pairs for k, v in rows[0][name].get("decoder_evals", {}).items()},
         }
     return out
 

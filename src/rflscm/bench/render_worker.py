@@ -7,7 +7,7 @@ It is never imported as part of ``rflscm``.
 
 For each pattern of the pairs file (``{name}_cells``, ``{name}_grids``, ``{name}_xyz``) the worker makes one
 ``model.aps`` call (after one small call that builds the stored ray samples, timed apart as ``setup_s``) and
-records its wall and process CPU seconds; it saves the APS of every pattern (``{name}`` in ``--aps-out``) and
+records its wall and process CPU seconds (and of those the kernel's, with the minor page faults); it saves the APS of every pattern (``{name}`` in ``--aps-out``) and
 prints one JSON line: the timings and the process's peak resident memory before and after the timed calls.
 
 Usage: ``python render_worker.py --checkpoint CKPT --pairs PAIRS.npz --aps-out APS.pt [--threads N]``.
@@ -31,6 +31,11 @@ from typing import Any  # noqa: E402
 
 def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def _decoder_evals(model: Any) -> dict[str, int]:
+    """Decoder evaluations so far per rendering stage (``coarse``, ``fine``)."""
+    return {name: int(getattr(stage, "decoder_evals", 0)) for name, stage in getattr(model, "stages", {}).items()}
 
 
 def _profile(model: Any, pairs: Any, name: str, top: int = 30) -> list[dict[str, Any]]:
@@ -88,11 +93,21 @@ def main(argv: list[str] | None = None) -> None:
     aps = {}
     for name in names:
         cells, grids, xyz = pairs[f"{name}_cells"], pairs[f"{name}_grids"], pairs[f"{name}_xyz"]
+        evals = _decoder_evals(model)
+        before = resource.getrusage(resource.RUSAGE_SELF)
         wall, cpu = time.perf_counter(), time.process_time()
         x = model.aps(cells, grids, xyz)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        after = resource.getrusage(resource.RUSAGE_SELF)
         aps[name] = x.detach().cpu()
-        out[name] = {"pairs": len(cells), "wall_s": wall, "cpu_s": cpu}
+        out[name] = {
+            "pairs": len(cells),
+            "wall_s": wall,
+            "cpu_s": cpu,
+            "system_s": after.ru_stime - before.ru_stime,  # kernel time: page faults of fresh large tensors
+            "minor_faults": after.ru_minflt - before.ru_minflt,
+            "decoder_evals": {k: v - evals.get(k, 0) for k, v in _decoder_evals(model).items()},
+        }
     out["peak_rss_mb"] = _peak_rss_mb()
     if args.profile:
         name = names[0]

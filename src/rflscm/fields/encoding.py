@@ -30,7 +30,7 @@ def positional_encoding_t(x: torch.Tensor, num_freqs: int, out: torch.Tensor | N
     """:func:`positional_encoding` of ``x [N, in_dim]``, transposed: ``[encoded_dim, N]`` (its ``.T`` is
     ``positional_encoding(x, num_freqs)`` to within ~2e-5), written into ``out`` when given (rows of a
     wider buffer, say).  ``x [k, N, in_dim]`` encodes k inputs one after another (``[k · encoded_dim, N]``,
-    the same values as k calls, in a third of the kernel launches).
+    the same values as k calls, in 1/k of the kernel launches).
 
     For the decoder's per-(query, sample) geometry, the widest input of a render: every part lands in whole
     rows, so several encodings share one buffer with no concatenation, and a matrix product reads its ``.T``

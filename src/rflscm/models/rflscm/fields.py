@@ -54,7 +54,7 @@ from rflscm.models.rflscm.config import (
 from rflscm.render import PackedSamples, accumulate_power, join_queries, transmittance
 
 DECODER_BLOCK = 8192
-"""(query, sample) pairs the decoder evaluates at a time without gradients: its per-pair tensors (the widest,
+"""(query, sample) pairs the decoder evaluates at a time without gradients on a CPU: its per-pair tensors (the widest,
 ``[J, hidden]`` and the pair inputs) then stay about 2–4 MB (issue 29: 8192 measured fastest of 2048…32768 and all
 at once; the results do not depend on it)."""
 
@@ -413,7 +413,8 @@ class RadianceStage(nn.Module):
         grid_features = self.fields.features(self.fields.encode(queries.grid_xyz))
         wants_surface = self.surfaces_fn is not None and self.decoder.pair_in is not None
         surface = self.surfaces_fn(points[live]) if wants_surface and self.surfaces_fn is not None else None
-        block = None if torch.is_grad_enabled() else DECODER_BLOCK
+        cpu_inference = not torch.is_grad_enabled() and queries.grid_xyz.device.type == "cpu"
+        block = DECODER_BLOCK if cpu_inference else None  # a GPU wants its batches whole
         radiance = self.decoder(
             features, points[live], along[live], rays, queries, join_query, join_sample, grid_features, surface, block
         )
