@@ -28,6 +28,19 @@ from rflscm.antenna import CellAntenna, Codebook, sensing_matrix
 from rflscm.data import BEAM_TYPES
 from rflscm.geometry import AngleGrid, unit_vectors
 
+COMPACT_PATHS = {
+    "site_id": "int32",
+    "freq_hz": "float64",
+    "grid_id": "int32",
+    "point_id": "int16",
+    "power_lin": "float32",
+    "aod_el_rad": "float32",
+    "aod_az_rad": "float32",
+    "delay_s": "float32",
+}
+"""dtypes of ``truth/paths.parquet`` (float32 where it loses nothing that matters; ``interactions`` is
+dictionary-encoded text)."""
+
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
 
@@ -235,19 +248,7 @@ def write_truth(
     is below ``rsrp_floor_dbm`` (they can never be reported).  float32 where it loses nothing that
     matters, zstd-compressed Parquet."""
     folder.mkdir(parents=True, exist_ok=True)
-    compact = paths.astype(
-        {
-            "site_id": "int32",
-            "freq_hz": "float64",
-            "grid_id": "int32",
-            "point_id": "int16",
-            "power_lin": "float32",
-            "aod_el_rad": "float32",
-            "aod_az_rad": "float32",
-            "delay_s": "float32",
-            "interactions": "category",
-        }
-    )
+    compact = paths.astype({**COMPACT_PATHS, "interactions": "category"})
     compact.to_parquet(folder / PATHS_FILE, index=False, compression="zstd")
     aps = true_aps_table(paths, scenario.cells[1], angle_grid, points_per_grid)
     aps.to_parquet(folder / APS_FILE, index=False, compression="zstd")

@@ -27,7 +27,16 @@ import pandas as pd
 
 from rflscm.data import BEAM_TYPES
 from rflscm.geometry import AngleGrid
-from rflscm.sim.paths import APS_FILE, PATHS_FILE, RSRP_FILE, bin_paths, path_rsrp_mw, site_groups, to_dbm
+from rflscm.sim.paths import (
+    APS_FILE,
+    COMPACT_PATHS,
+    PATHS_FILE,
+    RSRP_FILE,
+    bin_paths,
+    path_rsrp_mw,
+    site_groups,
+    to_dbm,
+)
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
@@ -45,18 +54,6 @@ PATH_TABLE_COLUMNS = [
     "interactions",
 ]
 """Columns of ``truth/paths.parquet`` in file order."""
-COMPACT_PATHS = {
-    "site_id": "int32",
-    "freq_hz": "float64",
-    "grid_id": "int32",
-    "point_id": "int16",
-    "power_lin": "float32",
-    "aod_el_rad": "float32",
-    "aod_az_rad": "float32",
-    "delay_s": "float32",
-}
-"""dtypes of ``truth/paths.parquet`` (float32 where it loses nothing that matters; ``interactions`` is
-dictionary-encoded text)."""
 _ROWS_PER_GROUP = 1 << 20
 
 
