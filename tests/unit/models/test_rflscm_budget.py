@@ -150,17 +150,27 @@ def test_finish_share_must_be_a_fraction() -> None:
 
 
 def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
-    """``finish_seconds`` times one chunk of the real pass on the clock it is given and scales it to every pair."""
-    from rflscm.models.rflscm.corrections import pass_pairs
+    """``finish_seconds`` times two chunks of the real pass on the clock it is given (1 s between reads here): the
+    first pays the per-cell setup, the second gives the per-pair render, preparation and fit; the total adds the
+    λ and atoms choice, and an evaluation's render per pair is the render alone."""
+    from rflscm.models.rflscm.corrections import LAMBDA_PAIRS, LAMBDAS, WNOMP_ATOMS, PassTimes
 
     model = RFLSCM.build(tiny_config(), GRID)
     model.prepare(scenario)
     ticks = iter(range(100))
-    estimate = model.finish_seconds(lambda: float(next(ticks)))  # one tick per clock read: 1 s for the chunk
+    estimate = model.finish_seconds(lambda: float(next(ticks)))
     data = model._training().data
-    chunk = min(int(data.observed.any(1).sum()), 64)
-    assert estimate.per_pair_s == pytest.approx(1 / chunk)
-    assert estimate.total_s == pytest.approx(pass_pairs(model.config.corrections, data) / chunk)
+    pairs = int(data.observed.any(1).sum())
+    spread = torch.linspace(0, pairs - 1, min(pairs, 128)).round().long().unique()
+    n_first, n_second = len(spread[0::2]), len(spread[1::2])
+    assert estimate.per_pair_s == pytest.approx(1 / n_second)
+    cfg = model.config.corrections
+    assert cfg.pair_posterior and cfg.wnomp_atoms
+    each = 1 / n_second
+    setup = max(0.0, 1 - n_first / n_second) * len(model.scene.cell_ids)  # every cell of the tiny scene is in it
+    expected = setup + pairs * 3 * each + (1 + len(WNOMP_ATOMS)) * min(pairs, LAMBDA_PAIRS) * (1 + len(LAMBDAS)) * each
+    assert estimate.total_s == pytest.approx(expected)
+    assert PassTimes(setup, each, each, each).total_s(cfg, pairs) == pytest.approx(expected)
 
 
 def test_work_after_the_fit_is_kept_out_of_the_budget(scenario) -> None:

@@ -205,8 +205,30 @@ def fit_corrections(
     return PairCorrections(levels, anchor_series, posterior)
 
 
+@dataclass(frozen=True)
+class PassTimes:
+    """The corrections' pass measured on one chunk [s]: ``setup_s`` once (the renderer's per-cell preparation on
+    first use, for every cell), then per pair ``render_s`` (the render), ``prep_s`` (residuals, columns and, with
+    the posterior, the most WNOMP atoms it may choose) and ``fit_s`` (one posterior fit)."""
+
+    setup_s: float
+    render_s: float
+    prep_s: float
+    fit_s: float
+
+    def total_s(self, cfg: CorrectionsConfig, pairs: int) -> float:
+        """The whole pass over ``pairs`` pairs with reports: setup, each pair once, and the λ (and atoms) choice:
+        every option's preparation and one fit per candidate λ on up to ``LAMBDA_PAIRS`` pairs."""
+        each = pairs * (self.render_s + self.prep_s + self.fit_s)
+        if not cfg.pair_posterior:
+            return self.setup_s + each
+        options = 1 + (len(WNOMP_ATOMS) if cfg.wnomp_atoms else 0)
+        choice = options * min(pairs, LAMBDA_PAIRS) * (self.prep_s + len(LAMBDAS) * self.fit_s)
+        return self.setup_s + each + choice
+
+
 @torch.no_grad()
-def seconds_per_pair(
+def measure_pass(
     cfg: CorrectionsConfig,
     data: PairData,
     num_ssb: int,
@@ -215,34 +237,32 @@ def seconds_per_pair(
     columns: ColumnsFn,
     clock: Callable[[], float] = time.perf_counter,
     visible: torch.Tensor | None = None,
-) -> float:
-    """Seconds of ``clock`` the corrections' pass spends per training pair: one chunk of spread pairs with reports
-    rendered, its residuals taken and (posterior on) its gains fitted once, with the most WNOMP atoms the pass may
-    choose (``wnomp_atoms`` on and ``visible`` given); 0 when every correction is off."""
-    if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
-        return 0.0
+) -> PassTimes:
+    """What the corrections' pass costs, on ``clock``: two chunks of spread pairs with reports rendered (the
+    first also pays the renderer's per-cell setup, counted once per cell), the second's residuals and columns
+    prepared with the most WNOMP atoms the pass may choose (``wnomp_atoms`` on and ``visible`` given) and its
+    gains fitted once (posterior on).  All zero when every correction is off."""
     pairs = torch.nonzero(data.observed.any(1)).squeeze(1)
-    if not pairs.numel():
-        return 0.0
-    pick = pairs[torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), PAIR_CHUNK)).round().long()].unique()
+    if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior) or not pairs.numel():
+        return PassTimes(0.0, 0.0, 0.0, 0.0)
+    spread = torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), 2 * PAIR_CHUNK)).round().long().unique()
+    first, second = pairs[spread[0::2]], pairs[spread[1::2]] if spread.numel() > 1 else pairs[spread]
     fit = _Fit(cfg, data, num_ssb, num_cells, render, columns, visible)
     fit.atoms = max(WNOMP_ATOMS) if cfg.pair_posterior and cfg.wnomp_atoms and visible is not None else 0
-    started = clock()
-    rendered = fit.render_pairs(pick, top=cfg.pair_posterior)
-    for chunk in fit.chunks(rendered, torch.arange(pick.numel(), device=pick.device), None, cfg.pair_posterior):
-        if cfg.pair_posterior:
-            fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, LAMBDAS[0])
-    return (clock() - started) / pick.numel()
-
-
-def pass_pairs(cfg: CorrectionsConfig, data: PairData) -> int:
-    """Pair renders of a whole corrections pass: the pairs with reports, plus the λ (and atoms) choice's fits
-    counted as renders."""
-    pairs = int(data.observed.any(1).sum())
-    if not cfg.pair_posterior:
-        return pairs
-    options = 1 + (len(WNOMP_ATOMS) if cfg.wnomp_atoms else 0)
-    return pairs + options * len(LAMBDAS) * min(pairs, LAMBDA_PAIRS)
+    t0 = clock()
+    fit.render_pairs(first, top=cfg.pair_posterior)
+    t1 = clock()
+    rendered = fit.render_pairs(second, top=cfg.pair_posterior)
+    t2 = clock()
+    chunks = list(fit.chunks(rendered, torch.arange(second.numel(), device=second.device), None, cfg.pair_posterior))
+    t3 = clock()
+    for chunk in chunks if cfg.pair_posterior else []:
+        fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, LAMBDAS[0])
+    t4 = clock()
+    n_first, n_second = first.numel(), second.numel()
+    cells_first = int(data.cell_index[first].unique().numel())
+    setup = max(0.0, (t1 - t0) - (t2 - t1) * n_first / n_second) * num_cells / max(cells_first, 1)
+    return PassTimes(setup, (t2 - t1) / n_second, (t3 - t2) / n_second, (t4 - t3) / n_second)
 
 
 def _later_pairs(pairs: torch.Tensor, first: torch.Tensor, seed: int) -> torch.Tensor:

@@ -51,8 +51,7 @@ from rflscm.models.rflscm.corrections import (
     PairCorrections,
     TimeLeftFn,
     fit_corrections,
-    pass_pairs,
-    seconds_per_pair,
+    measure_pass,
 )
 from rflscm.models.rflscm.fields import (
     FieldFactory,
@@ -478,12 +477,13 @@ class RFLSCM(LSCMModel):
             }
 
     def finish_seconds(self, clock: Callable[[], float] = time.perf_counter) -> PassCost:
-        """What :meth:`finish_training` would cost for every training pair, in seconds of ``clock``, from one chunk
-        of the pass measured now at the final schedule position (the refinement model's render)."""
+        """What :meth:`finish_training` would cost for every training pair, in seconds of ``clock``, measured now on
+        two chunks of the pass at the final schedule position (the refinement model's render), and what one more
+        render costs per pair (an evaluation's)."""
         train = self._training()
         assert self.scene is not None
         final = float(self.config.train.steps)
-        per_pair = seconds_per_pair(
+        times = measure_pass(
             self.config.corrections,
             train.data,
             train.num_ssb,
@@ -493,7 +493,8 @@ class RFLSCM(LSCMModel):
             clock,
             torch.as_tensor(self.scene.visible, device=self.device),
         )
-        return PassCost(per_pair * pass_pairs(self.config.corrections, train.data), per_pair)
+        pairs = int(train.data.observed.any(1).sum())
+        return PassCost(times.total_s(self.config.corrections, pairs), times.render_s)
 
     @torch.no_grad()
     def _render_training(
