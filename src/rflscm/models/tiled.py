@@ -58,9 +58,14 @@ class TiledModel(LSCMModel):
         owner = np.concatenate([np.full(len(c), t, np.int64) for t, c in enumerate(self.tile_cells)])
         order = np.argsort(cells, kind="stable")
         self.cell_ids, self.cell_tile = cells[order], owner[order]
-        order = np.argsort(np.asarray(grid_ids, np.int64), kind="stable")
-        self.grid_ids = np.asarray(grid_ids, np.int64)[order]
-        self.grid_xyz = np.asarray(grid_xyz, np.float64).reshape(-1, 3)[order]
+        grid_ids, grid_xyz = np.asarray(grid_ids, np.int64).reshape(-1), np.asarray(grid_xyz, np.float64).reshape(-1, 3)
+        if len(grid_xyz) != len(grid_ids):
+            raise CheckpointError(
+                f"the tiled model holds {len(grid_ids)} grid ids and {len(grid_xyz)} positions (one per grid "
+                "expected); the file is damaged: retrain it."
+            )
+        order = np.argsort(grid_ids, kind="stable")
+        self.grid_ids, self.grid_xyz = grid_ids[order], grid_xyz[order]
         self.check_loaded()
 
     @classmethod

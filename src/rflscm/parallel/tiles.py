@@ -32,6 +32,8 @@ def ray_runner(engine: Engine, gpus: bool = False) -> TileRunner:
         with ray_session(engine) as ray:
             task = ray.remote(num_cpus=1, num_gpus=1 if gpus else 0, max_retries=0)(run_tile)
             slots = max(1, engine.workers)
+            if gpus:  # no more tiles at once than GPUs: a task waiting for one would start late
+                slots = max(1, min(slots, int(ray.cluster_resources().get("GPU", 0)) or slots))
             pending: dict[Any, int] = {}
             results: dict[int, TileResult] = {}
             started = 0
@@ -40,7 +42,7 @@ def ray_runner(engine: Engine, gpus: bool = False) -> TileRunner:
                 while started < count or pending:
                     while started < count and len(pending) < slots:
                         job = make_job(started)
-                        pending[task.remote(job, tile_budget(deadline, count - started, slots))] = started
+                        pending[task.remote(job, tile_budget(deadline, count - started, slots), deadline)] = started
                         started += 1
                     ready, _ = ray.wait(list(pending), num_returns=1)
                     for ref in ready:

@@ -116,12 +116,15 @@ def training_pairs(scenario: Scenario) -> int:
     return int(len(rows[["cell_id", "grid_id"]].drop_duplicates()))
 
 
-def run_tile(job: TileJob, budget_s: float | None) -> TileResult:
+def run_tile(job: TileJob, budget_s: float | None, deadline: float | None = None) -> TileResult:
     """Fit one tile: seed, build a fresh model from the job's config, :func:`rflscm.train.fit` it on the tile's part
-    within ``budget_s`` (iterative models), and return its checkpoint payload."""
+    within ``budget_s`` (iterative models; no more than is left to ``deadline``, a ``time.time()`` value, when the
+    tile starts later than planned: a task waiting for a free GPU), and return its checkpoint payload."""
     from rflscm.models import MODEL_REGISTRY
 
     started = time.perf_counter()
+    if budget_s is not None and deadline is not None:
+        budget_s = max(min(budget_s, deadline - time.time()), 1.0)
     if job.threads is not None:
         torch.set_num_threads(job.threads)
     random.seed(job.seed)
