@@ -173,7 +173,7 @@ def train(
         min=0,
         metavar="K",
         help="Split the network into tiles of about K sites, one model each, saved as one tiled model "
-        "(0: one model for the whole network).",
+        "(count of sites; 0: one model for the whole network).",
     ),
     workers: int = WorkersOption,
     ray_address: str | None = RayAddressOption,
