@@ -138,6 +138,11 @@ def test_tiling_options_are_checked_in_one_line(network, tmp_path) -> None:
     assert run.returncode == 2 and "give --tile-sites K as well" in run.stderr and "Traceback" not in run.stderr
     run = rflscm("train", str(scenario_dir), "--tile-sites", "1", "--resume", "--out", str(tiled))
     assert run.returncode == 2 and "--resume does not apply to a tiled model" in run.stderr
+    out = tmp_path / "w.ckpt"
+    run = rflscm(
+        "train", str(scenario_dir), "--model", "wnomp", "--tile-sites", "1", "--minutes", "1", "--out", str(out)
+    )
+    assert run.returncode == 0 and "note: --minutes does not apply to wnomp" in " ".join(run.stderr.split())
 
 
 @pytest.mark.slow

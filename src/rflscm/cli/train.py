@@ -225,7 +225,11 @@ def train(
             f"training [bold]{model}[/bold] ({config}) on {scen.meta.name!r} with protocol {protocol} on {dev}, "
             f"in tiles of about {tile_sites} sites ({where})"
         )
-        if budget_s is not None:
+        probe = MODEL_REGISTRY[model].build(model_config(model, config, preset, sets), AngleGrid(), dev)
+        if budget_s is not None and not isinstance(probe, Trainable):
+            console.print(f"note: --minutes does not apply to {model} (it is not trained step by step); ignored.")
+            budget_s = None
+        elif budget_s is not None:
             console.print(f"time budget: {minutes:g} min for every tile together (data preparation included)")
         train_tiled(
             TiledRun(model, model_config(model, config, preset, sets), tile_sites, dev, seed, engine, progress),
