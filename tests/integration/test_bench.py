@@ -310,3 +310,28 @@ def test_b9_without_a_baseline_folder_is_one_line(tmp_path: Path, monkeypatch: p
     code, stdout, err = run_cli(["bench", "b9", "--out", str(out), "--baseline", str(tmp_path)], monkeypatch, capsys)
     assert_one_line_error(code, stdout, err, [str(tmp_path), "holds no src/rflscm"])
     assert not (out / "b9_runs").exists() and not (out / "b9.json").exists()
+
+
+def test_import_bench_trains_both_models_on_source_and_imported(tmp_path: Path, scenario_dir: Path) -> None:
+    from rflscm.bench.import_roundtrip import run_import
+
+    load_all()
+    assert "import" in BENCHMARKS
+    result = run_import(ctx_for(tmp_path, scenario_dir), tiny_size())
+    json.dumps(result)
+    assert (tmp_path / "import_raw" / "import.yaml").is_file() and (tmp_path / "import_scenario").is_dir()
+    made = result["import"]
+    assert made["import"]["point_cloud_points"] == made["raw"]["cloud_points"] > 0
+    assert made["import"]["samples_read"] == made["raw"]["samples"]
+    arms = result["arms"]
+    assert arms["imported"]["point_cloud_points"] > 0 and arms["imported"]["reported_beams"]["2"] > 0
+    assert arms["source"]["sites"] == arms["imported"]["sites"]
+    for model in ("wnomp", "rflscm"):
+        entry = result["models"][model]
+        for bt in ("ssb", "csi"):
+            src, imp = entry["source"]["mae_db"][bt]["all"], entry["imported"]["mae_db"][bt]["all"]
+            assert src is not None and imp is not None
+            assert entry["imported_minus_source_db"][bt]["all"] == pytest.approx(imp - src)
+    assert len(result["table"]) == 2 + 3 * 2 and result["table"][2].startswith("| wnomp | source |")
+    again = run_import(ctx_for(tmp_path, scenario_dir), tiny_size(), models=("wnomp",))  # replaces its own output
+    assert again["models"]["wnomp"]["source"]["mae_db"] == result["models"]["wnomp"]["source"]["mae_db"]

@@ -65,9 +65,10 @@ def test_simulate_raw_then_import_gives_the_scenario_back(tmp_path: Path) -> Non
     check = rflscm("check", str(imported))
     assert check.returncode == 0, check.stderr
     text = " ".join(check.stdout.split())  # Rich wraps lines
-    assert "needs a point cloud" in text and "--set prior.enabled=false" in text  # none was imported
+    assert "needs a point cloud" not in text  # --raw-out wrote it beside the samples, import.yaml names it
 
     truth, got = load_scenario(sim), load_scenario(imported)
+    assert got.point_cloud is not None and got.point_cloud == truth.point_cloud
     raw_samples = pd.read_csv(raw / "samples.csv")
     # cells: lat/lon written from one origin and projected back by the importer: the same positions
     np.testing.assert_allclose(got.cells[1][["x", "y", "z"]], truth.cells[1][["x", "y", "z"]], rtol=0, atol=1e-6)
@@ -94,3 +95,16 @@ def test_simulate_raw_then_import_gives_the_scenario_back(tmp_path: Path) -> Non
     bins = pd.read_csv(imported / "import_bins.csv")
     assert int(bins["samples"].sum()) + sum(got.meta.simulation["import"]["dropped"].values()) == len(raw_samples)
     assert bins["std_db"].median() == pytest.approx(FADING_DB, rel=0.25)
+
+
+def test_shipped_example_imports_with_its_point_cloud(tmp_path: Path) -> None:
+    # docs/your-own-data.md starts here: the default RF-LSCM needs the cloud, so the example must carry it
+    import rflscm as package
+
+    example = Path(package.__file__).parent / "assets" / "examples" / "raw"
+    run = rflscm("import", str(example / "import.yaml"), "--out", str(tmp_path / "my-network"))
+    assert run.returncode == 0, run.stderr
+    assert "no point cloud" not in run.stdout
+    got = load_scenario(tmp_path / "my-network")
+    assert got.meta.point_cloud == "point_cloud.laz" and got.point_cloud is not None
+    assert len(got.grids) == 28 and len(got.cells[1]) == 42 and got.rounds() == [1, 2]

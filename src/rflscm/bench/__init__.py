@@ -22,6 +22,8 @@ class BenchContext:
     scenario: str | None  # scenario directory; None = the shipped default
     config: str | None = None  # model preset or YAML for benchmarks that take one (b9: the new model's)
     baseline: str | None = None  # folder holding the baseline code's src, for benchmarks that compare with one (b9)
+    sites: tuple[int, ...] = ()  # b10: network sizes (site counts); empty = the size's list
+    minutes: float | None = None  # b10: also train RF-LSCM with this --minutes budget and evaluate it
 
 
 BenchFn = Callable[[BenchContext], dict[str, Any]]
@@ -50,7 +52,10 @@ def load_all() -> None:
         b07_optimize,
         b08_realism,
         b09_time_to_target,
+        b10_scale,
+        import_roundtrip,
         opt_speed,
+        render_speed,
         sensing,
         wnomp_speed,
     )

@@ -288,17 +288,18 @@ def _link_or_copy(source: str, target: str) -> None:
         shutil.copy2(source, target)
 
 
-def baseline_src(path: str | Path | None) -> Path:
+def baseline_src(path: str | Path | None, bench: str = "b9", commit: str = DEFAULT_BASELINE) -> Path:
     """The baseline's ``src``: ``path`` itself or ``path/src``, whichever holds ``rflscm/__init__.py``;
-    a one-line :class:`ConfigError` when ``path`` is missing or holds no exported ``src``."""
-    how = f"git archive {DEFAULT_BASELINE} src | tar -x -C PATH"
+    a one-line :class:`ConfigError` when ``path`` is missing or holds no exported ``src`` (naming ``bench`` and
+    the ``commit`` to export)."""
+    how = f"git archive {commit} src | tar -x -C PATH"
     if path is None:
-        raise ConfigError(f"b9 needs --baseline PATH, a folder holding the old model's exported src (`{how}`).")
+        raise ConfigError(f"{bench} needs --baseline PATH, a folder holding the old model's exported src (`{how}`).")
     folder = Path(path).expanduser()
     for src in (folder / "src", folder):
         if (src / "rflscm" / "__init__.py").is_file():
             return src.resolve()
-    raise ConfigError(f"b9: --baseline {folder} holds no src/rflscm/__init__.py (make it with `{how}`).")
+    raise ConfigError(f"{bench}: --baseline {folder} holds no src/rflscm/__init__.py (make it with `{how}`).")
 
 
 def wnomp_level(path: Path, angle_grid: tuple | None, seed: int, device: str) -> dict[str, Any]:

@@ -66,13 +66,22 @@ def bench(
     out: Path = typer.Option(Path("bench-out"), "--out", help="Output folder for JSON and plots."),
     scenario: Path | None = typer.Option(None, "--scenario", help="Scenario folder (default: the shipped one)."),
     config: str | None = typer.Option(
-        None, "--config", help="b9: the new RF-LSCM's preset or YAML file (default: the size's preset)."
+        None,
+        "--config",
+        help="b9: the new RF-LSCM's preset or YAML file (default: the size's preset); b10: a YAML of its plan.",
     ),
     baseline: str | None = typer.Option(
         None,
         "--baseline",
         metavar="PATH",
-        help="b9 (required): folder holding the baseline model's exported src tree (a path; BENCHMARKS.md names the revision).",
+        help="b9 (required), render (optional): folder holding the baseline code's exported src tree (a path; "
+        "BENCHMARKS.md names the revision).",
+    ),
+    sites: str | None = typer.Option(
+        None, "--sites", metavar="N,N,…", help="b10: network sizes to run (site counts, comma separated)."
+    ),
+    rflscm_minutes: float | None = typer.Option(
+        None, "--rflscm-minutes", help="b10: also train RF-LSCM with this --minutes budget and evaluate it (min)."
     ),
     device: Device = DeviceOption,
     seed: int = SeedOption,
@@ -87,8 +96,20 @@ def bench(
         return
     if name not in BENCHMARKS:
         raise ConfigError(f"unknown benchmark {name!r}; choose one of: {', '.join(BENCHMARKS)} (or `list`).")
-    if (config is not None or baseline is not None) and name != "b9":
-        raise ConfigError("--config and --baseline apply to b9 only.")
+    if config is not None and name not in ("b9", "b10"):
+        raise ConfigError("--config applies to b9 and b10 only.")
+    if baseline is not None and name not in ("b9", "render"):
+        raise ConfigError("--baseline applies to b9 and render only.")
+    if (sites is not None or rflscm_minutes is not None) and name != "b10":
+        raise ConfigError("--sites and --rflscm-minutes apply to b10 only.")
+    site_counts: tuple[int, ...] = ()
+    if sites is not None:
+        try:
+            site_counts = tuple(int(v) for v in sites.split(",") if v.strip())
+        except ValueError:
+            raise ConfigError(
+                f"--sites must be site counts separated by commas, e.g. 7,19,37 (got {sites!r})."
+            ) from None
     if size not in ("quick", "full"):
         raise ConfigError(f"--size must be quick or full (got {size!r}).")
     seed_everything(seed)
@@ -102,6 +123,8 @@ def bench(
         scenario=str(scenario) if scenario else None,
         config=config,
         baseline=baseline,
+        sites=site_counts,
+        minutes=rflscm_minutes,
     )
     summary, fn = BENCHMARKS[name]
     result = {

@@ -14,7 +14,7 @@ from rich.table import Table
 
 from rflscm.cli import app
 from rflscm.cli.common import check_numbers, refuse_inputs_inside
-from rflscm.errors import ConfigError
+from rflscm.errors import ConfigError, DataError
 
 
 class BeamType(enum.StrEnum):
@@ -64,11 +64,25 @@ def _column_file(path: Path | None) -> dict[str, str]:
     if path is None:
         return {}
     from rflscm.config import load_yaml
+    from rflscm.data.ingest.spec import check_columns
 
-    data = load_yaml(path)
-    if not all(isinstance(v, str) for v in data.values()):
-        raise ConfigError(f"{path}: map each rflscm column name to one column name of yours, e.g. `lat: Latitude`.")
-    return {str(k): v for k, v in data.items()}
+    data = {str(k): v for k, v in load_yaml(path).items()}
+    data = data.get("columns", data) if isinstance(data.get("columns"), dict) else data
+    check_columns(data, str(path))
+    return data
+
+
+def _column_flags(base: dict[str, Any], flags: dict[str, str]) -> dict[str, Any]:
+    """``--col`` pairs over the ``--columns`` file; ``--col samples.cell_id=Serving`` maps one table's column."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in base.items()}
+    for key, value in flags.items():
+        table, dot, name = key.partition(".")
+        if dot:
+            section = out.get(table)
+            out[table] = {**(section if isinstance(section, dict) else {}), name: value}
+        else:
+            out[key] = value
+    return out
 
 
 def parse_origin(text: str) -> dict[str, float]:
@@ -88,7 +102,11 @@ def import_(
         [], "--cells", help="Cell list (one file; or one per round, in round order: repeat the option)."
     ),
     codebooks: Path | None = typer.Option(None, "--codebooks", help="YAML file with the `codebooks:` mapping."),
-    col: list[str] = typer.Option([], "--col", help="Column name mapping RFLSCM_NAME=YOUR_NAME (repeatable)."),
+    col: list[str] = typer.Option(
+        [],
+        "--col",
+        help="Column name mapping RFLSCM_NAME=YOUR_NAME (repeatable); samples.NAME=… or cells.NAME=… for one table.",
+    ),
     columns: Path | None = typer.Option(
         None, "--columns", help="YAML file mapping rflscm column names to yours, e.g. `lat: Latitude` (--col wins)."
     ),
@@ -120,7 +138,15 @@ def import_(
     ),
     name: str | None = typer.Option(None, "--name", help="Scenario name."),
     point_cloud: Path | None = typer.Option(
-        None, "--point-cloud", help="Point cloud to copy in (.ply/.las/.laz/.npy)."
+        None,
+        "--point-cloud",
+        help="Building point cloud to copy in (.ply/.las/.laz/.npy), in the import's local frame: x east, y north "
+        "(m) from the origin, z (m) above the origin's height.",
+    ),
+    terrain: Path | None = typer.Option(
+        None,
+        "--terrain",
+        help="DEM GeoTIFF or XYZ table (x, y, z in m, local frame): cell and UE heights are above it (copied in).",
     ),
     table_format: TableFormat = typer.Option(TableFormat.parquet, "--format", help="Table format of the scenario."),
     force: bool = typer.Option(False, "--force", help="Replace --out if it is an existing scenario folder."),
@@ -129,7 +155,7 @@ def import_(
     from rflscm.cli.simulate import _prepare_out
     from rflscm.data import load_scenario
     from rflscm.data.ingest import import_raw, load_spec
-    from rflscm.data.ingest.spec import CELL_LIST_COLUMNS, SAMPLE_COLUMNS
+    from rflscm.data.ingest.spec import check_columns
     from rflscm.data.safe_io import guard_outputs
 
     check_numbers(
@@ -139,14 +165,14 @@ def import_(
         max_distance=(max_distance, 0.0, 1e8),
         threshold=(threshold, -300.0, 100.0),
     )
-    inputs: list[Path | None] = [spec, *samples, *cells, codebooks, columns, point_cloud]
+    inputs: list[Path | None] = [spec, *samples, *cells, codebooks, columns, point_cloud, terrain]
     refuse_inputs_inside(out, inputs)
     guard_outputs({"--out": out}, inputs, force=True, folders=("--out",))
     overrides: dict[str, Any] = {
         "samples": [str(p) for p in samples] or None,
         "cells": [str(p) for p in cells] or None,
         "codebooks": None if codebooks is None else str(codebooks),
-        "columns": {**_column_file(columns), **parse_pairs(col, "--col")},
+        "columns": _column_flags(_column_file(columns), parse_pairs(col, "--col")),
         "origin": None if origin is None else parse_origin(origin),
         "grid_size_m": grid_size,
         "min_samples": min_samples,
@@ -157,18 +183,20 @@ def import_(
         "reporting": parse_reporting(reporting) or None,
         "name": name,
         "point_cloud": None if point_cloud is None else str(point_cloud),
+        "terrain": None if terrain is None else str(terrain),
     }
-    known = set(SAMPLE_COLUMNS) | set(CELL_LIST_COLUMNS)
-    if unknown := sorted(set(overrides["columns"]) - known):
-        raise ConfigError(
-            f"--col/--columns: unknown rflscm column name(s) {unknown}; valid: {', '.join(sorted(known))}."
-        )
+    check_columns(overrides["columns"], "--col/--columns")
     settings = load_spec(spec, overrides)
     _prepare_out(out, force)
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=f".{out.name}.", dir=out.parent) as tmp:
         result = import_raw(settings, Path(tmp) / "scenario", table_format.value)
-        load_scenario(Path(tmp) / "scenario")  # what `rflscm check` does: the import stands only if it passes
+        try:  # what `rflscm check` does: the import stands only if it passes
+            load_scenario(Path(tmp) / "scenario")
+        except DataError as exc:
+            raise DataError(
+                f"import: the scenario it wrote fails `rflscm check` (so {out} was not written): {exc}"
+            ) from None
         if out.exists():
             shutil.rmtree(out) if any(out.iterdir()) else out.rmdir()
         shutil.move(str(Path(tmp) / "scenario"), str(out))
@@ -191,4 +219,11 @@ def _print(result: Any, out: Path, console: Console) -> None:
         f"origin {where}; {result.cells} cells, {result.grids} grids, rounds {result.rounds}; "
         f"rsrp_threshold_dbm {result.threshold_dbm:g}{chosen}"
     )
+    if result.point_cloud_points:
+        console.print(f"point cloud: {result.point_cloud_points:,} points, copied in (frame checked against the grids)")
+    else:
+        console.print(
+            "no point cloud: the default RF-LSCM needs one for its prior; re-import with --point-cloud FILE, "
+            "or train with `--set prior.enabled=false`."
+        )
     console.print(f"[green]wrote[/green] {out} (checked). Next: `rflscm check {out}`, `rflscm train {out}`.")

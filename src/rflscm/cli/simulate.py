@@ -85,6 +85,17 @@ class Regime(StrEnum):
     field = "field"
 
 
+class RawCloud(StrEnum):
+    """--raw-cloud choices (rflscm.sim.raw_writer.CLOUD_FORMATS)."""
+
+    same = "same"
+    ply = "ply"
+    las = "las"
+    laz = "laz"
+    npy = "npy"
+    none = "none"
+
+
 @app.command()
 def simulate(
     out: Path = typer.Option(..., "--out", help="Scenario folder to write (must be new or empty; see --force)."),
@@ -133,6 +144,11 @@ def simulate(
     raw_grids: int | None = typer.Option(
         None, "--raw-grids", min=1, help="Write raw samples of at most this many grids (grids)."
     ),
+    raw_cloud: RawCloud = typer.Option(
+        RawCloud.same,
+        "--raw-cloud",
+        help="Point cloud beside the raw samples: same (the scenario's file), a format (laz is ~4× smaller), or none.",
+    ),
 ) -> None:
     """Trace a scene once per (site, carrier) and write a complete scenario with ground truth (truth/)."""
     backend, measurements = backend_choice.value, None if regime is None else regime.value
@@ -162,7 +178,7 @@ def simulate(
                 f"{'them' if len(layout) > 1 else 'it'} or simulate anew without --from-trace."
             )
         _remeasure(from_trace, out, config, measurements, seed, force)
-        _write_raw(out, raw_out, raw_samples, raw_fading, raw_grids, seed)
+        _write_raw(out, raw_out, raw_samples, raw_fading, raw_grids, seed, raw_cloud.value)
         return
     cfg = load_config(SimulationConfig, config) if config is not None else SimulationConfig()
     overrides: dict[str, Any] = {
@@ -196,11 +212,17 @@ def simulate(
         f"tracing {stats['trace_seconds']:.1f} s ({stats['seconds_per_1000_rx_per_carrier']:.2f} s per 1000 "
         f"receivers per carrier). Check it with `rflscm check {out}`."
     )
-    _write_raw(out, raw_out, raw_samples, raw_fading, raw_grids, cfg.seed)
+    _write_raw(out, raw_out, raw_samples, raw_fading, raw_grids, cfg.seed, raw_cloud.value)
 
 
 def _write_raw(
-    scenario: Path, raw_out: Path | None, samples: int, fading_db: float, grids: int | None, seed: int | None
+    scenario: Path,
+    raw_out: Path | None,
+    samples: int,
+    fading_db: float,
+    grids: int | None,
+    seed: int | None,
+    cloud: str = "same",
 ) -> None:
     """``--raw-out``: the written scenario as raw samples and a cell list (rflscm.sim.raw_writer)."""
     if raw_out is None:
@@ -218,10 +240,13 @@ def _write_raw(
         max_grids=grids,
         grid_size_m=float(sc.meta.simulation.get("config", {}).get("grid_size_m", 10.0)),
         seed=seed or 0,
+        point_cloud=cloud,
     )
     Console(stderr=True).print(
         f"[green]wrote[/green] raw {raw_out}: {info['samples']:,} samples of {info['grids']} grids, "
-        f"{info['cells']} cell rows. Import with `rflscm import {raw_out / 'import.yaml'} --out DIR`."
+        f"{info['cells']} cell rows"
+        + (f", point cloud of {info['cloud_points']:,} points" if info["cloud_points"] else ", no point cloud")
+        + f". Import with `rflscm import {raw_out / 'import.yaml'} --out DIR`."
     )
 
 

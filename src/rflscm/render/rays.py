@@ -53,6 +53,13 @@ class RaySamples:
         ray = torch.repeat_interleave(torch.arange(self.num_rays, device=self.offsets.device), counts)
         return torch.bincount(ray[self.phi > 0], minlength=self.num_rays)
 
+    def spread(self, rays: torch.Tensor, num_rays: int) -> RaySamples:
+        """These rays as rays ``rays [num_rays_here]`` (ascending) of a set of ``num_rays``, the others empty."""
+        counts = torch.zeros(num_rays, dtype=self.offsets.dtype)
+        counts[rays.cpu()] = (self.offsets[1:] - self.offsets[:-1]).cpu()
+        offsets = torch.cat((counts.new_zeros(1), torch.cumsum(counts, 0))).to(self.offsets.device)
+        return RaySamples(offsets, self.index, self.phi)
+
     def to(self, device: torch.device | str) -> RaySamples:
         return RaySamples(self.offsets.to(device), self.index.to(device), self.phi.to(device))
 

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -30,7 +32,8 @@ from rflscm.geometry import AngleGrid
 from rflscm.sim.backend import SceneBackend
 from rflscm.sim.field import FieldConfig
 from rflscm.sim.noise import MeasurementModel
-from rflscm.sim.paths import write_truth
+from rflscm.sim.paths import PATHS_FILE, write_truth
+from rflscm.sim.stream import PathStore
 
 ASPRS_BUILDING = 6
 CODEBOOKS: dict[str, Codebook] = {
@@ -82,6 +85,11 @@ class SimulationConfig:
     max_grids: int = 800
     grid_radius_m: float | None = None
     """Keep only grids within this distance of the area centre [m] (the nearest ``max_grids`` anyway)."""
+    trace_range_m: float | None = None
+    """Each site is traced only to the receivers within this horizontal distance [m] (farther ones get no path
+    from it: its cells are never heard there); ``null`` traces every receiver from every site.  Makes the
+    trace, the truth and the measurements grow linearly with the sites (set for a grown city, see
+    :func:`grow_procedural`)."""
     # --- measurement model ---
     measurements: Literal["ideal", "field"] = "ideal"
     """``ideal``: the keys below (noise on the expectation over all points); ``field``: :class:`FieldConfig`
@@ -130,6 +138,7 @@ class SimulationConfig:
             (0.0 <= self.round2_codebook_fraction <= 1.0, "`round2_codebook_fraction` must be in 0…1"),
             (bool(self.rotation_azimuth_deg) and bool(self.rotation_tilt_deg), "rotation lists must not be empty"),
             (self.point_cloud_points_per_m2 > 0, "`point_cloud_points_per_m2` must be > 0"),
+            (self.trace_range_m is None or self.trace_range_m > 0, "`trace_range_m` must be > 0 m or null"),
         ]
         for ok, message in checks:
             if not ok:
@@ -154,6 +163,11 @@ class SimulationConfig:
         return self.field_model.threshold_dbm if self.measurements == "field" else self.rsrp_threshold_dbm
 
 
+GROWN_TRACE_RANGE_M = 500.0
+"""Trace range of a grown procedural city [m].  On the grown 19-site city traced without a range, 1.1 % of the
+detected (cell, grid) pairs lay beyond 500 m and 0.06 % beyond 600 m (docs/DECISIONS.md, issue 29)."""
+
+
 # ---- layout: sites, cells, grids ---------------------------------------------------------------------
 def grow_procedural(config: SimulationConfig, scene: str, scale_grids: bool = True) -> SimulationConfig:
     """``config`` for a procedural city that grows with ``num_sites`` at the default density.
@@ -161,7 +175,9 @@ def grow_procedural(config: SimulationConfig, scene: str, scale_grids: bool = Tr
     Up to the default site count (7), or with explicit ``sites``, ``config`` is returned unchanged.  Beyond it,
     by the factor f = num_sites / 7: the scene's area and building count × f (``backend_options`` ``size_m``,
     ``num_buildings``; values set there win), ``site_radius_m`` × √f and, when ``scale_grids``, ``max_grids``
-    × f, so that cells (3 per site and carrier) and grids both grow linearly with the sites.
+    × f, so that cells (3 per site and carrier) and grids both grow linearly with the sites.  ``trace_range_m``,
+    when not set, becomes :data:`GROWN_TRACE_RANGE_M`, so that a cell is heard over a bounded area and the
+    trace, the truth and the measurements grow linearly too (not with the square of the sites).
     """
     from rflscm.sim.procedural import grown_scene_options
 
@@ -175,6 +191,7 @@ def grow_procedural(config: SimulationConfig, scene: str, scale_grids: bool = Tr
         backend_options=options,
         site_radius_m=config.site_radius_m * float(np.sqrt(factor)),
         max_grids=round(config.max_grids * factor) if scale_grids else config.max_grids,
+        trace_range_m=config.trace_range_m if config.trace_range_m is not None else GROWN_TRACE_RANGE_M,
     )
 
 
@@ -359,16 +376,26 @@ def trace_all(
     grid_ids: np.ndarray,
     config: SimulationConfig,
     progress: bool = True,
-) -> tuple[pd.DataFrame, dict[str, float]]:
-    """One trace per (site, carrier) → the paths table of ``truth/paths.parquet`` and timing facts."""
+    sink: Callable[[int, float, pd.DataFrame], None] | None = None,
+) -> tuple[pd.DataFrame | None, dict[str, float]]:
+    """One trace per (site, carrier) → the paths table of ``truth/paths.parquet`` and timing facts.
+
+    With ``sink``, each (site, carrier)'s trimmed paths go to ``sink(site_id, freq_hz, table)`` as they are
+    traced and the table returned is ``None`` (only one trace is in memory at a time)."""
     from tqdm.auto import tqdm
 
     from rflscm.sim.paths import trim_paths
+    from rflscm.sim.stream import PATH_TABLE_COLUMNS
 
     k = config.points_per_grid
     jobs = [(s, c, f) for s in range(len(sites)) for c, f in enumerate(config.carriers_hz)]
     takes_progress = "progress" in inspect.signature(backend.trace).parameters
-    tables, seconds = [], 0.0
+    in_range = None
+    if config.trace_range_m is not None:
+        in_range = [
+            np.flatnonzero(np.hypot(rx[:, 0] - site[0], rx[:, 1] - site[1]) <= config.trace_range_m) for site in sites
+        ]
+    tables, seconds, num_paths, traced = [], 0.0, 0, 0
     with tqdm(jobs, desc=f"tracing {backend.name}", unit="trace", disable=not progress, leave=True) as bar:
         for s, c, freq in bar:
             bar.set_postfix_str(f"site {s + 1}, {freq / 1e9:g} GHz")
@@ -377,34 +404,41 @@ def trace_all(
                 label = f"site {s + 1}, {freq / 1e9:g} GHz"
                 kwargs["progress"] = lambda done, total, label=label: bar.set_postfix_str(f"{label}, rx {done}/{total}")
             start = time.perf_counter()
-            table = backend.trace(sites[s], rx, freq, seed=int(config.seed * 1000 + 10 * s + c), **kwargs)
+            near = in_range[s] if in_range is not None else None
+            if near is not None and len(near) == 0:  # no receiver within range of this site
+                from rflscm.sim.backend import empty_path_table
+
+                table = empty_path_table()
+            else:
+                table = backend.trace(
+                    sites[s],
+                    rx if near is None else rx[near],
+                    freq,
+                    seed=int(config.seed * 1000 + 10 * s + c),
+                    **kwargs,
+                )
             seconds += time.perf_counter() - start
+            traced += len(rx) if near is None else len(near)
             rx_index = table["rx_index"].to_numpy()
+            if near is not None:
+                rx_index = near[rx_index]
             table = table.drop(columns="rx_index").assign(
                 site_id=np.int32(s + 1),
                 freq_hz=float(freq),
                 grid_id=grid_ids[rx_index // k],
                 point_id=(rx_index % k).astype(np.int16),
             )
-            tables.append(trim_paths(table, config.truth_floor_db))
-    paths = pd.concat(tables, ignore_index=True)
-    paths = paths[
-        [
-            "site_id",
-            "freq_hz",
-            "grid_id",
-            "point_id",
-            "power_lin",
-            "aod_el_rad",
-            "aod_az_rad",
-            "delay_s",
-            "interactions",
-        ]
-    ]
+            table = trim_paths(table, config.truth_floor_db)[PATH_TABLE_COLUMNS]
+            num_paths += len(table)
+            if sink is None:
+                tables.append(table)
+            else:
+                sink(s + 1, float(freq), table)
+    paths = pd.concat(tables, ignore_index=True) if sink is None else None
     stats = {
         "trace_seconds": seconds,
-        "seconds_per_1000_rx_per_carrier": 1000.0 * seconds / max(len(jobs) * len(rx), 1),
-        "paths_per_grid": len(paths) / max(len(jobs) * len(grid_ids), 1),
+        "seconds_per_1000_rx_per_carrier": 1000.0 * seconds / max(traced, 1),
+        "paths_per_grid": num_paths / max(len(jobs) * len(grid_ids), 1),
     }
     return paths, stats
 
@@ -438,8 +472,26 @@ def build_scenario(
     cells2, changes = make_round2(cells1, config, rng)
     grids = make_grids(backend, config, centre)
     rx = receiver_points(backend, grids, config, rng)
-    paths, trace_stats = trace_all(backend, sites, rx, grids["grid_id"].to_numpy(), config, progress)
+    out.mkdir(parents=True, exist_ok=True)
+    from rflscm.sim.stream import ParquetAppender, SpilledPaths, compact_paths
+
+    # Each (site, carrier)'s paths go to truth/paths.parquet and to a spill folder as they are traced, so
+    # that only one trace is in memory; the measurement step reads them back one (site, carrier) at a time.
+    store = SpilledPaths(out / ".trace")
+    (out / "truth").mkdir(parents=True, exist_ok=True)
+    paths_file = ParquetAppender(out / "truth" / PATHS_FILE, compact_paths(_empty_paths()))
+
+    def keep(site_id: int, freq_hz: float, table: pd.DataFrame) -> None:
+        store.add(site_id, freq_hz, table)
+        paths_file.append(compact_paths(table))
+
+    try:
+        _, trace_stats = trace_all(backend, sites, rx, grids["grid_id"].to_numpy(), config, progress, sink=keep)
+    finally:
+        paths_file.close()
+    del rx
     cloud = _crop(scan, config, sites, grids)
+    del scan
 
     meta = ScenarioMeta(
         name=config.name,
@@ -454,48 +506,102 @@ def build_scenario(
         truth="truth",
         simulation=_provenance(backend, config, scene, changes),
     )
-    out.mkdir(parents=True, exist_ok=True)
     scenario = Scenario(out.resolve(), meta, {1: cells1, 2: cells2}, grids, empty_measurements(), cloud)
     scenario = _normalised(scenario)
-    write_measurements(scenario, paths, config, rng, out)
+    try:
+        write_measurements(scenario, store, config, rng, out, paths_written=True)
+    finally:
+        store.remove()
+    loaded = load_scenario(out)
     if stats is not None:
         stats.update(trace_stats)
-        stats.update(_summary(load_scenario(out), paths))
-    return load_scenario(out).root
+        stats.update(_summary(loaded, store.num_rows))
+    return loaded.root
+
+
+def _empty_paths() -> pd.DataFrame:
+    from rflscm.sim.backend import empty_path_table
+    from rflscm.sim.stream import PATH_TABLE_COLUMNS
+
+    table = empty_path_table().drop(columns="rx_index")
+    table = table.assign(
+        site_id=pd.Series(dtype="int32"),
+        freq_hz=pd.Series(dtype="float64"),
+        grid_id=pd.Series(dtype="int64"),
+        point_id=pd.Series(dtype="int16"),
+    )
+    return table[PATH_TABLE_COLUMNS]
 
 
 def write_measurements(
-    scenario: Scenario, paths: pd.DataFrame, config: SimulationConfig, rng: np.random.Generator, out: Path
+    scenario: Scenario,
+    paths: pd.DataFrame | PathStore,
+    config: SimulationConfig,
+    rng: np.random.Generator,
+    out: Path,
+    paths_written: bool = False,
 ) -> None:
     """The measurement step of :func:`build_scenario` (also run alone on an existing trace, see
     :func:`rflscm.sim.remeasure.remeasure`): truth/ and the measurements of ``config``'s regime, saved
     with the scenario into ``out``.  ``rng`` draws the report error exactly as the ideal regime did; the
-    field effects draw from a generator of their own (seeded by ``config.seed``)."""
-    from rflscm.sim.field import field_rsrp, report
-    from rflscm.sim.noise import measure
-    from rflscm.sim.paths import noiseless_rsrp
+    field effects draw from a generator of their own (seeded by ``config.seed``).
 
+    ``paths``: the whole path table, or a :class:`~rflscm.sim.stream.PathStore` read one (site, carrier) at
+    a time.  The ideal regime streams per (round, cell) (:func:`rflscm.sim.stream.stream_ideal`); the field
+    regime builds its tables whole.  ``paths_written``: ``truth/paths.parquet`` exists already (the trace
+    appended it)."""
+    from rflscm.sim.field import field_rsrp, report
+    from rflscm.sim.stream import MemoryPaths, stream_ideal
+
+    store = paths if isinstance(paths, PathStore) else MemoryPaths(paths)
     grid_ids = scenario.grid_ids()
     points_per_grid = pd.Series(config.points_per_grid, index=grid_ids)
-    samples = None
-    if config.measurements == "field":
-        field_rng = np.random.default_rng([config.seed, 12])
-        true_rsrp, noiseless, samples = field_rsrp(
-            scenario, paths, config.points_per_grid, config.field_model, field_rng
-        )
-        measurements = report(true_rsrp, scenario, config.field_model, rng)
-        meta = dataclasses.replace(scenario.meta, reporting=config.field_model.reporting())
-        scenario = dataclasses.replace(scenario, meta=meta)
-    else:
-        noiseless = noiseless_rsrp(scenario, paths, points_per_grid)
-        detect_on = None if config.detect_on == "any" else config.detect_on
-        measurements = measure(noiseless, config.measurement_model, rng, detect_on=detect_on)
     floor = None if config.truth_rsrp_margin_db is None else config.threshold_dbm - config.truth_rsrp_margin_db
-    write_truth(out / "truth", scenario, paths, noiseless, points_per_grid, config.angle_grid, floor)
-    if samples is not None:
-        write_sample_truth(out / "truth", scenario, paths, samples, config.points_per_grid, config.angle_grid)
+    if config.measurements != "field":
+        detect_on = None if config.detect_on == "any" else config.detect_on
+        if not paths_written:
+            _write_paths(out / "truth", store)
+        streamed = out / ".measurements.parquet"  # appended block by block, never a whole table in memory
+        stream_ideal(
+            scenario,
+            store,
+            config.points_per_grid,
+            config.measurement_model,
+            rng,
+            detect_on,
+            out / "truth",
+            floor,
+            config.angle_grid,
+            measurements_file=streamed,
+        )
+        save_scenario(scenario, out, table_format="parquet")  # meta names measurements.parquet: written empty
+        os.replace(streamed, out / str(scenario.meta.measurements))
+        return
+    whole = store.frame()
+    field_rng = np.random.default_rng([config.seed, 12])
+    true_rsrp, noiseless, samples = field_rsrp(scenario, whole, config.points_per_grid, config.field_model, field_rng)
+    measurements = report(true_rsrp, scenario, config.field_model, rng)
+    meta = dataclasses.replace(scenario.meta, reporting=config.field_model.reporting())
+    scenario = dataclasses.replace(scenario, meta=meta)
+    write_truth(out / "truth", scenario, whole, noiseless, points_per_grid, config.angle_grid, floor)
+    write_sample_truth(out / "truth", scenario, whole, samples, config.points_per_grid, config.angle_grid)
     scenario = dataclasses.replace(scenario, measurements=measurements)
     save_scenario(scenario, out, table_format="parquet")
+
+
+def _write_paths(folder: Path, store: PathStore) -> None:
+    """``truth/paths.parquet`` of a store, one (site, carrier) at a time."""
+    from rflscm.sim.stream import MemoryPaths, ParquetAppender, compact_paths
+
+    folder.mkdir(parents=True, exist_ok=True)
+    if isinstance(store, MemoryPaths):  # the table as it is, in its order
+        compact_paths(store.paths).to_parquet(folder / PATHS_FILE, index=False, compression="zstd")
+        return
+    with ParquetAppender(folder / PATHS_FILE, compact_paths(_empty_paths())) as out:
+        for key in store.group_keys():
+            group = store.group(key)
+            if group is not None:
+                out.append(compact_paths(group))
 
 
 def write_sample_truth(
@@ -525,12 +631,12 @@ def write_sample_truth(
     table.astype({"power_lin": "float32"}).to_parquet(folder / "aps_samples.parquet", index=False, compression="zstd")
 
 
-def _summary(scenario: Scenario, paths: pd.DataFrame) -> dict[str, float]:
+def _summary(scenario: Scenario, num_paths: int) -> dict[str, float]:
     m = scenario.measurements
     return {
         "num_cells": float(len(scenario.cells[1])),
         "num_grids": float(len(scenario.grids)),
-        "num_paths": float(len(paths)),
+        "num_paths": float(num_paths),
         "measurement_rows": float(len(m)),
         "fraction_missing": float(m["rsrp_dbm"].isna().mean()) if len(m) else float("nan"),
         "reported_pairs_round1": float(len(m[m["round"] == 1].groupby(["cell_id", "grid_id"]))),
@@ -570,5 +676,14 @@ def _provenance(backend, config: SimulationConfig, scene, changes) -> dict[str, 
         **({"field": to_dict(config.field_model)} if config.measurements == "field" else {}),
         "points_per_grid": config.points_per_grid,
         "round2_changes": changes,
-        "config": to_dict(config),
+        "config": _config_record(config),
     }
+
+
+def _config_record(config: SimulationConfig) -> dict[str, Any]:
+    """The config as ``scenario.yaml`` records it; ``trace_range_m`` only when set (a scenario simulated without a
+    range keeps the very file it had before the key existed)."""
+    record = to_dict(config)
+    if record.get("trace_range_m") is None:
+        record.pop("trace_range_m", None)
+    return record

@@ -5,11 +5,14 @@ drawn uniformly inside the grid's square (grids are ``grid_size_m`` squares cent
 and each sample's power is the grid's value times one log-normal fading draw with σ = ``fading_db`` and
 unit linear mean, so the linear-power mean over the samples tends to the grid's value.  Positions are
 written as WGS84 lat/lon from ``origin``; cells as lat/lon, antenna height above (flat) ground, PCI and
-NR-ARFCN (TS 38.104).  ``rflscm import`` on the files written gives the scenario back (tested).
+NR-ARFCN (TS 38.104).  The scenario's point cloud is written beside them (``point_cloud.*``, already in the frame
+of ``origin``: the scenario's own) and named in ``import.yaml``, so that the import has what the default RF-LSCM
+needs.  ``rflscm import`` on the files written gives the scenario back (tested).
 """
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -22,12 +25,16 @@ from rflscm.data import Scenario, write_table
 from rflscm.data.geo import Origin, enu_to_geodetic
 from rflscm.data.ingest.arfcn import hz_to_nr_arfcn, nr_arfcn_to_hz
 from rflscm.data.meta import RSRP_MAX_DBM, RSRP_MIN_DBM
+from rflscm.data.pointcloud import POINT_CLOUD_SUFFIXES, write_point_cloud
 from rflscm.errors import ConfigError
 
 DEFAULT_ORIGIN = Origin(48.1400, 11.5700)
 """Where simulated scenarios without an origin are placed on the globe (central Munich)."""
 START = pd.Timestamp("2024-05-01T08:00:00Z")
 """Round r's samples are taken on day r − 1 after this time, one second apart."""
+CLOUD_FORMATS = ("same", "none", *(s[1:] for s in POINT_CLOUD_SUFFIXES))
+"""How the point cloud is written: ``same`` (the scenario's file, copied), ``none``, or a format (``laz``: ~4×
+smaller than PLY, 1 mm steps)."""
 
 CELL_COLUMNS = (
     "round",
@@ -62,15 +69,19 @@ def write_raw(
     grid_size_m: float = 10.0,
     max_grids: int | None = None,
     seed: int = 0,
+    point_cloud: str = "same",
 ) -> dict[str, Any]:
-    """Write ``samples.csv``, ``cells.csv`` and ``import.yaml`` into ``out``; returns a summary.
+    """Write ``samples.csv``, ``cells.csv``, ``import.yaml`` and the point cloud into ``out``; returns a summary.
 
     Args:
         origin: where the frame's (0, 0, 0) lies (default: the scenario's, else :data:`DEFAULT_ORIGIN`).
         max_grids: keep only this many grids (evenly spread over the sorted grid ids) for a small file.
+        point_cloud: one of :data:`CLOUD_FORMATS`.
     """
     if samples_per_beam < 1 or fading_db < 0 or grid_size_m <= 0:
         raise ConfigError("raw samples need samples_per_beam >= 1, fading_db >= 0 and grid_size_m > 0.")
+    if point_cloud not in CLOUD_FORMATS:
+        raise ConfigError(f"raw point cloud format must be one of {', '.join(CLOUD_FORMATS)} (got {point_cloud!r}).")
     origin = origin or scenario.meta.origin or DEFAULT_ORIGIN
     rng = np.random.default_rng(seed)
     out.mkdir(parents=True, exist_ok=True)
@@ -95,9 +106,27 @@ def write_raw(
         "reporting": {k: r.to_dict() for k, r in scenario.meta.reporting.items()},
         "codebooks": {name: to_dict(cb) for name, cb in scenario.meta.codebooks.items()},
     }
+    cloud = _write_cloud(scenario, out, point_cloud)
+    if cloud is not None:
+        spec["point_cloud"] = cloud
     text = "# written by rflscm simulate --raw-out; import with `rflscm import import.yaml --out DIR`\n"
     (out / "import.yaml").write_text(text + yaml.safe_dump(spec, sort_keys=False, default_flow_style=None))
-    return {"samples": len(samples), "cells": len(cells), "grids": int(m["grid_id"].nunique())}
+    points = 0 if cloud is None or scenario.point_cloud is None else scenario.point_cloud.num_points
+    return {"samples": len(samples), "cells": len(cells), "grids": int(m["grid_id"].nunique()), "cloud_points": points}
+
+
+def _write_cloud(scenario: Scenario, out: Path, how: str) -> str | None:
+    """The scenario's point cloud as ``out/point_cloud.<ext>`` (its file copied for ``same``); its name or None."""
+    if scenario.point_cloud is None or how == "none":
+        return None
+    source = scenario.root / scenario.meta.point_cloud if scenario.meta.point_cloud else None
+    if how == "same" and source is not None and source.is_file():
+        name = "point_cloud" + source.suffix.lower()
+        shutil.copyfile(source, out / name)
+        return name
+    name = "point_cloud." + ("ply" if how == "same" else how)
+    write_point_cloud(scenario.point_cloud, out / name)
+    return name
 
 
 def _cells(scenario: Scenario, origin: Origin) -> pd.DataFrame:

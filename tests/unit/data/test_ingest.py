@@ -2,20 +2,24 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
+import rflscm
 from rflscm.data import load_scenario
 from rflscm.data.geo import Origin, enu_to_geodetic
 from rflscm.data.ingest import earfcn_to_hz, hz_to_nr_arfcn, import_raw, load_spec, nr_arfcn_to_hz
 from rflscm.data.ingest.binning import bin_samples, keep_top_n
+from rflscm.data.ingest.cellist import _cell_number
 from rflscm.data.ingest.resolve import AMBIGUOUS, FAR_FROM_ID, NO_CELL, TOO_FAR, UNKNOWN_ID, resolve_cells
 from rflscm.data.ingest.samples import Tally
 from rflscm.data.ingest.spec import ImportSpec
-from rflscm.errors import DataError
+from rflscm.data.pointcloud import PointCloud, write_point_cloud
+from rflscm.errors import ConfigError, DataError
 
 BOOKS = {
     "ssb4": {"type": "ssb", "azimuths_deg": [-30.0, 30.0], "tilts_deg": [0.0, 10.0]},
@@ -212,6 +216,14 @@ def test_import_refusals_name_file_row_and_value(tmp_path: Path) -> None:
         import_raw(load_spec(_write_raw(tmp_path, beyond), dict(over)), tmp_path / "b")
     with pytest.raises(DataError, match=r"cells.csv row 1 \(line 2\): `element` = 'AAU5613' names no pattern file"):
         import_raw(load_spec(_write_raw(tmp_path, _raw_samples(), antenna="AAU5613"), dict(over)), tmp_path / "d")
+    msi = "sample_65deg_3500MHz.msi"  # the 3.5 GHz pattern on 1815 MHz (EARFCN 1300) cells
+    shutil.copyfile(Path(rflscm.__file__).parent / "assets" / "antennas" / msi, tmp_path / msi)
+    with pytest.raises(
+        DataError,
+        match=r"^cells.csv row 1 \(line 2\): `element` = '.*3500MHz.msi' is measured at 3500 MHz, but this cell's "
+        r"carrier is 1815 MHz \(beyond ±10 %\); give the pattern of this band. 1 more row",
+    ):
+        import_raw(load_spec(_write_raw(tmp_path, _raw_samples(), antenna=msi), dict(over)), tmp_path / "e")
     report = _raw_samples().assign(timestamp="2024-05-01T08:00:00", ssb_index=[0, 1, 2, 3])
     rule = {**over, "reporting": {"ssb": {"rule": "top_n", "top_n": 3}}, "min_samples": 1}
     with pytest.raises(
@@ -294,3 +306,159 @@ def test_cell_id_samples_unknown_or_far_from_their_cell_are_counted() -> None:
     out = resolve_cells(samples, _cells(), {"A": 1}, _spec(), tally)
     assert out["cell_id"].tolist() == [1] and out["x"].tolist() == [10.0]
     assert tally.samples == {UNKNOWN_ID: 1, FAR_FROM_ID: 1}
+
+
+def _cloud(shift: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> PointCloud:
+    # ground over ±60 m (class 2) and one 20 m block (class 6), in the import's frame, moved by `shift`
+    g = np.stack(np.meshgrid(np.arange(-60.0, 61.0, 4.0), np.arange(-60.0, 61.0, 4.0)), -1).reshape(-1, 2)
+    ground = np.column_stack([g, np.zeros(len(g))])
+    block = np.stack(np.meshgrid(np.arange(30.0, 41.0, 2.0), np.arange(30.0, 41.0, 2.0), [20.0]), -1).reshape(-1, 3)
+    xyz = np.concatenate([ground, block]) + np.asarray(shift)
+    return PointCloud(xyz, np.r_[np.full(len(ground), 2), np.full(len(block), 6)])
+
+
+def test_point_cloud_is_copied_in_and_must_be_in_the_import_frame(tmp_path: Path) -> None:
+    over = {"columns": {"freq_mhz": "freq"}, "beam_type": "ssb", "origin": {"lat": 48.14, "lon": 11.57}}
+    spec = _write_raw(tmp_path, _raw_samples())
+    for name, shift in (("ok.laz", (0.0, 0.0, 0.0)), ("utm.ply", (3000.0, 0.0, 0.0)), ("msl.npy", (0, 0, 519.0))):
+        write_point_cloud(_cloud(shift), tmp_path / name)
+    res = import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "ok.laz")}), tmp_path / "a")
+    sc = load_scenario(tmp_path / "a")
+    assert sc.meta.point_cloud == "point_cloud.laz" and res.point_cloud_points == len(_cloud().xyz)
+    assert sc.point_cloud is not None and sc.point_cloud.class_counts() == _cloud().class_counts()
+    with pytest.raises(DataError, match=r"^utm.ply: covers x 2940…3060 m, .* does not overlap the imported grids"):
+        import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "utm.ply")}), tmp_path / "b")
+    with pytest.raises(DataError, match=r"^msl.npy: its ground over the grids .* z = 519.0 m, 517.5 m above"):
+        import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "msl.npy")}), tmp_path / "c")
+    write_point_cloud(_cloud((690_000.0, 5_334_000.0, 0.0)), tmp_path / "utm33.laz")  # a UTM export, not shifted
+    with pytest.raises(DataError, match=r"^utm33.laz point 1: .* implausible .* needs the cloud in its local frame"):
+        import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "utm33.laz")}), tmp_path / "e")
+    (tmp_path / "cloud.txt").write_text("1 2 3\n")
+    with pytest.raises(DataError, match=r"cloud.txt: unsupported point cloud format '.txt'"):
+        import_raw(load_spec(spec, {**over, "point_cloud": str(tmp_path / "cloud.txt")}), tmp_path / "d")
+    assert not any((tmp_path / d).exists() for d in "bcd")
+
+
+def test_cli_refuses_a_cloud_outside_the_grids_in_one_line(tmp_path: Path, monkeypatch, capsys) -> None:
+    import sys
+
+    from rflscm.cli import main
+
+    spec = _write_raw(tmp_path, _raw_samples())
+    write_point_cloud(_cloud((0.0, -5000.0, 0.0)), tmp_path / "far.ply")
+    argv = [
+        "rflscm",
+        "import",
+        str(spec),
+        "--out",
+        str(tmp_path / "sc"),
+        "--beam-type",
+        "ssb",
+        "--col",
+        "freq_mhz=freq",
+    ]
+    monkeypatch.setattr(sys, "argv", [*argv, "--point-cloud", str(tmp_path / "far.ply")])
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.count("\n") == 1, err
+    assert "far.ply: covers" in err and "does not overlap the imported grids" in err and "local frame" in err
+    assert not (tmp_path / "sc").exists()
+    monkeypatch.setattr(sys, "argv", argv)  # no cloud: imported, and told how to train RF-LSCM without one
+    main()
+    out = " ".join(capsys.readouterr().out.split())
+    assert "no point cloud" in out and "--set prior.enabled=false" in out
+
+
+def test_per_table_column_maps_unix_times_and_a_cell_list_without_pci(tmp_path: Path) -> None:
+    # the samples name their cell `Serving` (a name), the cell list `Cell`; a shared `lat` map for the samples
+    # only must not hide the cell list's own `Latitude`; times are Unix seconds; the cell list has no PCI
+    samples = _raw_samples().rename(columns={"lat": "GPS Lat"}).drop(columns=["PCI", "freq"])
+    samples = samples.assign(Serving="A1", timestamp=1714550400 + np.arange(4))
+    spec = _write_raw(tmp_path, samples)
+    pd.read_csv(tmp_path / "cells.csv").drop(columns="PCI").to_csv(tmp_path / "cells.csv", index=False)
+    over = {
+        "beam_type": "ssb",
+        "min_samples": 1,
+        "columns": {"lat": "GPS Lat", "samples": {"cell_id": "Serving"}},
+        "round_times": {1: ("2024-05-01T08:00:00Z", "2024-05-01T08:00:02Z"), 2: ("2024-05-01T08:00:02Z", "2024-06-01")},
+    }
+    res = import_raw(load_spec(spec, over), tmp_path / "a")
+    m = load_scenario(tmp_path / "a").measurements
+    assert res.rounds == [1, 2] and m.groupby("round").size().to_dict() == {1: 1, 2: 1}
+    assert (m["cell_id"] == 0).all() and res.samples_kept == 4
+    by_pci = _raw_samples()  # PCI + carrier samples cannot be matched to a list without PCI: one line
+    by_pci.to_csv(tmp_path / "samples.csv", index=False)
+    with pytest.raises(DataError, match=r"samples.csv row 1: names its cell by `pci` = 11, but the cell list has no"):
+        import_raw(load_spec(spec, {"beam_type": "ssb", "columns": {"freq_mhz": "freq"}}), tmp_path / "b")
+    with pytest.raises(ConfigError, match=r"import: `columns`.samples: unknown rflscm column name 'azimuth_deg'"):
+        load_spec(spec, {"columns": {"samples": {"azimuth_deg": "Az"}}})
+
+
+def test_no_bin_kept_names_every_reason_and_names_keep_their_numbers(tmp_path: Path) -> None:
+    samples = _raw_samples().assign(timestamp="2024-05-09T00:00:00Z")
+    over = {"columns": {"freq_mhz": "freq"}, "beam_type": "ssb", "round_times": {1: ("2024-05-01", "2024-05-02")}}
+    with pytest.raises(
+        DataError, match=r"^import: no bin kept; all 4 samples were dropped \(samples.csv: time outside every round"
+    ):
+        import_raw(load_spec(_write_raw(tmp_path, samples), over), tmp_path / "a")
+    ids: dict[str, int] = {}
+    got = [ids.setdefault(n, _cell_number(n, ids)) for n in ["7", "A", "007", "8", "B", "7"]]
+    assert got == [7, 8, 9, 10, 11, 7]  # numbers kept while free; a name never shares a number with another
+
+
+def test_col_flags_map_one_table_over_the_columns_file(tmp_path: Path) -> None:
+    from rflscm.cli.import_ import _column_file, _column_flags
+
+    (tmp_path / "map.yaml").write_text("columns: {lat: Latitude, cells: {cell_id: Cell}}\n")
+    base = _column_file(tmp_path / "map.yaml")
+    got = _column_flags(base, {"samples.cell_id": "Serving", "cells.pci": "PCI", "lon": "Lng"})
+    assert got == {
+        "lat": "Latitude",
+        "cells": {"cell_id": "Cell", "pci": "PCI"},
+        "samples": {"cell_id": "Serving"},
+        "lon": "Lng",
+    }
+    (tmp_path / "bad.yaml").write_text("lat: [1, 2]\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml: `lat` must be the name of your column \(text\)"):
+        _column_file(tmp_path / "bad.yaml")
+
+
+def test_terrain_puts_cells_and_samples_above_the_ground(tmp_path: Path) -> None:
+    # a slope z = 500 + 0.1·x [m] as an XYZ table in the import frame; the origin at 500 m
+    u = np.arange(-100.0, 101.0, 20.0)
+    xx, yy = np.meshgrid(u, u)
+    pd.DataFrame({"x": xx.ravel(), "y": yy.ravel(), "z": 500.0 + 0.1 * xx.ravel()}).to_csv(
+        tmp_path / "dem.csv", index=False
+    )
+    samples = pd.concat([_raw_samples(), _raw_samples().assign(lat=48.2)], ignore_index=True)  # the second 6.7 km off
+    spec = _write_raw(tmp_path, samples)
+    over = {
+        "columns": {"freq_mhz": "freq"},
+        "beam_type": "ssb",
+        "origin": {"lat": 48.14, "lon": 11.57, "height_m": 500.0},
+        "terrain": str(tmp_path / "dem.csv"),
+    }
+    res = import_raw(load_spec(spec, over), tmp_path / "a")
+    sc = load_scenario(tmp_path / "a")
+    assert sc.meta.terrain == "terrain.csv" and res.dropped.samples == {
+        "dem.csv: outside the terrain (or on a nodata cell)": 4
+    }
+    np.testing.assert_allclose(sc.cells[1]["z"], [25.0, 25.0], atol=1e-6)  # at x = 0 the ground is the origin's 500 m
+    g = sc.grids.iloc[0]
+    assert g["z"] == pytest.approx(1.5 + 0.1 * (g["x"] + 1.5), abs=0.01)  # UEs 1.5 m above the slope at x 15…18
+    cells = pd.read_csv(tmp_path / "cells.csv").assign(Latitude=[48.14, 48.16])
+    cells.to_csv(tmp_path / "cells.csv", index=False)
+    with pytest.raises(DataError, match=r"^cells.csv: cell 'A2' at x = .* lies outside the terrain 'dem.csv'"):
+        import_raw(load_spec(spec, over), tmp_path / "b")
+
+
+def test_headers_with_units_in_brackets_match_only_in_rflscm_units() -> None:
+    from rflscm.data.ingest.spec import canonical
+
+    cols = ["Latitude (deg)", "Longitude (WGS84)", "RSRP [dBm]", "Freq (MHz)", "SSB Index", "Height (ft)", "Time (UTC)"]
+    got = list(canonical(pd.DataFrame(columns=cols), _spec(), "samples").columns)
+    assert got == ["lat", "lon", "rsrp_dbm", "freq_mhz", "beam_id", "Height (ft)", "time"]  # feet stay unread
+    cols = ["Cell Name", "Azimuth (deg)", "Mech. Tilt (deg)", "E-Tilt (°)", "Lat [°]", "Height AGL (m)", "Height (cm)"]
+    got = list(canonical(pd.DataFrame(columns=cols), _spec(), "cells").columns)
+    assert got == ["cell_id", "azimuth_deg", "mech_tilt_deg", "elec_tilt_deg", "lat", "height_m", "Height (cm)"]

@@ -26,3 +26,15 @@ def test_it_writes_into_rows_of_a_wider_buffer_and_refuses_a_wrong_shape() -> No
     assert bool((buf[:5] == 7.0).all()) and bool((buf[44:] == 7.0).all())  # nothing outside its rows
     with pytest.raises(ValueError, match="out is"):
         positional_encoding_t(x, 6, buf[:10])
+
+
+def test_a_batch_of_inputs_encodes_as_one_call_each() -> None:
+    """Issue 29: ``[k, N, d]`` inputs give k encodings one after another, equal to the bit to k calls."""
+    x = 2.0 * torch.rand(3, 700, 3, generator=torch.Generator().manual_seed(5)) - 1.0
+    buf = torch.full((3 * 39 + 2, 700), 7.0)
+    positional_encoding_t(x, 6, buf[1:-1])
+    for k in range(3):
+        assert torch.equal(buf[1 + 39 * k : 1 + 39 * (k + 1)], positional_encoding_t(x[k], 6))
+    assert bool((buf[0] == 7.0).all()) and bool((buf[-1] == 7.0).all())
+    with pytest.raises(ValueError, match="out is"):
+        positional_encoding_t(x, 6, buf[:39])

@@ -13,7 +13,7 @@ from rflscm.errors import CheckpointError
 from rflscm.models.pairs import PairData
 from rflscm.models.rflscm.config import CorrectionsConfig
 from rflscm.models.rflscm.corrections import PairCorrections, fit_corrections
-from rflscm.models.rflscm.posterior import PairPosterior
+from rflscm.models.rflscm.posterior import WNOMP_ATOMS, PairPosterior
 
 K = 4  # bins; every beam sees every bin with gain 1, so a pair's prediction is the sum of its APS
 
@@ -140,3 +140,101 @@ def test_within_a_deadline_the_pass_corrects_the_pairs_that_fit_and_the_rest_kee
     ample = fit_corrections(*args, seed=0, time_left=lambda: 1e9 - now[0], clock=lambda: now[0])
     assert ample.anchors is not None
     pd.testing.assert_series_equal(ample.anchors.sort_index(), full.anchors.sort_index(), atol=1e-5)
+
+
+def atom_problem(seed: int = 0, pairs: int = 48, beams: int = 16, bins: int = 40, field_bins: int = 6):
+    """Pairs whose true APS is one strong atom the field's bins miss (the field spreads its power over other bins).
+
+    Returns the training data, a render of the field, the columns of two cells, the true APS and a second
+    (round-2) sensing matrix per cell that the corrected APS is judged with."""
+    g = torch.Generator().manual_seed(seed)
+    a = torch.rand(2, beams, bins, generator=g) ** 3  # two cells' normalised sensing matrices
+    a2 = torch.rand(2, beams, bins, generator=g) ** 3  # their changed antennas'
+    cells = torch.arange(pairs) % 2
+    truth = torch.zeros(pairs, bins)
+    atom = torch.randint(field_bins, bins, (pairs,), generator=g)  # never among the field's bins
+    truth[torch.arange(pairs), atom] = 1.0 + torch.rand(pairs, generator=g)
+    truth[:, :field_bins] += 0.05 * torch.rand(pairs, field_bins, generator=g)  # the field's bins carry a little
+    rsrp = torch.einsum("bmn,bn->bm", a[cells], truth)
+    field_x = truth[:, :field_bins].sum(1, keepdim=True) + truth.sum(1, keepdim=True) / field_bins
+    field_x = field_x.expand(-1, field_bins) * (0.5 + torch.rand(pairs, field_bins, generator=g))
+
+    def render(p: torch.Tensor):
+        bins_ = torch.arange(field_bins).expand(len(p), field_bins)
+        x = field_x[p]
+        return bins_, x, torch.einsum("bmk,bk->bm", a[cells[p]][:, :, :field_bins], x)
+
+    def columns(c: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return torch.gather(a[c], 2, b[:, None, :].expand(-1, beams, -1))
+
+    pair_data = PairData(
+        cell_index=cells,
+        grid_ids=np.arange(pairs, dtype=np.int64),
+        grid_xyz=torch.zeros(pairs, 3),
+        rsrp=rsrp,
+        beam_mask=torch.ones(pairs, beams, dtype=torch.bool),
+        val_mask=torch.zeros(pairs, beams, dtype=torch.bool),
+        x_scale=torch.ones(pairs),
+        bound=torch.full((pairs, beams), float("nan")),
+        val_pairs=torch.zeros(0, dtype=torch.long),
+    )
+    return pair_data, render, columns, truth, a2, cells
+
+
+def fit_atoms(on: bool, seed: int = 0, visible: torch.Tensor | None = None) -> tuple[PairCorrections, float]:
+    """The corrections fitted with or without WNOMP's atoms (among the ``visible [2, 40]`` bins, default all), and
+    the MAE [dB] of the corrected field through the changed antennas (never fitted) on every beam of every pair."""
+    pair_data, render, columns, truth, a2, cells = atom_problem(seed)
+    cfg = CorrectionsConfig(calibrate_levels=False, wnomp_atoms=on)
+    visible = torch.ones(2, truth.shape[1], dtype=torch.bool) if visible is None else visible
+    fitted = fit_corrections(cfg, pair_data, 8, np.array([7, 8]), render, columns, seed=0, visible=visible)
+    field = torch.zeros_like(truth)
+    bins_, x, _ = render(torch.arange(len(cells)))
+    field.scatter_(1, bins_, x)
+    ids = np.arange(len(cells), dtype=np.int64)
+    aps = fitted.apply(field, cells.numpy(), np.array([7, 8])[cells.numpy()], ids)
+    pred = torch.einsum("bmn,bn->bm", a2[cells], aps)
+    true = torch.einsum("bmn,bn->bm", a2[cells], truth)
+    return fitted, float((10.0 * torch.log10(pred.clamp_min(1e-12) / true)).abs().mean())
+
+
+def test_wnomp_atoms_let_the_posterior_reach_a_direction_the_fields_bins_miss() -> None:
+    without, err_without = fit_atoms(False)
+    with_, err_with = fit_atoms(True)
+    assert without.posterior is not None and with_.posterior is not None
+    assert without.posterior.base is None and with_.posterior.base is not None
+    assert with_.posterior.bins.shape[1] - 6 in WNOMP_ATOMS  # the field's 6 bins and the atoms chosen
+    assert set(with_.posterior.atom_scores) == {0, *WNOMP_ATOMS} and not without.posterior.atom_scores
+    # through the changed antenna (never fitted), the posterior with the atoms is much closer to the truth
+    assert err_with < 0.5 * err_without, (err_with, err_without)
+    # the held-aside score that chose λ saw the atoms too (fitted without the held-aside reports)
+    assert with_.posterior.scores[with_.posterior.lam] < without.posterior.scores[without.posterior.lam] - 1.0
+
+
+def test_wnomp_atoms_are_deterministic_and_survive_a_save() -> None:
+    first, err = fit_atoms(True)
+    again, err_again = fit_atoms(True)
+    assert first.posterior is not None and again.posterior is not None and first.posterior.base is not None
+    assert err == err_again and torch.equal(first.posterior.base, again.posterior.base)
+    buffer = io.BytesIO()
+    torch.save(first.to_state(), buffer)
+    buffer.seek(0)
+    loaded = PairCorrections.from_state(torch.load(buffer, weights_only=True), num_bins=40)
+    aps = torch.rand(3, 40)
+    args = (np.array([0, 1, 0]), np.array([7, 8, 7]), np.array([0, 1, 99]))
+    torch.testing.assert_close(loaded.apply(aps, *args), first.apply(aps, *args), rtol=1e-3, atol=1e-3)
+    state = first.to_state()
+    state["posterior"]["base"] = -state["posterior"]["base"] - 1.0
+    with pytest.raises(CheckpointError, match="pair posterior is damaged"):
+        PairCorrections.from_state(state, num_bins=40)
+
+
+def test_wnomp_atoms_stay_on_the_bins_a_cell_may_hold() -> None:
+    visible = torch.ones(2, 40, dtype=torch.bool)
+    visible[0, 6:] = False  # cell 0 holds the field's 6 bins only
+    fitted, _ = fit_atoms(True, visible=visible)
+    post = fitted.posterior
+    assert post is not None and post.base is not None
+    cell0 = torch.as_tensor(post.index.get_level_values("cell_id").to_numpy() == 7)
+    assert not bool(((post.bins[cell0] >= 6) & (post.base[cell0] > 0)).any())
+    assert bool(((post.bins[~cell0] >= 6) & (post.base[~cell0] > 0)).any())  # cell 1's atoms are there

@@ -17,7 +17,14 @@ from rflscm.errors import CheckpointError
 from rflscm.geometry import AngleGrid
 from rflscm.models import load_model
 from rflscm.models.rflscm import RFLSCM
-from rflscm.models.rflscm.posterior import LambdaChoice, PairPosterior, fit_gains, predicted_change_db
+from rflscm.models.rflscm.posterior import (
+    LambdaChoice,
+    PairPosterior,
+    fit_gains,
+    predicted_change_db,
+    with_atoms,
+    wnomp_atoms,
+)
 from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)
@@ -88,6 +95,41 @@ def test_apply_moves_only_the_training_pairs_bins_and_survives_its_state() -> No
     assert again is not None and again.lam == 0.3 and again.scores == post.scores
     torch.testing.assert_close(again.apply(aps, np.array([1, 2, 1]), np.array([8, 7, 7])), out, rtol=1e-3, atol=1e-3)
     assert PairPosterior.from_state(None, 8) is None
+
+
+def test_atoms_join_the_candidates_centred_on_the_field_or_above_it() -> None:
+    bins = torch.tensor([[4, 7, 9], [1, 2, 3]])
+    x = torch.tensor([[1.0, 0.5, 0.2], [1.0, 1.0, 1.0]])
+    atoms = torch.tensor([[7, 9, 30], [2, -1, -1]])  # on the field's bins (weaker, stronger), off them; none
+    centre = torch.tensor([[0.1, 0.8, 0.3], [0.4, 5.0, 5.0]])
+    out_bins, out_x, base = with_atoms(bins, x, atoms, centre)
+    assert out_bins.tolist() == [[4, 7, 9, 4, 4, 30], [1, 2, 3, 1, 1, 1]]  # empty columns repeat a bin
+    torch.testing.assert_close(out_x, torch.tensor([[1.0, 0.5, 0.2, 0, 0, 0], [1.0, 1.0, 1.0, 0, 0, 0]]))
+    torch.testing.assert_close(base, torch.tensor([[0, 0, 0.6, 0, 0, 0.3], [0, 0, 0, 0, 0, 0.0]]))
+    # an APS with these bases and no gains: the field, raised where an atom has more
+    index = pd.MultiIndex.from_arrays([np.array([1, 1]), np.array([7, 8])], names=["cell_id", "grid_id"])
+    post = PairPosterior(index, out_bins, torch.zeros(2, 6), 1.0, {}, base)
+    aps = torch.zeros(2, 32)
+    aps.scatter_(1, bins, x)
+    out = post.apply(aps, np.array([1, 1]), np.array([7, 8]))
+    assert float(out[0, 9]) == pytest.approx(0.8) and float(out[0, 30]) == pytest.approx(0.3)
+    torch.testing.assert_close(out[1], aps[1])
+
+
+def test_wnomp_atoms_find_the_bins_of_noiseless_reports_from_the_allowed_reports_only() -> None:
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(2, 24, 50, generator=g) ** 3
+    cells = torch.tensor([0, 1, 0, 1])
+    truth = torch.zeros(4, 50)
+    truth[torch.arange(4), torch.tensor([3, 17, 40, 8])] = torch.tensor([1.0, 2.0, 0.5, 1.0])
+    rsrp = torch.einsum("bmn,bn->bm", a[cells], truth)
+    mask = torch.ones_like(rsrp, dtype=torch.bool)
+    mask[3] = False  # the last pair may read none of its reports
+    bins, gains = wnomp_atoms(lambda c: a[c], cells, rsrp, mask, k_max=2)
+    assert bins[:3, 0].tolist() == [3, 17, 40] and bins[3].tolist() == [-1, -1]
+    torch.testing.assert_close(gains[:3, 0], torch.tensor([1.0, 2.0, 0.5]), rtol=1e-4, atol=1e-6)
+    garbled = torch.where(mask, rsrp, torch.full_like(rsrp, 1e6))  # what it may not read changes nothing
+    assert torch.equal(wnomp_atoms(lambda c: a[c], cells, garbled, mask, k_max=2)[0], bins)
 
 
 @pytest.mark.parametrize(

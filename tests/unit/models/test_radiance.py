@@ -129,3 +129,26 @@ def test_the_pair_inputs_are_the_concatenated_encodings_and_the_decoder_still_le
     for name, p in stage.decoder.named_parameters():
         assert p.grad is not None and bool(torch.isfinite(p.grad).all()), name
     assert all(float(p.grad.abs().sum()) > 0 for p in (stage.decoder.pair_in.weight, stage.decoder.sample_in.weight))
+
+
+def test_inference_in_decoder_blocks_equals_the_training_path(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Without gradients the decoder runs ``DECODER_BLOCK`` (query, sample) pairs at a time (issue 29): the same
+    values, to the bit, as the training path's one pass (block sizes that split rays and queries included)."""
+    import rflscm.models.rflscm.fields as fields_module
+
+    phi = (torch.rand(5, 12, generator=torch.Generator().manual_seed(3)) > 0.3) * torch.rand(5, 12)
+    samples = select_samples(phi)
+    g = torch.Generator().manual_seed(4)
+    grids = torch.cat((torch.rand(9, 2, generator=g) * 80.0 - 40.0, torch.full((9, 1), 1.5)), 1)
+    queries = Queries(torch.tensor([0, 0, 1, 2, 2, 2, 3, 4, 4]), grids)
+    for inputs in ("paper", "offset", "offset+grid"):
+        stage = make_stage(inputs)
+        stage.min_weight = 0.0
+        with torch.enable_grad():
+            trained = stage(rays_for(5), gather_samples(samples, torch.arange(5)), queries).detach()
+        for block in (1, 3, 7, 10**6):
+            monkeypatch.setattr(fields_module, "DECODER_BLOCK", block)
+            with torch.no_grad():
+                inferred = stage(rays_for(5), gather_samples(samples, torch.arange(5)), queries)
+            assert torch.equal(inferred, trained), (inputs, block)
+        assert bool((trained > 0).all())

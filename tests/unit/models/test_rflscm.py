@@ -143,6 +143,29 @@ def test_without_hitam_renders_every_visible_bin(scenario) -> None:
     assert ((x > 0) == visible).all()
 
 
+def test_only_the_directions_a_cell_sees_store_samples(scenario) -> None:
+    """Issue 29: the renderer builds stored samples for the directions each cell sees and leaves the others empty;
+    a seen ray's samples are those of the ray built alone."""
+    from rflscm.render import build_ray_samples, gather_samples
+
+    model = RFLSCM.build(tiny_config(train={"steps": 1}, render={"min_gain_db": -10.0}), GRID)
+    fit(model, scenario, progress=False)
+    renderer = model.renderer
+    assert renderer is not None
+    for kind in ("coarse", "fine"):
+        rays = renderer.ray_samples(kind)
+        visible = renderer.visible(kind)
+        counts = (rays.samples.offsets[1:] - rays.samples.offsets[:-1]).view(visible.shape)
+        assert bool((counts[~visible] == 0).all()) and bool((counts[visible] > 0).any()) and bool((~visible).any())
+        xyz, _ = renderer.cells()
+        cell, direction = torch.nonzero(visible)[-1].tolist()
+        alone = build_ray_samples(
+            xyz[cell], rays.directions[direction : direction + 1], model.scene.frame.num_samples, 8.0, model.prior
+        )
+        stored = gather_samples(rays.samples, torch.tensor([cell * visible.shape[1] + direction]))
+        assert torch.equal(stored.index, alone.index.long()) and torch.equal(stored.phi, alone.phi)
+
+
 def test_upsampling_during_training_survives_checkpoints(scenario, tmp_path) -> None:
     cfg = tiny_config(field={"voxel_m": 10.0, "init_voxel_m": 40.0, "upsample_at": [2, 5]})
     model = RFLSCM.build(cfg, GRID)

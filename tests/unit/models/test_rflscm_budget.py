@@ -160,7 +160,7 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
     data = model._training().data
     chunk = min(int(data.observed.any(1).sum()), 64)
     assert estimate.per_pair_s == pytest.approx(1 / chunk)
-    assert estimate.total_s == pytest.approx(pass_pairs(data) / chunk)
+    assert estimate.total_s == pytest.approx(pass_pairs(model.config.corrections, data) / chunk)
 
 
 def test_work_after_the_fit_is_kept_out_of_the_budget(scenario) -> None:

@@ -83,3 +83,14 @@ def test_build_with_prior_and_concat() -> None:
     both = RaySamples.concat([s, s])
     assert both.offsets.tolist() == [0, 4, 4, 8, 8] and both.index.numel() == 8
     np.testing.assert_array_equal(both.live_counts().numpy(), [2, 0, 2, 0])
+
+
+def test_spread_places_rays_among_empty_ones() -> None:
+    """The renderer stores samples only for the directions a cell sees (issue 29): ``spread`` puts them at their
+    ray ids, every other ray empty, and gathering a placed ray gives its samples back."""
+    s = build_ray_samples(torch.zeros(3), torch.eye(3), 4, 2.0, None)  # 3 rays × 4 samples
+    wide = s.spread(torch.tensor([1, 4, 5]), 7)
+    assert wide.offsets.tolist() == [0, 0, 4, 4, 4, 8, 12, 12]
+    np.testing.assert_array_equal(wide.live_counts().numpy(), [0, 4, 0, 0, 4, 4, 0])
+    packed = gather_samples(wide, torch.tensor([4, 0]))
+    assert packed.ray.tolist() == [0, 0, 0, 0] and packed.index.tolist() == [0, 1, 2, 3]

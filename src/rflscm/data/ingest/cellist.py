@@ -17,13 +17,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from rflscm.antenna.msi import read_msi
+from rflscm.data.cells import BAND_TOLERANCE, off_band
 from rflscm.data.columns import TableRef, float_column, int_column, raise_rows, require_columns, str_column
 from rflscm.data.geo import Origin, geodetic_to_enu
 from rflscm.data.ingest.arfcn import earfcn_to_hz, nr_arfcn_to_hz
-from rflscm.data.ingest.spec import CARRIER_COLUMNS, CELL_LIST_COLUMNS, ImportSpec, canonical
+from rflscm.data.ingest.spec import CARRIER_COLUMNS, ImportSpec, canonical
 from rflscm.data.io import read_table
 from rflscm.errors import DataError
 
+NO_PCI = -1
+"""``pci`` of the cells of a list without a ``pci`` column (samples must then name cells by ``cell_id``)."""
 PASS_THROUGH = (
     "azimuth_deg",
     "mech_tilt_deg",
@@ -67,7 +71,7 @@ def read_cell_list(spec: ImportSpec, origin_of: Origin | None = None) -> tuple[d
     canonical column names, and the files read."""
     tables: dict[int, pd.DataFrame] = {}
     for rnd, name in spec.cells.items():
-        df = canonical(read_table(name), spec, CELL_LIST_COLUMNS)
+        df = canonical(read_table(name), spec, "cells")
         for key, value in spec.cell_defaults.items():
             if key not in df.columns:
                 df[key] = value
@@ -93,8 +97,9 @@ def cells_frame(df: pd.DataFrame, origin: Origin | None, ids: dict[str, int]) ->
     require_columns(
         df,
         ref,
-        ["cell_id", "height_m", "azimuth_deg", "pci"],
-        "cell_id, lat/lon or x/y, height_m, azimuth_deg, pci, a carrier, ssb_codebook, csi_codebook",
+        ["cell_id", "height_m", "azimuth_deg"],
+        "cell_id, lat/lon or x/y, height_m, azimuth_deg, a carrier, ssb_codebook, csi_codebook (and pci when the "
+        "samples name cells by PCI)",
     )
     if {"lat", "lon"} <= set(df.columns):
         if origin is None:
@@ -116,10 +121,10 @@ def cells_frame(df: pd.DataFrame, origin: Origin | None, ids: dict[str, int]) ->
     for col in PASS_THROUGH:
         if col in df.columns:
             out[col] = df[col].to_numpy()
-    if "element" in df.columns:
-        _check_elements(df, ref, Path(str(df.attrs.get("folder", "."))))
-    out["pci"] = int_column(df, ref, "pci")
     out["carrier_hz"] = carrier_hz(df, ref)
+    if "element" in df.columns:
+        _check_elements(df, ref, Path(str(df.attrs.get("folder", "."))), out["carrier_hz"].to_numpy())
+    out["pci"] = int_column(df, ref, "pci") if "pci" in df.columns else NO_PCI
     out["freq_hz"] = out["carrier_hz"]
     out["cell_name"] = names
     key = ["cell_id"]
@@ -132,9 +137,10 @@ def cells_frame(df: pd.DataFrame, origin: Origin | None, ids: dict[str, int]) ->
     return out
 
 
-def _check_elements(df: pd.DataFrame, ref: TableRef, folder: Path) -> None:
+def _check_elements(df: pd.DataFrame, ref: TableRef, folder: Path, carrier: np.ndarray) -> None:
     """An ``element`` must be ``tr38901``, empty or a pattern file next to the cell list (an antenna *model name*
-    is not a pattern: map the column away or give the file)."""
+    is not a pattern: map the column away or give the file), measured in the band of the cell's ``carrier`` [Hz]
+    (the band rule of :func:`rflscm.data.cells.off_band`)."""
     names = df["element"].astype("string").fillna("").str.strip()
     ok = names.str.lower().isin(["", "tr38901"]) | names.map(lambda n: (folder / n).is_file() if n else True)
     raise_rows(
@@ -145,13 +151,33 @@ def _check_elements(df: pd.DataFrame, ref: TableRef, folder: Path) -> None:
         f"names no pattern file next to the cell list ({folder}); give a Planet/MSI file there, `tr38901`, or "
         "leave the column out (an antenna model name is not a pattern)",
     )
+    measured: dict[str, float | None] = {}
+    for name in pd.unique(names[names.str.lower().ne("tr38901") & names.ne("")]):
+        try:
+            measured[str(name)] = read_msi(folder / str(name)).frequency_hz
+        except DataError as exc:
+            raise DataError(f"{ref.name}: `element` = {name!r}: {exc}") from None
+    pattern_hz = names.map(lambda n: measured.get(n)).to_numpy(dtype=object)
+    off = np.array([off_band(p, float(c)) for p, c in zip(pattern_hz, carrier, strict=True)], dtype=bool)
+    if off.any():
+        i = int(np.flatnonzero(off)[0])
+        raise_rows(
+            ref,
+            off,
+            "element",
+            df["element"],
+            f"is measured at {pattern_hz[i] / 1e6:g} MHz, but this cell's carrier is {carrier[i] / 1e6:g} MHz "
+            f"(beyond ±{100 * BAND_TOLERANCE:g} %); give the pattern of this band",
+        )
 
 
 def _cell_number(name: str, ids: dict[str, int]) -> int:
-    """A cell's number: the name itself when it is a whole number, else the next free number."""
-    if name.lstrip("-").isdigit():
+    """A cell's number: the name itself when it is a whole number not taken by another name (``007`` after
+    ``7``), else the next free number."""
+    used = set(ids.values())
+    if name.lstrip("-").isdigit() and int(name) not in used:
         return int(name)
-    return max([v for v in ids.values()] + [-1]) + 1 if ids else 0
+    return max(used | {-1}) + 1
 
 
 def copy_elements(cells: pd.DataFrame, folder: str, out: Path) -> None:

@@ -15,12 +15,15 @@ from rflscm.config import from_dict, to_dict
 from rflscm.data.cells import CELL_COLUMNS
 from rflscm.data.geo import Origin
 from rflscm.data.ingest.binning import bin_samples, grids_of, keep_top_n
-from rflscm.data.ingest.cellist import cell_origin, cells_frame, copy_elements, read_cell_list
+from rflscm.data.ingest.cellist import NO_PCI, cell_origin, cells_frame, copy_elements, read_cell_list
+from rflscm.data.ingest.cloud import check_cloud_frame
+from rflscm.data.ingest.ground import cells_on_ground, read_terrain, samples_on_ground
 from rflscm.data.ingest.resolve import resolve_cells
 from rflscm.data.ingest.samples import Tally, read_samples
 from rflscm.data.ingest.spec import ImportSpec
 from rflscm.data.io import write_table
 from rflscm.data.meta import RSRP_MIN_DBM, ScenarioMeta, meta_from_dict
+from rflscm.data.pointcloud import PointCloud, read_point_cloud
 from rflscm.data.reporting import BEAM_TYPES, reporting_from_dict
 from rflscm.errors import DataError
 
@@ -48,6 +51,7 @@ class ImportResult:
     origin: Origin | None = None
     dropped: Tally = field(default_factory=Tally)
     bins_table: pd.DataFrame | None = None
+    point_cloud_points: int = 0
 
 
 def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> ImportResult:
@@ -57,9 +61,11 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
         DataError / ConfigError: a file, row or value that cannot be used (one line naming it).
     """
     res = ImportResult()
+    cloud = None if spec.point_cloud is None else _read_cloud(spec.point_cloud)  # refused before any work
     tables, _ = read_cell_list(spec)
     origin = from_dict(Origin, spec.origin, prefix="origin") if spec.origin is not None else cell_origin(tables)
     res.origin = origin
+    terrain = None if spec.terrain is None else read_terrain(spec.terrain, origin)
     ids: dict[str, int] = {}
     cells = {r: cells_frame(df, origin, ids) for r, df in sorted(tables.items())}
     folders = {r: str(df.attrs.get("folder", ".")) for r, df in tables.items()}
@@ -70,6 +76,10 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
             folders[int(rnd)] = folders[0]
     samples = read_samples(spec, origin, res.dropped)
     res.samples_read = len(samples) + res.dropped.dropped
+    if terrain is not None:
+        name = {r: Path(spec.cells.get(r) or spec.cells.get(0) or "cells").name for r in cells}
+        cells = {r: cells_on_ground(t, terrain, origin, name[r]) for r, t in cells.items()}
+        samples = samples_on_ground(samples, terrain, origin, res.dropped)
     if 0 in cells:
         rounds = sorted(int(r) for r in samples["round"].unique()) or [1]
         cells = {r: cells[0] for r in rounds}
@@ -80,6 +90,13 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
         samples = samples[~orphan]
     if 1 not in cells:
         raise DataError(f"import: the samples and cell list give rounds {sorted(cells)}; round 1 is required.")
+    by_pci = (samples["pci"] >= 0).to_numpy()
+    if by_pci.any() and all((c["pci"] == NO_PCI).all() for c in cells.values()):
+        row = samples[by_pci].iloc[0]
+        raise DataError(
+            f"{row['file']} row {row['row']}: names its cell by `pci` = {row['pci']}, but the cell list has no `pci` "
+            "column; add it (map yours with --col cells.pci=NAME) or give the samples a `cell_id` column."
+        )
     samples = resolve_cells(samples, cells, ids, spec, res.dropped)
     meta_dict = _meta_dict(spec, cells, origin)
     meta = meta_from_dict(meta_dict, "import spec")
@@ -105,13 +122,32 @@ def import_raw(spec: ImportSpec, out: Path, table_format: str = "parquet") -> Im
         weakest = max(math.floor(bins["rsrp_dbm"].min()), RSRP_MIN_DBM)
         res.threshold_dbm, res.threshold_chosen = float(min(DEFAULT_THRESHOLD_DBM, weakest)), True
     if len(bins) == 0:
-        raise DataError(f"import: no bin kept ({res.dropped.dropped} samples dropped); see the reasons above.")
+        reasons = "; ".join(f"{why}: {n:,}" for why, n in res.dropped.samples.items())
+        raise DataError(
+            f"import: no bin kept; all {res.samples_read:,} samples were dropped ({reasons or 'no samples read'})."
+        )
     grids, grid_of_bin = grids_of(bins, spec)
     bins = bins.assign(grid_id=grid_of_bin)
+    if cloud is not None:
+        check_cloud_frame(cloud, Path(str(spec.point_cloud)).name, grids, spec.grid_size_m, origin)
+        res.point_cloud_points = cloud.num_points
     res.samples_kept, res.bins, res.grids = int(bins["samples"].sum()), len(bins), len(grids)
     res.cells, res.rounds, res.bins_table = len(cells[1]), sorted(cells), bins
     _write(out, spec, meta_dict, res, cells, folders, grids, bins, table_format)
     return res
+
+
+def _read_cloud(path: str) -> PointCloud:
+    """The import's point cloud, read as ``rflscm check`` reads it; coordinates far off say which frame is needed."""
+    try:
+        return read_point_cloud(path)
+    except DataError as exc:
+        if "implausible" not in str(exc):
+            raise
+        raise DataError(
+            f"{str(exc).rstrip('.')}. `rflscm import` needs the cloud in its local frame: x east, y north [m] from "
+            'the origin, z [m] above the origin\'s height (docs/your-own-data.md, "The building point cloud").'
+        ) from None
 
 
 def _meta_dict(spec: ImportSpec, cells: dict[int, pd.DataFrame], origin: Origin | None) -> dict[str, Any]:
@@ -197,6 +233,10 @@ def _write(
     meta = {**meta_dict, "rsrp_threshold_dbm": float(res.threshold_dbm)}
     meta["rounds"] = {r: {"cells": f"cells_round{r}{ext}"} for r in cells}
     meta["grids"], meta["measurements"] = f"grids{ext}", f"measurements{ext}"
+    if spec.terrain is not None:
+        name = "terrain" + Path(spec.terrain).suffix.lower()
+        shutil.copyfile(spec.terrain, out / name)
+        meta["terrain"] = name
     if spec.point_cloud is not None:
         name = "point_cloud" + Path(spec.point_cloud).suffix.lower()
         shutil.copyfile(spec.point_cloud, out / name)
@@ -209,6 +249,7 @@ def _write(
             "outlier_k": spec.outlier_k,
             "max_distance_m": spec.max_distance_m,
             "ambiguity_ratio": spec.ambiguity_ratio,
+            "heights": "above the terrain" if spec.terrain is not None else "above flat ground at the origin's height",
             "samples_read": res.samples_read,
             "samples_kept": res.samples_kept,
             "dropped": dict(res.dropped.samples),

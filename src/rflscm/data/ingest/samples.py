@@ -20,7 +20,7 @@ import pandas as pd
 from rflscm.data.columns import TableRef, float_column, int_column, raise_rows, require_columns, str_column
 from rflscm.data.geo import Origin, geodetic_to_enu
 from rflscm.data.ingest.cellist import carrier_hz
-from rflscm.data.ingest.spec import CARRIER_COLUMNS, SAMPLE_COLUMNS, ImportSpec, canonical
+from rflscm.data.ingest.spec import CARRIER_COLUMNS, ImportSpec, canonical
 from rflscm.data.io import LINE_NUMBERS, read_table
 from rflscm.data.meta import RSRP_MAX_DBM, RSRP_MIN_DBM
 from rflscm.data.reporting import BEAM_TYPES
@@ -54,7 +54,7 @@ def read_samples(spec: ImportSpec, origin: Origin | None, tally: Tally) -> pd.Da
 def _one_file(path: Path, spec: ImportSpec, origin: Origin | None, tally: Tally) -> pd.DataFrame:
     raw = read_table(path)
     ref = TableRef(path.name, csv=path.suffix.lower() == ".csv", lines=raw.attrs.get(LINE_NUMBERS))
-    df = canonical(raw, spec, SAMPLE_COLUMNS)
+    df = canonical(raw, spec, "samples")
     geo = {"lat", "lon"} <= set(df.columns)
     require_columns(
         df,
@@ -128,8 +128,14 @@ def _rounds(df: pd.DataFrame, ref: TableRef, spec: ImportSpec, tally: Tally, nam
     if not spec.round_times:
         return np.ones(len(df), dtype=np.int64)
     require_columns(df, ref, ["time"], "time (ISO date and time) for `round_times`")
-    times = pd.to_datetime(df["time"], errors="coerce", utc=True)
-    raise_rows(ref, times.isna().to_numpy(), "time", df["time"], "is not a date and time (e.g. 2024-05-01T10:00:00)")
+    times = parse_times(df["time"])
+    raise_rows(
+        ref,
+        times.isna().to_numpy(),
+        "time",
+        df["time"],
+        "is not a date and time (ISO 8601, e.g. 2024-05-01T10:00:00Z, or Unix seconds)",
+    )
     rounds = np.zeros(len(df), dtype=np.int64)
     for rnd, (start, end) in sorted(spec.round_times.items()):
         lo, hi = pd.Timestamp(start), pd.Timestamp(end)
@@ -138,3 +144,20 @@ def _rounds(df: pd.DataFrame, ref: TableRef, spec: ImportSpec, tally: Tally, nam
         rounds[inside & (rounds == 0)] = int(rnd)
     tally.drop(f"{name}: time outside every round of `round_times`", int((rounds == 0).sum()))
     return rounds
+
+
+EPOCH_MS_ABOVE = 1e11
+"""Numeric times are Unix seconds; above this (year 5138 in seconds) they are Unix milliseconds."""
+
+
+def parse_times(values: pd.Series) -> pd.Series:
+    """Times [UTC] of a ``time`` column: ISO 8601 text (without a zone: UTC), or numbers = Unix seconds
+    (milliseconds above :data:`EPOCH_MS_ABOVE`); NaT where a value is neither."""
+    numbers = pd.to_numeric(values, errors="coerce")
+    if len(values) and numbers.notna().all():
+        ms = (numbers.abs() > EPOCH_MS_ABOVE).to_numpy()
+        out = pd.Series(pd.NaT, index=values.index, dtype="datetime64[ns, UTC]")
+        out[~ms] = pd.to_datetime(numbers[~ms], unit="s", utc=True, errors="coerce")
+        out[ms] = pd.to_datetime(numbers[ms].round(), unit="ms", utc=True, errors="coerce")
+        return out
+    return pd.to_datetime(values.astype(str), errors="coerce", utc=True, format="ISO8601")

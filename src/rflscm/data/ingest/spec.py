@@ -81,6 +81,7 @@ ALIASES = {
     "latitude": "lat",
     "longitude": "lon",
     "lng": "lon",
+    "long": "lon",
     "height": "height_m",
     "heightaglm": "height_m",
     "heightagl": "height_m",
@@ -90,6 +91,7 @@ ALIASES = {
     "cellname": "cell_id",
     "site": "site_id",
     "siteid": "site_id",
+    "sitename": "site_id",
     "physicalcellid": "pci",
     "nrarfcn": "nr_arfcn",
     "ssbindex": "beam_id",
@@ -101,6 +103,7 @@ ALIASES = {
     "rsrp": "rsrp_dbm",
     "rsrpdbm": "rsrp_dbm",
     "ssrsrp": "rsrp_dbm",
+    "ssrsrpdbm": "rsrp_dbm",
     "azimuth": "azimuth_deg",
     "mtilt": "mech_tilt_deg",
     "mechtilt": "mech_tilt_deg",
@@ -134,8 +137,9 @@ class ImportSpec:
     """Named codebooks, exactly as in scenario.yaml ``codebooks:``."""
     name: str = "imported"
     description: str = ""
-    columns: dict[str, str] = field(default_factory=dict)
-    """rflscm column name → the name in your files (applies to samples and cell list)."""
+    columns: dict[str, Any] = field(default_factory=dict)
+    """rflscm column name → the name in your files (applies to samples and cell list); entries under ``samples:``
+    or ``cells:`` apply to that table only (and win), e.g. ``{samples: {cell_id: Serving}, cells: {cell_id: Cell}}``."""
     cell_defaults: dict[str, Any] = field(default_factory=dict)
     """Values for cell-list columns the files lack (e.g. ``ssb_codebook: ssb8``, ``array_nh: 8``)."""
     origin: dict[str, float] | None = None
@@ -163,6 +167,8 @@ class ImportSpec:
     """Rounds from time ranges ``{round: [start, end)}`` (ISO times) when the samples have no ``round``."""
     point_cloud: str | None = None
     """A point cloud to copy into the scenario (.ply, .las, .laz, .npy), in the frame of the origin."""
+    terrain: str | None = None
+    """A DEM GeoTIFF or XYZ table (:mod:`rflscm.data.terrain`): heights of cells and samples are above it."""
 
     def __post_init__(self) -> None:
         if not self.samples:
@@ -179,12 +185,26 @@ class ImportSpec:
             raise ConfigError("import: need `outlier_k` >= 0, `max_distance_m` > 0 and `ambiguity_ratio` >= 1.")
         if self.beam_type not in (None, "ssb", "csi"):
             raise ConfigError(f"import: `beam_type` must be ssb or csi (got {self.beam_type!r}).")
-        known = set(SAMPLE_COLUMNS) | set(CELL_LIST_COLUMNS)
-        unknown = sorted(set(self.columns) - known)
-        if unknown:
-            raise ConfigError(
-                f"import: `columns` has unknown rflscm name(s) {unknown}; valid: {', '.join(sorted(known))}."
-            )
+        check_columns(self.columns, "import: `columns`")
+
+
+TABLE_COLUMNS = {"samples": SAMPLE_COLUMNS, "cells": CELL_LIST_COLUMNS}
+"""The tables a ``columns:`` section may name, with their rflscm column names."""
+
+
+def check_columns(columns: dict[str, Any], where: str) -> None:
+    """A ``columns:`` mapping: rflscm name → your name (text), or ``samples:``/``cells:`` → such a mapping."""
+    for key, value in columns.items():
+        valid = TABLE_COLUMNS.get(key, (*SAMPLE_COLUMNS, *CELL_LIST_COLUMNS))
+        inner = value if key in TABLE_COLUMNS and isinstance(value, dict) else {key: value}
+        place = f"{where}.{key}" if key in TABLE_COLUMNS else where
+        for name, raw in inner.items():
+            if name not in valid:
+                raise ConfigError(
+                    f"{place}: unknown rflscm column name {name!r}; valid: {', '.join(sorted(set(valid)))}."
+                )
+            if not isinstance(raw, str) or not raw:
+                raise ConfigError(f"{place}: `{name}` must be the name of your column (text), got {raw!r}.")
 
 
 def _paths(value: Any, base: Path) -> Any:
@@ -194,13 +214,14 @@ def _paths(value: Any, base: Path) -> Any:
 
 
 def load_spec(path: str | Path | None, overrides: dict[str, Any]) -> ImportSpec:
-    """The spec from ``path`` (None: none) with ``overrides`` (CLI flags, paths as given) on top."""
+    """The spec from ``path`` (None: none) with ``overrides`` (CLI flags, paths as given; not changed) on top."""
+    overrides = dict(overrides)
     data: dict[str, Any] = {}
     if path is not None:
         path = Path(path)
         data = load_yaml(path)
         base = path.parent
-        for key in ("samples", "point_cloud"):
+        for key in ("samples", "point_cloud", "terrain"):
             if data.get(key) is not None:
                 data[key] = _paths(data[key], base)
         if isinstance(data.get("cells"), dict):
@@ -229,18 +250,42 @@ def load_spec(path: str | Path | None, overrides: dict[str, Any]) -> ImportSpec:
         raise ConfigError(f"{where}{exc}") from None
 
 
-def canonical(df: pd.DataFrame, spec: ImportSpec, known: tuple[str, ...]) -> pd.DataFrame:
-    """``df`` with its columns renamed to rflscm names: ``spec.columns`` first, then :data:`ALIASES` and
-    case/spelling-insensitive matches of the known names; other columns are left as they are (ignored)."""
-    by_raw = {raw: name for name, raw in spec.columns.items() if name in known}
+PLAIN_UNITS = {"", "deg", "degree", "degrees", "wgs84", "m", "metre", "meter", "metres", "meters", "dbm", "utc"}
+"""Bracketed units (keys) that may be left out of a column name: those rflscm's columns are in (``Height (m)``
+matches ``height_m``; ``Height (ft)`` matches nothing, so feet are never read as metres)."""
+
+
+def _unit_dropped(name: str) -> str:
+    """The key of ``name`` without a bracketed unit of :data:`PLAIN_UNITS` ("" when it has none)."""
+    units = re.findall(r"[(\[](.*?)[)\]]", name)
+    if not units or any(_key(u) not in PLAIN_UNITS for u in units):
+        return ""
+    return _key(re.sub(r"[(\[].*?[)\]]", "", name))
+
+
+def _match(key: str, known: tuple[str, ...]) -> str | None:
+    """The rflscm name whose key is ``key``, else its alias (None: none)."""
+    if not key:
+        return None
+    return next((k for k in known if _key(k) == key), None) or ALIASES.get(key)
+
+
+def canonical(df: pd.DataFrame, spec: ImportSpec, table: str) -> pd.DataFrame:
+    """``df`` (a ``samples`` or ``cells`` table) with its columns renamed to rflscm names: ``spec.columns`` first
+    (the table's own section over the shared entries; an entry naming a column ``df`` lacks is for the other
+    table), then :data:`ALIASES` and case/spelling-insensitive matches of the known names, also with a unit in
+    brackets left out (``Latitude (deg)``, ``RSRP [dBm]``); other columns are left as they are (ignored)."""
+    known = TABLE_COLUMNS[table]
+    mapping = {k: v for k, v in spec.columns.items() if k not in TABLE_COLUMNS}
+    mapping.update(spec.columns.get(table) or {})
+    by_raw = {raw: name for name, raw in mapping.items() if name in known and raw in df.columns}
     rename: dict[str, str] = {}
     taken = set(by_raw.values())
     for col in map(str, df.columns):
         if col in by_raw:
             rename[col] = by_raw[col]
             continue
-        key = _key(col)
-        name = next((k for k in known if _key(k) == key), None) or ALIASES.get(key)
+        name = _match(_key(col), known) or _match(_unit_dropped(col), known)
         if name in known and name not in taken and name not in rename.values():
             rename[col] = name
     out = df.rename(columns=rename)

@@ -343,6 +343,12 @@ class CorrectionsConfig:
     bins under a ridge prior centred on the field, the ridge chosen on held-aside reports (off when no choice
     beats the field there; :mod:`~rflscm.models.rflscm.posterior`).  Measured after training, like the anchors; pairs
     without round-1 reports keep the field's APS."""
+    wnomp_atoms: bool = True
+    """Add WNOMP's support of each training pair's reports (its atoms through the model's own sensing columns) to
+    the posterior's candidate bins, each centred on the field's value there or, where the field has less, 10 dB
+    below WNOMP's (:func:`~rflscm.models.rflscm.posterior.with_atoms`): the field's strongest bins can miss the
+    direction that a grid's reports point at.  How many atoms (2, 4 or none) is chosen with λ on held-aside
+    reports.  Needs ``pair_posterior``."""
 
 
 @dataclass(frozen=True)

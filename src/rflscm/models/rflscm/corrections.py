@@ -41,9 +41,13 @@ from rflscm.models.rflscm.posterior import (
     LAMBDA_PAIRS,
     LAMBDAS,
     POSTERIOR_BINS,
+    WNOMP_ATOMS,
+    WNOMP_PRIOR_DB,
     LambdaChoice,
     PairPosterior,
     fit_gains,
+    with_atoms,
+    wnomp_atoms,
 )
 
 PAIR_CHUNK = 64
@@ -141,17 +145,19 @@ def fit_corrections(
     progress: bool = False,
     time_left: TimeLeftFn | None = None,
     clock: Callable[[], float] = time.perf_counter,
+    visible: torch.Tensor | None = None,
 ) -> PairCorrections:
     """Fit the switched-on corrections of the training ``data`` (``num_ssb`` SSB beams first, ``cell_ids`` of its
     cell indices) from one render of its pairs with reports (``render``, ``columns`` at the final weights;
     ``seed`` draws the posterior's held-aside reports and, within a budget, the order of the pairs; ``progress``: a
-    bar).  With ``time_left`` (seconds left, read on ``clock``'s time) the pass is sized to it: see the module's
-    docstring; without it every pair with reports is corrected (the result does not depend on ``seed``'s order)."""
+    bar; ``visible [C, N]``: the bins each cell's APS may hold, among which WNOMP's atoms are searched).  With
+    ``time_left`` (seconds left, read on ``clock``'s time) the pass is sized to it: see the module's docstring;
+    without it every pair with reports is corrected (the result does not depend on ``seed``'s order)."""
     from tqdm.auto import tqdm
 
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
         return PairCorrections()
-    fit = _Fit(cfg, data, num_ssb, len(cell_ids), render, columns)
+    fit = _Fit(cfg, data, num_ssb, len(cell_ids), render, columns, visible)
     pairs = torch.nonzero(data.observed.any(1)).squeeze(1)
     if not (cfg.pair_anchors or cfg.pair_posterior):  # the level alone: a few pairs per cell
         return PairCorrections(fit.levels(fit.render_pairs(fit.level_picks(), top=False)))
@@ -162,16 +168,13 @@ def fit_corrections(
     first = pairs if time_left is None else torch.cat([fit.level_picks(), subset]).unique()
     rendered = fit.render_pairs(first, top=cfg.pair_posterior, bar=bar)
     levels = fit.levels(rendered) if cfg.calibrate_levels else None
-    lam, scores = math.inf, {}
+    lam, scores, atom_scores = math.inf, dict[float, float](), dict[int, float]()
     if cfg.pair_posterior and pairs.numel():
-        # λ from held-aside reports of a spread subset of the pairs, then one fit per pair
+        # λ (and WNOMP's atoms) from held-aside reports of a spread subset of the pairs, then one fit per pair
         held = torch.rand(data.rsrp.shape, generator=torch.Generator().manual_seed(seed)) < HOLDOUT
-        choice = LambdaChoice()
-        for chunk in fit.chunks(rendered, rendered.rows_of(subset.unique()), levels):
-            choice.add(*chunk.fit_inputs(), chunk.resid, chunk.mask, held[chunk.pairs.cpu()].to(chunk.resid.device))
-        lam, scores = choice.best(), choice.mae_db()
+        fit.atoms, lam, scores, atom_scores = _choose(fit, rendered, rendered.rows_of(subset.unique()), levels, held)
     fitting = cfg.pair_posterior and math.isfinite(lam)
-    done, anchors, gains, bins_of = [], [], [], []
+    done, anchors, gains, bins_of, bases = [], [], [], [], []
     later = _later_pairs(pairs, first, seed)
     for chunk in fit.corrected_chunks(rendered, later, levels, fitting, time_left, clock, bar):
         done.append(chunk.pairs)
@@ -179,6 +182,8 @@ def fit_corrections(
         if chunk.top_bins is not None:
             gains.append(fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, lam).cpu())
             bins_of.append(chunk.top_bins.cpu())
+            if chunk.base is not None:
+                bases.append(chunk.stored_base().cpu())
         bar.update(chunk.pairs.numel() * (per_pair - 1))
     bar.close()
     kept = torch.cat(done).cpu().numpy() if done else np.zeros(0, np.int64)
@@ -190,10 +195,14 @@ def fit_corrections(
         return PairCorrections(levels, anchor_series, None)
     if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
         empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
-        posterior = PairPosterior(empty, torch.zeros(0, 0, dtype=torch.long), torch.zeros(0, 0), lam, scores)
+        posterior = PairPosterior(
+            empty, torch.zeros(0, 0, dtype=torch.long), torch.zeros(0, 0), lam, scores, None, atom_scores
+        )
         return PairCorrections(levels, anchor_series, posterior)
     gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
-    return PairCorrections(levels, anchor_series, PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores))
+    base = torch.cat(bases) if bases else None
+    posterior = PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores, base, atom_scores)
+    return PairCorrections(levels, anchor_series, posterior)
 
 
 @torch.no_grad()
@@ -205,16 +214,19 @@ def seconds_per_pair(
     render: RenderFn,
     columns: ColumnsFn,
     clock: Callable[[], float] = time.perf_counter,
+    visible: torch.Tensor | None = None,
 ) -> float:
     """Seconds of ``clock`` the corrections' pass spends per training pair: one chunk of spread pairs with reports
-    rendered, its residuals taken and (posterior on) its gains fitted once; 0 when every correction is off."""
+    rendered, its residuals taken and (posterior on) its gains fitted once, with the most WNOMP atoms the pass may
+    choose (``wnomp_atoms`` on and ``visible`` given); 0 when every correction is off."""
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
         return 0.0
     pairs = torch.nonzero(data.observed.any(1)).squeeze(1)
     if not pairs.numel():
         return 0.0
     pick = pairs[torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), PAIR_CHUNK)).round().long()].unique()
-    fit = _Fit(cfg, data, num_ssb, num_cells, render, columns)
+    fit = _Fit(cfg, data, num_ssb, num_cells, render, columns, visible)
+    fit.atoms = max(WNOMP_ATOMS) if cfg.pair_posterior and cfg.wnomp_atoms and visible is not None else 0
     started = clock()
     rendered = fit.render_pairs(pick, top=cfg.pair_posterior)
     for chunk in fit.chunks(rendered, torch.arange(pick.numel(), device=pick.device), None, cfg.pair_posterior):
@@ -223,10 +235,14 @@ def seconds_per_pair(
     return (clock() - started) / pick.numel()
 
 
-def pass_pairs(data: PairData) -> int:
-    """Pair renders of a whole corrections pass (pairs with reports, plus the λ choice's fits counted as renders)."""
+def pass_pairs(cfg: CorrectionsConfig, data: PairData) -> int:
+    """Pair renders of a whole corrections pass: the pairs with reports, plus the λ (and atoms) choice's fits
+    counted as renders."""
     pairs = int(data.observed.any(1).sum())
-    return pairs + len(LAMBDAS) * min(pairs, LAMBDA_PAIRS)
+    if not cfg.pair_posterior:
+        return pairs
+    options = 1 + (len(WNOMP_ATOMS) if cfg.wnomp_atoms else 0)
+    return pairs + options * len(LAMBDAS) * min(pairs, LAMBDA_PAIRS)
 
 
 def _later_pairs(pairs: torch.Tensor, first: torch.Tensor, seed: int) -> torch.Tensor:
@@ -260,7 +276,9 @@ class _PairChunk:
     """A chunk of training pairs ``pairs [B]`` as the corrections see them: ``anchor [B]`` [dB], ``resid [B, M]``
     measured − predicted [dB] after the corrections, ``mask [B, M]`` the reported training beams; with columns,
     the strongest bins ``top_bins [B, n]``, the APS there ``top_x [B, n]``, their columns ``cols [B, M, n]`` and
-    the other bins' ``rest [B, M]`` (normalised)."""
+    the other bins' ``rest [B, M]`` (normalised); with WNOMP's atoms among them, ``base [B, n]`` the prior centre
+    added at each bin (``resid`` then against the prediction with it) and ``level [B]`` [dB] the corrections
+    applied before the posterior."""
 
     pairs: torch.Tensor
     anchor: torch.Tensor
@@ -270,11 +288,18 @@ class _PairChunk:
     top_x: torch.Tensor | None = None
     cols: torch.Tensor | None = None
     rest: torch.Tensor | None = None
+    base: torch.Tensor | None = None
+    level: torch.Tensor | None = None
 
     def fit_inputs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``(cols, top_x, rest)``, the posterior's view of the chunk (made ``with_columns``)."""
+        """``(cols, prior centre, rest)``, the posterior's view of the chunk (made ``with_columns``)."""
         assert self.cols is not None and self.top_x is not None and self.rest is not None
-        return self.cols, self.top_x, self.rest
+        return self.cols, self.top_x if self.base is None else self.top_x + self.base, self.rest
+
+    def stored_base(self) -> torch.Tensor:
+        """:attr:`base` in the unit the posterior is applied in (after the level and anchor)."""
+        assert self.base is not None and self.level is not None
+        return self.base * torch.pow(10.0, self.level / 10.0)[:, None]
 
 
 @dataclass
@@ -287,6 +312,10 @@ class _Fit:
     num_cells: int
     render: RenderFn
     columns: ColumnsFn
+    visible: torch.Tensor | None = None
+    """bool ``[C, N]``: the bins of the angle grid each cell's APS may hold (WNOMP's atoms are searched there)."""
+    atoms: int = 0
+    """WNOMP's atoms per pair that :meth:`chunks` adds to the posterior's candidates (0: none)."""
 
     def render_pairs(self, pairs: torch.Tensor, top: bool, bar: object = None) -> _Rendered:
         """Render ``pairs [P]`` (sorted) ``PAIR_CHUNK`` at a time: their predicted reports and, with ``top``, their
@@ -341,10 +370,16 @@ class _Fit:
         return levels.to(d.rsrp.device)
 
     def chunks(
-        self, rendered: _Rendered, rows: torch.Tensor, levels: torch.Tensor | None, with_columns: bool = True
+        self,
+        rendered: _Rendered,
+        rows: torch.Tensor,
+        levels: torch.Tensor | None,
+        with_columns: bool = True,
+        held: torch.Tensor | None = None,
     ) -> Iterator[_PairChunk]:
         """Rows ``rows`` of ``rendered``, ``PAIR_CHUNK`` at a time: each pair's anchor and, after ``levels`` and
-        anchor, its residuals and (``with_columns``) its strongest bins with their columns."""
+        anchor, its residuals and (``with_columns``) its strongest bins with their columns, and WNOMP's atoms
+        when switched on (fitted on the reports not ``held [P, M]`` aside)."""
         d = self.data
         beam_type = (torch.arange(d.rsrp.shape[1], device=d.rsrp.device) >= self.num_ssb).long()
         for start in range(0, rows.numel(), PAIR_CHUNK):
@@ -365,6 +400,9 @@ class _Fit:
                 chunk.top_bins, chunk.top_x = rendered.top_bins[at].long(), rendered.top_x[at]
                 chunk.cols = self.columns(cells, chunk.top_bins)
                 chunk.rest = (pred - torch.einsum("bmk,bk->bm", chunk.cols, chunk.top_x)).clamp_min(0.0)
+                if self.atoms:
+                    level = levels[cells, 0] if levels is not None else torch.zeros_like(anchor)
+                    self._add_atoms(chunk, level + anchor if self.cfg.pair_anchors else level, held)
             yield chunk
 
     def corrected_chunks(
@@ -394,6 +432,61 @@ class _Fit:
             more = self.render_pairs(part, top=with_columns, bar=bar)
             yield from self.chunks(more, torch.arange(part.numel(), device=part.device), levels, with_columns)
             slowest = max(slowest, clock() - begun)
+
+    def _add_atoms(self, chunk: _PairChunk, level: torch.Tensor, held: torch.Tensor | None) -> None:
+        """Add WNOMP's atoms of the chunk's reports (not ``held`` aside) to its candidate bins; ``level [B]`` [dB]:
+        the corrections before the posterior (the reports are that much above the field's own unit)."""
+        assert chunk.top_bins is not None and chunk.top_x is not None and chunk.cols is not None
+        assert chunk.rest is not None
+        if self.visible is None:
+            raise ValueError("WNOMP's atoms need the bins each cell may hold")
+        d, cells, visible = self.data, self.data.cell_index[chunk.pairs], self.visible.to(chunk.mask.device)
+        every = torch.arange(visible.shape[1], device=cells.device)[None]
+        mask = chunk.mask if held is None else chunk.mask & ~held[chunk.pairs.cpu()].to(chunk.mask.device)
+        atom_bins, atom_x = wnomp_atoms(  # columns of the bins a cell cannot hold are zero: never an atom
+            lambda c: self.columns(torch.tensor([c], device=cells.device), every)[0] * visible[c],
+            cells,
+            d.rsrp[chunk.pairs],
+            mask,
+            self.atoms,
+        )
+        centre = atom_x * torch.pow(10.0, -(level[:, None] + WNOMP_PRIOR_DB) / 10.0)
+        bins, x, base = with_atoms(chunk.top_bins, chunk.top_x, atom_bins, centre.to(chunk.top_x.dtype))
+        cols = torch.cat([chunk.cols, self.columns(cells, bins[:, chunk.top_bins.shape[1] :])], 2)
+        field = torch.einsum("bmk,bk->bm", cols, x) + chunk.rest
+        raised = field + torch.einsum("bmk,bk->bm", cols, base)
+        chunk.resid = chunk.resid - 10.0 * torch.log10(raised.clamp_min(1e-30) / field.clamp_min(1e-30))
+        chunk.top_bins, chunk.top_x, chunk.cols, chunk.base, chunk.level = bins, x, cols, base, level
+
+
+def _choose(
+    fit: _Fit, rendered: _Rendered, rows: torch.Tensor, levels: torch.Tensor | None, held: torch.Tensor
+) -> tuple[int, float, dict[float, float], dict[int, float]]:
+    """The posterior's WNOMP atoms per pair (0 or, with ``wnomp_atoms``, one of ``WNOMP_ATOMS``) and λ with the
+    least error on the ``held`` aside reports of ``rows``, the held-aside MAE [dB] of each λ with those atoms
+    (∞: no posterior, which is always a candidate) and, with ``wnomp_atoms``, the least over λ of each number of
+    atoms."""
+    choices: dict[int, LambdaChoice] = {}
+    for atoms in (0, *WNOMP_ATOMS) if fit.cfg.wnomp_atoms else (0,):
+        fit.atoms, choice = atoms, LambdaChoice()
+        for chunk in fit.chunks(rendered, rows, levels, held=held):
+            choice.add(*chunk.fit_inputs(), chunk.resid, chunk.mask, held[chunk.pairs.cpu()].to(chunk.resid.device))
+        choices[atoms] = choice
+    fit.atoms = 0
+    # λ = ∞ is no posterior: the field without atoms (with atoms, the ∞ entry would be the atoms at their centres)
+    candidates = [
+        (mae, -lam, atoms, lam)
+        for atoms, choice in choices.items()
+        for lam, mae in choice.mae_db().items()
+        if atoms == 0 or math.isfinite(lam)
+    ]
+    if not candidates:
+        return 0, math.inf, {}, {}
+    _, _, atoms, lam = min(candidates)
+    scores = choices[atoms].mae_db()
+    scores[math.inf] = choices[0].mae_db().get(math.inf, math.inf)
+    per_atoms = {a: min(c[0] for c in candidates if c[2] == a and math.isfinite(c[3])) for a in choices}
+    return atoms, lam, scores, per_atoms if fit.cfg.wnomp_atoms else {}
 
 
 def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:

@@ -53,6 +53,11 @@ from rflscm.models.rflscm.config import (
 )
 from rflscm.render import PackedSamples, accumulate_power, join_queries, transmittance
 
+DECODER_BLOCK = 8192
+"""(query, sample) pairs the decoder evaluates at a time without gradients on a CPU: its per-pair tensors (the widest,
+``[J, hidden]`` and the pair inputs) then stay about 2–4 MB (issue 29: 8192 measured fastest of 2048…32768 and all
+at once; the results do not depend on it)."""
+
 
 @dataclass(frozen=True)
 class SceneFrame:
@@ -179,6 +184,17 @@ class Queries:
     grid_xyz: torch.Tensor  # [Qn, 3] [m]
 
 
+@dataclass
+class _RayPart:
+    """What the decoder computes once per sample or per query, before the per-(query, sample) part."""
+
+    sample: torch.Tensor  # [L, hidden] first layer's per-sample part (with its bias)
+    query: torch.Tensor  # [Qn, hidden] first layer's per-query part
+    radius: torch.Tensor  # [Qn] cone radius of the query's ray [rad]
+    direction: torch.Tensor | None  # [Qn, 3] the query's ray direction (pair inputs only)
+    log_wl: torch.Tensor  # [Qn] log(λ / λ_ref)
+
+
 class RadianceDecoder(nn.Module):
     """𝒬: [𝓜(p), PE(ω), conditioning on the grid and λ] → complex R (2 outputs).
 
@@ -251,11 +267,11 @@ class RadianceDecoder(nn.Module):
             half = half / half.norm(dim=-1, keepdim=True).clamp_min(1e-6)
             assert self.pair_in is not None
             out = to_grid.new_empty(self.pair_in.in_features, to_grid.shape[0])  # transposed: parts in whole rows
-            row = 0
-            for x, freqs in ((to_grid, DIR_FREQS), (half, DIR_FREQS), (logs, POS_FREQS)):
-                width = encoded_dim(x.shape[-1], freqs)
-                positional_encoding_t(x, freqs, out[row : row + width])
-                row += width
+            row = 2 * encoded_dim(3, DIR_FREQS)
+            positional_encoding_t(torch.stack((to_grid, half)), DIR_FREQS, out[:row])  # both in one pass
+            width = encoded_dim(3, POS_FREQS)
+            positional_encoding_t(logs, POS_FREQS, out[row : row + width])
+            row += width
             if surface is None:
                 out[row:] = 0.0
             else:
@@ -275,31 +291,70 @@ class RadianceDecoder(nn.Module):
         join_sample: torch.Tensor,
         grid_features: torch.Tensor,
         surface: torch.Tensor | None = None,
+        block: int | None = None,
     ) -> torch.Tensor:
         """Complex R ``[J]`` for (query, sample) pairs ``join_query, join_sample [J]``, from per-sample features
         ``[L, D]``, positions ``[L, 3]`` [m], along-ray distances ``[L]`` [m], ``grid_features`` 𝓜(p_l)
-        per query ``[Qn, D]`` and with ``surface`` the structure tensors per sample ``[L, 6]``."""
+        per query ``[Qn, D]`` and with ``surface`` the structure tensors per sample ``[L, 6]``.
+
+        The per-sample and per-query parts of the first layer are computed once; the per-pair part runs over
+        the J pairs at once, or ``block`` pairs at a time (inference: every per-pair tensor then stays a few MB,
+        in cache and off the page-fault path of fresh large allocations; each pair's value is the same)."""
+        ray_part = _RayPart(
+            self.sample_in(features),
+            self.query_in(self._query_inputs(rays, queries, grid_features)),
+            rays.radius_rad[queries.ray],
+            rays.direction[queries.ray] if self.pair_in is not None else None,
+            torch.log(rays.wavelength_m / self.frame.reference_wavelength_m)[queries.ray],
+        )
+        num = join_query.numel()
+        if block is None or num <= block:
+            return self._pairs(ray_part, points, along_m, queries, join_query, join_sample, surface)
+        return torch.cat(
+            [
+                self._pairs(
+                    ray_part, points, along_m, queries, join_query[a : a + block], join_sample[a : a + block], surface
+                )
+                for a in range(0, num, block)
+            ]
+        )
+
+    def _pairs(
+        self,
+        part: _RayPart,
+        points: torch.Tensor,
+        along_m: torch.Tensor,
+        queries: Queries,
+        join_query: torch.Tensor,
+        join_sample: torch.Tensor,
+        surface: torch.Tensor | None,
+    ) -> torch.Tensor:
+        """Complex R of the (query, sample) pairs ``join_query, join_sample`` given the per-sample and per-query
+        parts ``part`` (see :meth:`forward`)."""
         # gathers over the J (query, sample) pairs use index_select: 3–5× faster than indexing on CPU
         frame = self.frame
         along = along_m.index_select(0, join_sample)
         offset = queries.grid_xyz.index_select(0, join_query) - points.index_select(0, join_sample)
         dist = offset.norm(dim=-1).clamp_min(1e-3)
-        radius = rays.radius_rad[queries.ray].index_select(0, join_query)
+        radius = part.radius.index_select(0, join_query)
         footprint = (along * radius).clamp_min(self.step_m)  # cone radius [m]
         miss = torch.log1p(dist / footprint)  # how far the grid lies outside the ray's cone
-        query = self.query_in(self._query_inputs(rays, queries, grid_features))
         # [J, hidden] is the widest tensor of a step: summed and rectified in place (no op here needs its output
         # kept for the backward pass but the ReLU, which keeps its own result)
-        hidden = self.sample_in(features).index_select(0, join_sample)
-        hidden += query.index_select(0, join_query)
+        hidden = part.sample.index_select(0, join_sample)
+        hidden += part.query.index_select(0, join_query)
         if self.pair_in is not None:
-            direction = rays.direction[queries.ray].index_select(0, join_query)
+            assert part.direction is not None
+            direction = part.direction.index_select(0, join_query)
             surface_j = None if surface is None else surface.index_select(0, join_sample)
             pair = self._pair_inputs(offset / dist[:, None], dist, along, miss, direction, surface_j)
-            hidden += self.pair_in(pair)
+            if torch.is_grad_enabled():
+                hidden += self.pair_in(pair)
+            else:  # one BLAS call adds the product in place (the same sums, to the bit; no [J, hidden] temporary)
+                hidden.addmm_(pair, self.pair_in.weight.T)
         out = self.mlp(hidden.relu_())  # [J, 2]
         # free-space amplitude ∝ λ / d
-        log_wl = torch.log(rays.wavelength_m / frame.reference_wavelength_m)[queries.ray].index_select(0, join_query)
+        log_wl = part.log_wl.index_select(0, join_query)
         log_spread = log_wl + torch.log(frame.reference_distance_m / (along + dist).clamp_min(self.step_m))
         log_spread = log_spread - self.source_decay * miss  # the grid is the source: (1 + d₂/w)^−γ, w the cone radius
         return torch.exp(torch.complex(out[:, 0] + self.log_amp0 + log_spread, out[:, 1]))
@@ -358,8 +413,10 @@ class RadianceStage(nn.Module):
         grid_features = self.fields.features(self.fields.encode(queries.grid_xyz))
         wants_surface = self.surfaces_fn is not None and self.decoder.pair_in is not None
         surface = self.surfaces_fn(points[live]) if wants_surface and self.surfaces_fn is not None else None
+        cpu_inference = not torch.is_grad_enabled() and queries.grid_xyz.device.type == "cpu"
+        block = DECODER_BLOCK if cpu_inference else None  # a GPU wants its batches whole
         radiance = self.decoder(
-            features, points[live], along[live], rays, queries, join_query, join_sample, grid_features, surface
+            features, points[live], along[live], rays, queries, join_query, join_sample, grid_features, surface, block
         )
         return accumulate_power(weight.index_select(0, join_sample) * radiance, join_query, queries.ray.numel())
 

@@ -468,6 +468,7 @@ class RFLSCM(LSCMModel):
             progress,
             time_left,
             clock,
+            visible=torch.as_tensor(self.scene.visible, device=self.device),
         )
         cfg = self.config.corrections
         if cfg.pair_anchors or cfg.pair_posterior:  # per-pair corrections: how many pairs the pass reached
@@ -490,8 +491,9 @@ class RFLSCM(LSCMModel):
             lambda pairs: self._render_training(pairs, final),
             train.columns,
             clock,
+            torch.as_tensor(self.scene.visible, device=self.device),
         )
-        return PassCost(per_pair * pass_pairs(train.data), per_pair)
+        return PassCost(per_pair * pass_pairs(self.config.corrections, train.data), per_pair)
 
     @torch.no_grad()
     def _render_training(

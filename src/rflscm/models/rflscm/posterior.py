@@ -19,6 +19,7 @@ data never reported (unseen grids, other carriers) keep the field's APS.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,6 +41,14 @@ LAMBDA_PAIRS = 512
 """λ is chosen on this many training pairs (spread over the pairs' order, which groups them by cell)."""
 MAX_GAIN_DB = 30.0
 """A bin's gain is kept within ±30 dB (the reports of one pair cannot justify more)."""
+WNOMP_ATOMS = (2, 4)
+"""Atoms per pair WNOMP may add to the posterior's candidate bins (``corrections.wnomp_atoms``), chosen with λ on
+held-aside reports among these and none."""
+WNOMP_TOLERANCE = 0.01
+"""WNOMP keeps an atom that lowers its weighted residual by this share (the WNOMP model's default)."""
+WNOMP_PRIOR_DB = 10.0
+"""Where the field has less there, a WNOMP atom's prior centre is WNOMP's power this far down: a pair needs the
+evidence of many reports (the ridge's λ v²) to raise it to WNOMP's fit, a pair with few keeps the field."""
 _DB = 10.0 / math.log(10.0)
 
 
@@ -89,6 +98,54 @@ def predicted_change_db(cols: torch.Tensor, x: torch.Tensor, rest: torch.Tensor,
     return 10.0 * torch.log10(f / f0)
 
 
+def wnomp_atoms(
+    matrix: Callable[[int], torch.Tensor],
+    cells: torch.Tensor,
+    rsrp: torch.Tensor,
+    mask: torch.Tensor,
+    k_max: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """WNOMP's support of each pair's reports: bins ``[B, k_max]`` (−1: none) and path gains ``[B, k_max]``.
+
+    Args:
+        matrix: cell index → its sensing matrix ``[M, N]``, the columns the model predicts its reports with.
+        cells: each pair's cell index ``[B]``.
+        rsrp: the reports ``[B, M]`` in the unit of the matrix times the APS (linear).
+        mask: ``[B, M]`` the reports WNOMP may read (the others are left out of its fit).
+        k_max: atoms per pair at most.
+    """
+    from rflscm.models.wnomp_solver import wnomp_solve
+
+    bins = torch.full((rsrp.shape[0], k_max), -1, dtype=torch.long, device=rsrp.device)
+    gains = torch.zeros(rsrp.shape[0], k_max, dtype=rsrp.dtype, device=rsrp.device)
+    r = torch.where(mask, rsrp, torch.full_like(rsrp, math.nan))
+    for cell in cells.unique().tolist():  # one solve per cell: its pairs share the matrix
+        rows = torch.nonzero(cells == cell).squeeze(1)
+        idx, val = wnomp_solve(matrix(int(cell)), r[rows], k_max=k_max, tolerance=WNOMP_TOLERANCE)
+        bins[rows], gains[rows] = idx, val.to(rsrp.dtype)
+    return bins, gains
+
+
+def with_atoms(
+    bins: torch.Tensor, x: torch.Tensor, atom_bins: torch.Tensor, atom_x: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The candidate bins of the posterior with atoms added: ``(bins [B, n + k], x [B, n + k], base [B, n + k])``.
+
+    ``bins [B, n]`` and ``x [B, n]`` are the field's bins and APS there, ``atom_bins [B, k]`` (−1: none) and
+    ``atom_x [B, k]`` each atom's prior centre.  Each candidate's prior centre is ``x + base``: the field's value,
+    raised to the atom's where an atom has more (``base`` ≥ 0 is what is added).  An atom on one of the field's
+    bins raises that bin and leaves its own column empty (bin repeated, centre 0: its gain stays 0)."""
+    n = bins.shape[1]
+    hit = atom_bins[:, :, None] == bins[:, None, :]  # [B, k, n]
+    on_field = hit.any(2)
+    raise_to = torch.where(hit, atom_x[:, :, None], torch.zeros_like(x[:, None, :])).amax(1)  # [B, n]
+    base = torch.cat([(raise_to - x).clamp_min(0.0), torch.where(on_field | (atom_bins < 0), 0.0, atom_x)], 1)
+    out_bins = torch.cat([bins, torch.where(on_field | (atom_bins < 0), bins[:, :1], atom_bins)], 1)
+    out_x = torch.cat([x, torch.zeros_like(atom_x)], 1)
+    assert out_bins.shape[1] == n + atom_bins.shape[1]
+    return out_bins, out_x, base
+
+
 @dataclass
 class LambdaChoice:
     """Held-aside error sums per candidate λ (``inf``: no posterior), accumulated over chunks of pairs."""
@@ -131,13 +188,17 @@ class LambdaChoice:
 class PairPosterior:
     """Per-pair bin gains of the training pairs: ``bins [P, n]`` (fine bin ids) and ``gain_db [P, n]``,
     row ``i`` belonging to pair ``index[i]`` = (cell_id, grid_id); ``lam`` is the chosen λ and ``scores`` the
-    held-aside MAE [dB] of every candidate."""
+    held-aside MAE [dB] of every candidate; ``base [P, n]`` (with WNOMP's atoms, else None) is the APS (in the unit
+    :meth:`apply` sees) added at each bin before its gain: an atom where the field has less; ``atom_scores`` the
+    least held-aside MAE [dB] over λ for each number of WNOMP atoms the choice considered (empty without them)."""
 
     index: pd.MultiIndex
     bins: torch.Tensor
     gain_db: torch.Tensor
     lam: float
     scores: dict[float, float]
+    base: torch.Tensor | None = None
+    atom_scores: dict[int, float] = field(default_factory=dict)
 
     def apply(self, aps: torch.Tensor, cell_ids: np.ndarray, grid_ids: np.ndarray) -> torch.Tensor:
         """``aps [N, K]`` of pairs (``cell_ids``, ``grid_ids`` [N]) with each training pair's gains applied."""
@@ -153,10 +214,14 @@ class PairPosterior:
             return aps
         src = torch.as_tensor(at[rows], dtype=torch.long)
         gain_db = torch.zeros(rows.size, aps.shape[1], dtype=aps.dtype, device=aps.device)
-        gain_db.scatter_add_(1, self.bins[src].to(aps.device), self.gain_db[src].to(aps.device, aps.dtype))
+        bins = self.bins[src].to(aps.device)
+        gain_db.scatter_add_(1, bins, self.gain_db[src].to(aps.device, aps.dtype))
         out = aps.clone()
         dst = torch.as_tensor(rows, dtype=torch.long, device=aps.device)
-        out[dst] = aps[dst] * torch.pow(10.0, gain_db / 10.0)
+        before = aps[dst]
+        if self.base is not None:
+            before = before.scatter_add(1, bins, self.base[src].to(aps.device, aps.dtype))
+        out[dst] = before * torch.pow(10.0, gain_db / 10.0)
         return out
 
     def to_state(self) -> dict[str, object]:
@@ -167,6 +232,8 @@ class PairPosterior:
             "gain_db": self.gain_db.to(torch.float16).cpu().clone(),
             "lam": float(self.lam),
             "scores": {str(k): float(v) for k, v in self.scores.items()},
+            "base": self.base.float().cpu().clone() if self.base is not None else None,
+            "atom_scores": {str(k): float(v) for k, v in self.atom_scores.items()},
         }
 
     @classmethod
@@ -192,6 +259,15 @@ class PairPosterior:
             bins.numel() and (int(bins.min()) < 0 or int(bins.max()) >= num_bins)
         ):
             raise CheckpointError(f"{damaged} (non-finite gains or bins off the angle grid); retrain the model.")
+        base = state.get("base")
+        if base is not None:
+            try:
+                base = torch.as_tensor(base).float()
+            except (TypeError, ValueError, RuntimeError):
+                raise CheckpointError(f"{damaged} (not numeric); retrain the model.") from None
+            if base.shape != bins.shape or not bool(torch.isfinite(base).all()) or bool((base < 0).any()):
+                raise CheckpointError(f"{damaged} (atoms' APS of another shape, negative or non-finite); retrain.")
         index = pd.MultiIndex.from_arrays([cells.numpy(), grids.numpy()], names=["cell_id", "grid_id"])
         scores = {float(k): float(v) for k, v in dict(state.get("scores") or {}).items()}  # type: ignore[call-overload]
-        return cls(index, bins, gain, lam, scores)
+        atom_scores = {int(k): float(v) for k, v in dict(state.get("atom_scores") or {}).items()}  # type: ignore[call-overload]
+        return cls(index, bins, gain, lam, scores, base, atom_scores)

@@ -106,15 +106,21 @@ class APSRenderer:
         return self.cache.cells
 
     def ray_samples(self, kind: RayKind) -> RaySet:
-        """The rays of ``kind`` with their stored samples (built once)."""
+        """The rays of ``kind`` with their stored samples (built once): those of the directions each cell sees
+        (:meth:`visible`); the others, never rendered, are stored empty (issue 29: about half the directions, so
+        half the build time and memory)."""
         rays = self._rayset(kind)
         if rays.samples is None:
             xyz, _ = self.cells()
             frame, cfg = self.scene.frame, self.config
-            parts = [
-                build_ray_samples(xyz[c], rays.directions, frame.num_samples, cfg.render.step_m, self.prior, 0.0)
-                for c in range(xyz.shape[0])
-            ]
+            visible = self.visible(kind).cpu()
+            parts = []
+            for c in range(xyz.shape[0]):
+                seen = torch.nonzero(visible[c]).squeeze(1)
+                part = build_ray_samples(
+                    xyz[c], rays.directions[seen.to(self.device)], frame.num_samples, cfg.render.step_m, self.prior, 0.0
+                )
+                parts.append(part.spread(seen, visible.shape[1]))
             rays.samples = RaySamples.concat(parts).to(self.device)
             rays.live = rays.samples.live_counts()
         return rays

@@ -1,0 +1,112 @@
+"""Variants of RF-LSCM's post-training corrections on one trained B1 quick model (issue 28).
+
+The corrections (level, anchors, posterior) are fitted after training from the trained field, so a variant of
+them needs no new training: train once (``train``), then refit and evaluate only the corrections (``refit``).
+Each row is B1 quick's round-2 MAE [dB] (SSB / CSI-RS × all / changed cells) of RF-LSCM with the variant, next to
+WNOMP at its selected settings (as B1 and ``rflscm demo`` choose them) and the difference RF-LSCM − WNOMP.
+
+Usage (from the repository root, one thread: deterministic and independent of the machine's load):
+
+    PYTHONPATH=src python experiments/posterior_variants.py train SCENARIO OUT.pt [SEED]
+    PYTHONPATH=src python experiments/posterior_variants.py refit SCENARIO OUT.pt '{}' '{"wnomp_atoms": true}' ...
+
+``train`` runs B1 quick's RF-LSCM (training seed SEED, default 0; 1500 steps) and WNOMP on ``SCENARIO`` and saves the trained model with
+both MAE tables to ``OUT.pt``; ``refit`` lays each JSON object over the model's ``corrections`` config section,
+refits the corrections and prints one ``RESULT {json}`` line per variant.  Keys that start with ``_`` set the
+posterior's constants for that variant instead: ``_prior_db`` (``WNOMP_PRIOR_DB``), ``_atoms`` (``WNOMP_ATOMS``, a list),
+``_lambdas`` (the candidate λ list), ``_force`` (drop λ = ∞, no posterior, from the choice).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from rflscm.bench import BenchContext
+from rflscm.bench.harness import load_bench_data, quick_size, train_and_evaluate
+from rflscm.eval import AdjustProtocol, run_evaluation
+from rflscm.eval.cache import APSCache
+from rflscm.models.rflscm.posterior import LambdaChoice
+
+ROWS = [(bt, which) for bt in ("ssb", "csi") for which in ("all", "changed")]
+
+
+def _table(mae: dict) -> dict[str, float]:
+    return {f"{bt}_{which}": round(float(mae[bt][which]), 3) for bt, which in ROWS}
+
+
+def _data(scenario: str):
+    return load_bench_data(BenchContext("quick", 1, Path("/tmp/posterior_variants"), "cpu", scenario), quick_size())
+
+
+def train(scenario: str, out: str, seed: int = 0) -> None:
+    data = _data(scenario)
+    run = train_and_evaluate(data, "rflscm", AdjustProtocol(), seed=seed)
+    wnomp = train_and_evaluate(data, "wnomp", AdjustProtocol(), seed=0)
+    saved = {
+        "model": run.model,
+        "rflscm": _table(run.metrics["mae_db"]),
+        "wnomp": _table(wnomp.metrics["mae_db"]),
+        "oracle": _table(run.metrics["oracle_mae_db"]),
+        "train_time_s": run.train_time_s,
+    }
+    torch.save(saved, out)
+    print("TRAINED", json.dumps({k: v for k, v in saved.items() if k != "model"}), flush=True)
+
+
+class _Forced(LambdaChoice):
+    """A λ choice without λ = ∞ (``_force``): the posterior is applied whatever the held-aside reports say."""
+
+    def mae_db(self) -> dict[float, float]:
+        return {k: v for k, v in super().mae_db().items() if math.isfinite(k)}
+
+
+def refit(scenario: str, path: str, variants: list[dict]) -> None:
+    data = _data(scenario)
+    saved = torch.load(path, weights_only=False)
+    model, wnomp = saved["model"], saved["wnomp"]
+    print("WNOMP", json.dumps(wnomp), "TRAINED-WITH", json.dumps(saved["rflscm"]), flush=True)
+    base = model.config
+    from rflscm.models.rflscm import corrections as module
+    from rflscm.models.rflscm import posterior as post_mod
+
+    for variant in variants:
+        consts = {k: v for k, v in variant.items() if k.startswith("_")}
+        module.WNOMP_PRIOR_DB = float(consts.get("_prior_db", post_mod.WNOMP_PRIOR_DB))
+        module.WNOMP_ATOMS = tuple(consts.get("_atoms", post_mod.WNOMP_ATOMS))
+        choice_class = _Forced if consts.get("_force") else post_mod.LambdaChoice
+        module.LambdaChoice = functools.partial(choice_class, lambdas=tuple(consts.get("_lambdas", post_mod.LAMBDAS)))
+        knobs = {k: v for k, v in variant.items() if not k.startswith("_")}
+        corrections = dataclasses.replace(base.corrections, **knobs)
+        model.config = dataclasses.replace(base, corrections=corrections)
+        t0 = time.perf_counter()
+        model.finish_training()
+        fit_s = time.perf_counter() - t0
+        mae = _table(run_evaluation(APSCache(model), data.scenario, AdjustProtocol(), oracle=data.oracle).metrics["mae_db"])
+        posterior = model.corrections.posterior
+        row = {
+            "variant": variant,
+            "mae": mae,
+            "minus_wnomp": {k: round(mae[k] - wnomp[k], 3) for k in mae},
+            "lam": None if posterior is None else posterior.lam,
+            "candidates": None if posterior is None else int(posterior.bins.shape[1]),
+            "scores": None if posterior is None else {str(k): round(v, 4) for k, v in posterior.scores.items()},
+            "atom_scores": None if posterior is None else {str(k): round(v, 4) for k, v in posterior.atom_scores.items()},
+            "fit_s": round(fit_s, 1),
+        }
+        print("RESULT", json.dumps(row), flush=True)
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    if sys.argv[1] == "train":
+        train(sys.argv[2], sys.argv[3], int(sys.argv[4]) if len(sys.argv) > 4 else 0)
+    else:
+        refit(sys.argv[2], sys.argv[3], [json.loads(v) for v in sys.argv[4:]])
