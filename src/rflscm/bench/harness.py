@@ -20,18 +20,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
-import pandas as pd
 import torch
 
 from rflscm.bench import BenchContext
 from rflscm.bench.measure import MemoryProbe
 from rflscm.config import load_yaml, to_dict
-from rflscm.data.scenario import OUTSIDE_SSB_COLUMNS
+from rflscm.data.parts import scenario_part
 from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
 
 if TYPE_CHECKING:
-    from rflscm.data.pointcloud import PointCloud
     from rflscm.data.scenario import Scenario
     from rflscm.eval.cache import APSCache
     from rflscm.eval.protocols import Protocol
@@ -272,18 +270,8 @@ def sub_scenario(full: Scenario, size: BenchSize) -> tuple[Scenario, dict[str, A
         d = np.linalg.norm(grids[["x", "y"]].to_numpy()[:, None, :] - site_xy[None], axis=-1).min(1)
         order = np.lexsort((grids["grid_id"].to_numpy(), d))
         grids = grids.iloc[np.sort(order[: size.max_grids])]
-    grids = grids.reset_index(drop=True)
-    m = m[m["grid_id"].isin(grids["grid_id"]).to_numpy()]
-    cells = {r: t[t["cell_id"].isin(keep_cells)].reset_index(drop=True) for r, t in full.cells.items()}
-    cloud = _crop_cloud(full.point_cloud, cells[1], grids, size.crop_margin_m)
-    sub = dataclasses.replace(
-        full,
-        cells=cells,
-        grids=grids,
-        measurements=m.reset_index(drop=True),
-        point_cloud=cloud,
-        outside_ssb=_outside_ssb(full, keep_cells, grids["grid_id"]),
-    )
+    sub = scenario_part(full, keep_cells, grids["grid_id"].to_numpy(), size.crop_margin_m)
+    cloud, m = sub.point_cloud, sub.measurements
     info = {
         "sites": [int(s) for s in sites],
         "cells": keep_cells.tolist(),
@@ -294,33 +282,6 @@ def sub_scenario(full: Scenario, size: BenchSize) -> tuple[Scenario, dict[str, A
         "full_grids": int(len(full.grids)),
     }
     return sub, info
-
-
-def _outside_ssb(full: Scenario, keep_cells: np.ndarray, grid_ids: pd.Series) -> pd.DataFrame:
-    """The reported SSB of the cells a subset leaves out, at its grids: the interference that kept some of the
-    subset's SSB beams undetected (an SS-SINR rule's bound needs it; :mod:`rflscm.data.reporting`)."""
-    m = full.measurements
-    rows = m[
-        (m["beam_type"] == "ssb").to_numpy()
-        & ~m["cell_id"].isin(keep_cells).to_numpy()
-        & m["grid_id"].isin(grid_ids).to_numpy()
-        & m["rsrp_dbm"].notna().to_numpy()
-    ]
-    freq = full.cells[1].set_index("cell_id")["freq_hz"]
-    out = rows.assign(freq_hz=freq.loc[rows["cell_id"]].to_numpy())
-    return out[list(OUTSIDE_SSB_COLUMNS)].reset_index(drop=True)
-
-
-def _crop_cloud(
-    cloud: PointCloud | None, cells: pd.DataFrame, grids: pd.DataFrame, margin_m: float | None
-) -> PointCloud | None:
-    if cloud is None or margin_m is None:
-        return cloud
-    pts = np.concatenate([cells[["x", "y", "z"]].to_numpy(np.float64), grids[["x", "y", "z"]].to_numpy(np.float64)])
-    lo, hi = pts.min(0) - margin_m, pts.max(0) + margin_m
-    lo[2], hi[2] = -np.inf, np.inf  # keep the ground and the roofs
-    inside = np.all((cloud.xyz >= lo) & (cloud.xyz <= hi), axis=1)
-    return type(cloud)(cloud.xyz[inside], cloud.classification[inside])
 
 
 # --- one run -------------------------------------------------------------------------------------------

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.console import Console
@@ -27,6 +29,12 @@ from rflscm.cli.common import (
 )
 from rflscm.cli.overrides import PresetOption, SetOption, model_config
 from rflscm.errors import ConfigError, RflscmError
+from rflscm.parallel.engine import Engine, RayAddressOption, WorkersOption
+
+if TYPE_CHECKING:
+    import torch
+
+    from rflscm.data.scenario import Scenario
 
 
 def protocol_options(
@@ -61,6 +69,61 @@ def interrupted_note(out: Path, scenario: Path) -> str:
         f"the last checkpoint{at} at {out} is kept and marked interrupted; continue it with "
         f"`rflscm train {scenario} --out {out} --resume` and the same options."
     )
+
+
+@dataclass(frozen=True)
+class TiledRun:
+    """The options of a tiled training run (``--tile-sites``)."""
+
+    model: str
+    config: str | dict[str, Any]
+    tile_sites: int
+    device: torch.device
+    seed: int
+    engine: Engine
+    progress: bool
+
+
+def train_tiled(
+    run: TiledRun,
+    scen: Scenario,
+    proto: Any,
+    budget_s: float | None,
+    started: float,
+    out: Path,
+    run_info: dict[str, Any],
+    console: Console,
+) -> None:
+    """Fit a tiled model (:func:`rflscm.train.tiles.fit_tiled`; Ray tasks with more than one worker) and save it."""
+    from rflscm.train.tiles import fit_tiled
+
+    runner = None
+    if run.engine.parallel:
+        from rflscm.parallel.tiles import ray_runner
+
+        runner = ray_runner(run.engine, gpus=run.device.type == "cuda")
+    tiled = fit_tiled(
+        run.model,
+        run.config,
+        scen,
+        proto,
+        run.tile_sites,
+        budget_s=budget_s,
+        started=started,
+        device=run.device,
+        seed=run.seed,
+        runner=runner,
+        report=console.print,
+        progress=run.progress,
+        run_info=run_info,
+    )
+    tiled.run_info["fit"]["train_time_s"] = time.perf_counter() - started
+    tiled.save(out)
+    elapsed = time.perf_counter() - started
+    tiles = len(tiled.tiles)
+    console.print(f"wrote {out} ({tiles} tiles, {len(tiled.cell_ids)} cells) in {elapsed:.1f} s")
+    if budget_s is not None:
+        console.print(f"{elapsed:.1f} s in all of a {budget_s / 60:g}-minute budget")
 
 
 class ModelName(StrEnum):
@@ -104,6 +167,16 @@ def train(
         "ramp follow the elapsed fraction of the budget, `train.steps` is the nominal schedule's length.",
     ),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
+    tile_sites: int = typer.Option(
+        0,
+        "--tile-sites",
+        min=0,
+        metavar="K",
+        help="Split the network into tiles of about K sites, one model each, saved as one tiled model "
+        "(count of sites; 0: one model for the whole network).",
+    ),
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
     device: Device = DeviceOption,
     seed: int = SeedOption,
     force: bool = ForceOption,
@@ -136,8 +209,39 @@ def train(
         raise ConfigError(f"--resume needs an existing checkpoint at {out}; train without --resume first.")
     seed_everything(seed)
     dev = resolve_device(device)
+    engine = Engine(workers, ray_address)
+    if tile_sites == 0 and engine.parallel:
+        raise ConfigError("--workers and --ray-address train tiles in parallel: give --tile-sites K as well.")
+    if tile_sites > 0 and resume:
+        raise ConfigError("--resume does not apply to a tiled model (--tile-sites); train it again without --resume.")
     scen = load_scenario(scenario)
     proto = make_protocol(protocol, **protocol_options(protocol, holdout, train_percent, other_carriers, split_seed))
+    if tile_sites > 0:
+        run_info = {"seed": seed, "config": config}
+        if sets or preset is not None:
+            run_info["config_overrides"] = {"preset": preset, "set": list(sets)}
+        where = f"{workers} Ray workers" if engine.parallel else "in turn"
+        console.print(
+            f"training [bold]{model}[/bold] ({config}) on {scen.meta.name!r} with protocol {protocol} on {dev}, "
+            f"in tiles of about {tile_sites} sites ({where})"
+        )
+        probe = MODEL_REGISTRY[model].build(model_config(model, config, preset, sets), AngleGrid(), dev)
+        if budget_s is not None and not isinstance(probe, Trainable):
+            console.print(f"note: --minutes does not apply to {model} (it is not trained step by step); ignored.")
+            budget_s = None
+        elif budget_s is not None:
+            console.print(f"time budget: {minutes:g} min for every tile together (data preparation included)")
+        train_tiled(
+            TiledRun(model, model_config(model, config, preset, sets), tile_sites, dev, seed, engine, progress),
+            scen,
+            proto,
+            budget_s,
+            t0,
+            out,
+            run_info,
+            console,
+        )
+        return
     fitted = MODEL_REGISTRY[model].build(model_config(model, config, preset, sets), AngleGrid(), dev)
     fitted.run_info["seed"] = seed
     fitted.run_info["config"] = config

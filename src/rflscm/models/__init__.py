@@ -6,5 +6,6 @@ from rflscm.models import (
 )
 from rflscm.models.base import MODEL_REGISTRY, LSCMModel, UnsupportedError, load_model, register_model
 from rflscm.models.rflscm import RFLSCM  # noqa: F401  (registers "rflscm")
+from rflscm.models.tiled import TiledModel  # noqa: F401  (registers "tiled")
 
 __all__ = ["MODEL_REGISTRY", "LSCMModel", "UnsupportedError", "load_model", "register_model"]
