@@ -180,6 +180,21 @@ def site_groups(paths: pd.DataFrame) -> dict[tuple[int, float], pd.DataFrame]:
     return {(int(s), float(f)): g for (s, f), g in paths.groupby(["site_id", "freq_hz"], sort=True)}
 
 
+def cell_rsrp_dbm(
+    scenario: Scenario,
+    cell_id: int,
+    beam_type: str,
+    round: int,
+    paths: pd.DataFrame,
+    grid_ids: np.ndarray,
+    points_per_grid: np.ndarray | int,
+) -> np.ndarray:
+    """Noiseless RSRP [dBm] ``[grids, beams]`` of ``cell_id``'s ``beam_type`` beams in ``round`` from its site's
+    ``paths`` at ``grid_ids`` (:func:`path_rsrp_mw` through the round's antenna and codebook)."""
+    antenna, codebook = scenario.antenna(cell_id, round), scenario.codebook(cell_id, beam_type, round)
+    return to_dbm(path_rsrp_mw(paths, antenna, codebook, scenario.wavelength_m(cell_id), grid_ids, points_per_grid))
+
+
 def noiseless_rsrp(scenario: Scenario, paths: pd.DataFrame, points_per_grid: pd.Series | int) -> pd.DataFrame:
     """True RSRP of every (round, cell, grid, beam) before noise, quantisation and threshold.
 
@@ -205,15 +220,8 @@ def noiseless_rsrp(scenario: Scenario, paths: pd.DataFrame, points_per_grid: pd.
             sub = groups.get((int(row["site_id"]), float(row["freq_hz"])), empty)
             for beam_type in BEAM_TYPES:
                 if not unchanged:
-                    done[(int(cell_id), beam_type)] = to_dbm(
-                        path_rsrp_mw(
-                            sub,
-                            scenario.antenna(cell_id, rnd),
-                            scenario.codebook(cell_id, beam_type, rnd),
-                            scenario.wavelength_m(cell_id),
-                            grid_ids,
-                            points_per_grid,
-                        )
+                    done[(int(cell_id), beam_type)] = cell_rsrp_dbm(
+                        scenario, int(cell_id), beam_type, rnd, sub, grid_ids, points_per_grid
                     )
                 frames.append(_long(done[(int(cell_id), beam_type)], rnd, int(cell_id), grid_ids, beam_type))
     return pd.concat(frames, ignore_index=True)

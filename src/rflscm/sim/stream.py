@@ -33,9 +33,8 @@ from rflscm.sim.paths import (
     PATHS_FILE,
     RSRP_FILE,
     bin_paths,
-    path_rsrp_mw,
+    cell_rsrp_dbm,
     site_groups,
-    to_dbm,
 )
 
 if TYPE_CHECKING:
@@ -329,16 +328,7 @@ def stream_ideal(
                         empty_paths = store.frame().iloc[:0]
                     sub = empty_paths
                 noiseless = {
-                    beam_type: to_dbm(
-                        path_rsrp_mw(
-                            sub,
-                            scenario.antenna(cell_id, rnd),
-                            scenario.codebook(cell_id, beam_type, rnd),
-                            scenario.wavelength_m(cell_id),
-                            grid_ids,
-                            counts,
-                        )
-                    )
+                    beam_type: cell_rsrp_dbm(scenario, int(cell_id), beam_type, rnd, sub, grid_ids, counts)
                     for beam_type in BEAM_TYPES
                 }
                 reported = {bt: model.apply(noiseless[bt], rng) for bt in BEAM_TYPES}  # draws in table order
