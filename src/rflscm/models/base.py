@@ -54,6 +54,7 @@ __all__ = [
     "TrainingPlan",
     "UnsupportedError",
     "load_model",
+    "model_from_payload",
     "read_checkpoint",
     "register_model",
 ]
@@ -397,6 +398,20 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return payload
 
 
+def model_from_payload(payload: dict[str, Any], device: torch.device | str = "cpu") -> LSCMModel:
+    """The fitted model a checkpoint payload describes (``model``, ``state``, ``angle_grid``, ``fingerprint``,
+    ``run_info``, as :meth:`LSCMModel.save` writes them), checked (:meth:`LSCMModel.check_loaded`); the model's
+    name must be registered."""
+    import rflscm.models  # noqa: F401  (fills the registry)
+
+    model = MODEL_REGISTRY[str(payload["model"])].from_checkpoint(payload["state"], device=device)
+    model.angle_grid = AngleGrid.from_dict(payload["angle_grid"])
+    model.fingerprint = payload.get("fingerprint")
+    model.run_info = dict(payload.get("run_info") or {})
+    model.check_loaded()
+    return model
+
+
 def load_model(path: str | Path, scenario: Scenario | None = None, device: torch.device | str = "cpu") -> LSCMModel:
     """Load a checkpoint; with ``scenario``, refuse it unless it was fitted on that scenario's round-1 data."""
     import rflscm.models  # noqa: F401  (fills the registry)
@@ -411,11 +426,7 @@ def load_model(path: str | Path, scenario: Scenario | None = None, device: torch
             f"scenario {scenario.meta.name!r} has {scenario.fingerprint()[:12]}…); retrain it on this scenario."
         )
     try:  # last-resort guard over reading a file: the hash passed, so this is a consistent but foreign layout
-        model = MODEL_REGISTRY[name].from_checkpoint(payload["state"], device=device)
-        model.angle_grid = AngleGrid.from_dict(payload["angle_grid"])
-        model.fingerprint = payload["fingerprint"]
-        model.run_info = dict(payload.get("run_info") or {})
-        model.check_loaded()
+        model = model_from_payload(payload, device)
     except RflscmError as exc:
         raise CheckpointError(f"{path}: {exc}") from None
     except (KeyError, IndexError, TypeError, ValueError, RuntimeError, AttributeError) as exc:

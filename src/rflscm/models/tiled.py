@@ -23,7 +23,7 @@ import torch
 
 from rflscm.errors import CheckpointError, UnsupportedError
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import LSCMModel, register_model
+from rflscm.models.base import LSCMModel, model_from_payload, register_model
 
 if TYPE_CHECKING:
     from rflscm.data.parts import Tile
@@ -198,12 +198,7 @@ class TiledModel(LSCMModel):
                     f"holds {name!r} (a tile is one of {', '.join(sorted(set(MODEL_REGISTRY) - {cls.name}))}); "
                     "retrain it."
                 )
-            tile = MODEL_REGISTRY[name].from_checkpoint(payload["state"], device=device)
-            tile.angle_grid = AngleGrid.from_dict(payload["angle_grid"])
-            tile.fingerprint = payload.get("fingerprint")
-            tile.run_info = dict(payload.get("run_info") or {})
-            tile.check_loaded()
-            tiles.append(tile)
+            tiles.append(model_from_payload(payload, device))
         grid_ids, grid_xyz = state["grid_ids"].numpy(), state["grid_xyz"].numpy()
         return cls(tiles, [e["sites"] for e in entries], [e["cells"] for e in entries], grid_ids, grid_xyz, device)
 

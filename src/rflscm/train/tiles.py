@@ -31,7 +31,7 @@ from rflscm.config import to_dict
 from rflscm.data.parts import Tile, plan_tiles, tile_scenario
 from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import LSCMModel, to_plain
+from rflscm.models.base import from_plain, model_from_payload, to_plain
 from rflscm.train.trainer import Trainable, checked_budget, fit
 
 if TYPE_CHECKING:
@@ -233,7 +233,7 @@ def fit_tiled(
             report(tile_line(result, len(plan)))
 
     results = (runner or serial_runner)(len(plan), make_job, deadline, done)
-    tiles = [_tile_model(r.payload, device) for r in sorted(results, key=lambda r: r.tile.index)]
+    tiles = [model_from_payload(from_plain(r.payload), device) for r in sorted(results, key=lambda r: r.tile.index)]
     tiled = TiledModel.from_tiles(tiles, plan, scenario.grids, device)
     tiled.fingerprint = scenario.fingerprint()
     tiled.run_info.update(base_info)
@@ -253,17 +253,3 @@ def fit_tiled(
     }
     tiled.run_info["tile_fits"] = per_tile
     return tiled
-
-
-def _tile_model(payload: dict[str, Any], device: torch.device | str) -> LSCMModel:
-    """A tile's model rebuilt from its checkpoint payload (as :func:`rflscm.models.load_model` would)."""
-    from rflscm.models import MODEL_REGISTRY
-    from rflscm.models.base import from_plain
-
-    plain = from_plain(payload)
-    model = MODEL_REGISTRY[str(plain["model"])].from_checkpoint(plain["state"], device=device)
-    model.angle_grid = AngleGrid.from_dict(plain["angle_grid"])
-    model.fingerprint = plain["fingerprint"]
-    model.run_info = dict(plain.get("run_info") or {})
-    model.check_loaded()
-    return model
