@@ -6,8 +6,9 @@ Two views of one thing, in one module, with one key:
   asks for a pair once per beam type (through ``predict_rsrp``) and again for the APS metrics, the benchmarks
   again, ``rflscm predict`` once per beam type; a field model would render each time.  Rows are stored sparse
   (the nonzero bins), so a cache of every test pair fits in memory even at full size.
-* :class:`ScenarioAPS` is the APS of every (cell, grid) pair of a scenario, per cell on the bins any grid uses:
-  what the optimiser searches on (``rflscm optimize --aps-cache``), and the one cache written to disk.
+* :class:`ScenarioAPS` is the APS of every (cell, grid) pair of a scenario within reach (:func:`render_rows`),
+  per cell on the bins any of its grids uses: what the optimiser searches on (``rflscm optimize --aps-cache``),
+  and the one cache written to disk.
 
 A cache file holds tensors, numbers and text only, read with ``torch.load(weights_only=True)`` (nothing is ever
 unpickled), with a SHA-256 over its content and the key of its source (:func:`~rflscm.models.source.
@@ -38,7 +39,13 @@ from rflscm.models.source import APSSource, Predicts, checked_aps, source_sha256
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
 
-CACHE_FORMAT = "rflscm-aps-cache/1"
+CACHE_FORMAT = "rflscm-aps-cache/2"
+"""/2: each cell's APS holds the rows of its grids within reach only (``known``); /1 held every grid's row."""
+
+REACH_MARGIN = 1.25
+"""A field model's APS is rendered at the grids within this × the network's hearing range of a cell
+(:func:`render_rows`): a quarter beyond the farthest round-1 report, where a changed tilt or azimuth may still
+push a cell's signal."""
 
 
 class APSCacheError(RflscmError):
@@ -129,23 +136,74 @@ def _later_duplicates(keys: list[tuple[int, int]]) -> set[int]:
     return later
 
 
-def measured_grids(scenario: Scenario, cell_id: int) -> np.ndarray:
-    """Grids with round-1 measurements of ``cell_id`` (what WNOMP has an APS for), sorted."""
+def _measured_rows(scenario: Scenario) -> list[np.ndarray]:
+    """Per cell (``cell_ids()`` order), the positions in ``grid_ids()`` of its measured round-1 grids, ascending
+    (one pass over the table)."""
     m = scenario.measurements
-    sel = ((m["round"] == 1) & (m["cell_id"] == cell_id)).to_numpy()
-    return np.unique(m["grid_id"].to_numpy()[sel])
+    cell_ids, grid_ids = scenario.cell_ids(), scenario.grid_ids()
+    r1 = (m["round"] == 1).to_numpy()
+    c = np.searchsorted(cell_ids, m["cell_id"].to_numpy()[r1])
+    g = np.searchsorted(grid_ids, m["grid_id"].to_numpy()[r1])
+    pairs = np.unique(c.astype(np.int64) * len(grid_ids) + g)  # sorted by cell, then grid
+    bounds = np.searchsorted(pairs, np.arange(len(cell_ids) + 1, dtype=np.int64) * len(grid_ids))
+    return [pairs[bounds[i] : bounds[i + 1]] - i * len(grid_ids) for i in range(len(cell_ids))]
+
+
+def hearing_range_m(scenario: Scenario) -> float:
+    """The farthest horizontal distance [m] between a cell's antenna and a grid where round 1 reports it, over
+    every cell of the network (``inf`` when round 1 reports nothing)."""
+    m = scenario.measurements
+    sel = (m["round"] == 1).to_numpy() & m["rsrp_dbm"].notna().to_numpy()
+    if not sel.any():
+        return float("inf")
+    cells, grids = scenario.cells[1], scenario.grids
+    farthest = 0.0
+    cell_col, grid_col = m["cell_id"].to_numpy(), m["grid_id"].to_numpy()
+    for start in range(0, len(m), 4_000_000):  # bounded temporaries on a network of many millions of rows
+        part = np.flatnonzero(sel[start : start + 4_000_000]) + start
+        if not len(part):
+            continue
+        c = np.searchsorted(cells["cell_id"].to_numpy(), cell_col[part])
+        g = np.searchsorted(grids["grid_id"].to_numpy(), grid_col[part])
+        dx = cells["x"].to_numpy()[c] - grids["x"].to_numpy()[g]
+        dy = cells["y"].to_numpy()[c] - grids["y"].to_numpy()[g]
+        farthest = max(farthest, float(np.sqrt((dx * dx + dy * dy).max())))
+    return farthest
+
+
+def render_rows(source: APSSource, scenario: Scenario) -> list[np.ndarray]:
+    """Per cell (``scenario.cell_ids()`` order), the positions in ``scenario.grid_ids()`` whose APS
+    :meth:`ScenarioAPS.render` renders, ascending.
+
+    A source without unseen grids (WNOMP): the cell's measured round-1 grids.  A field model: the grids within
+    :data:`REACH_MARGIN` × :func:`hearing_range_m` of the cell's antenna (horizontal distance); beyond, the pair
+    counts as not heard, as WNOMP's unmeasured pairs do.  So the work grows with cells × grids in reach, linear in
+    the network at a fixed density, instead of cells × all grids; on a network whose every cell is heard across
+    it (the shipped one) every grid is in reach.
+    """
+    grid_ids = scenario.grid_ids()
+    if not source.supports_unseen_grids:
+        return _measured_rows(scenario)
+    reach = REACH_MARGIN * hearing_range_m(scenario)
+    grid_xy = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y"]].to_numpy()
+    cells = scenario.cells[1].set_index("cell_id").loc[scenario.cell_ids(), ["x", "y"]].to_numpy()
+    rows = []
+    for x, y in cells:
+        d2 = (grid_xy[:, 0] - x) ** 2 + (grid_xy[:, 1] - y) ** 2
+        rows.append(np.flatnonzero(d2 <= reach * reach))
+    return rows
 
 
 @dataclass
 class ScenarioAPS:
-    """Per-cell APS on the kept bins, for every grid of a scenario.
+    """Per-cell APS on the kept bins, at the grids within reach of each cell.
 
     Attributes:
         cell_ids: ``[num_cells]`` sorted; grid_ids: ``[num_grids]`` sorted.
         bins: per cell, the kept flat bin indices ``[num_kept]`` of :attr:`angle_grid`.
-        aps: per cell, ``[num_grids, num_kept]`` float32 linear path gain (zero rows: no APS).
-        known: ``[num_cells, num_grids]`` pairs the source has an APS for (all True for field models;
-            WNOMP: the measured round-1 pairs only).
+        aps: per cell, ``[num_known, num_kept]`` float32 linear path gain at its known grids, in grid order.
+        known: ``[num_cells, num_grids]`` pairs the source has an APS for (:func:`render_rows`: field models
+            the grids in reach, WNOMP the measured round-1 pairs); the others count as not heard.
         angle_grid: the source's angle grid; model: the source's name.
         source_sha256: the source's key (:func:`~rflscm.models.source.source_sha256`).
         fingerprint: the fingerprint of the scenario the source was fitted for.
@@ -170,26 +228,22 @@ class ScenarioAPS:
         chunk: int = 1024,
         on_cell: Callable[[int, int], None] | None = None,
     ) -> ScenarioAPS:
-        """Render the APS of every (cell, grid) pair once (field models) or of the measured pairs (sources
-        without unseen grids, i.e. WNOMP) and keep the bins any grid uses; a non-finite or negative APS is
-        refused (:func:`~rflscm.models.source.checked_aps`).  ``on_cell(done, total)`` after each cell."""
+        """Render the APS of every pair within reach once (:func:`render_rows`: field models the grids within
+        the network's hearing range of each cell, WNOMP the measured pairs) and keep the bins any of a cell's
+        grids uses; a non-finite or negative APS is refused (:func:`~rflscm.models.source.checked_aps`).
+        ``on_cell(done, total)`` after each cell.  Memory: one cell's rows × all bins at a time."""
         cell_ids, grid_ids = scenario.cell_ids(), scenario.grid_ids()
         xyz_all = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
         known = np.zeros((len(cell_ids), len(grid_ids)), dtype=bool)
         bins, aps = [], []
-        for i, cell in enumerate(cell_ids):
-            rows = (
-                np.arange(len(grid_ids))
-                if source.supports_unseen_grids
-                else np.searchsorted(grid_ids, measured_grids(scenario, int(cell)))
-            )
+        for i, (cell, rows) in enumerate(zip(cell_ids, render_rows(source, scenario), strict=True)):
             known[i, rows] = True
-            dense = torch.zeros(len(grid_ids), source.angle_grid.num_bins)
+            dense = torch.zeros(len(rows), source.angle_grid.num_bins)
             for start in range(0, len(rows), chunk):
                 sel = rows[start : start + chunk]
                 with torch.no_grad():
                     x = checked_aps(source, np.full(len(sel), cell), grid_ids[sel], xyz_all[sel])
-                dense[torch.as_tensor(sel)] = x.detach().float().cpu()
+                dense[start : start + len(sel)] = x.detach().float().cpu()
             keep = torch.nonzero(dense.amax(dim=0) > 0).reshape(-1)
             bins.append(keep.numpy())
             aps.append(dense[:, keep].contiguous())
@@ -298,7 +352,10 @@ class ScenarioAPS:
             or len(self.bins) != n_cells
             or len(self.aps) != n_cells
             or any(b.ndim != 1 or (len(b) and (b.min() < 0 or b.max() >= n_bins)) for b in self.bins)
-            or any(a.shape != (n_grids, len(b)) or not a.is_floating_point() for a, b in zip(self.aps, self.bins))
+            or any(
+                a.shape != (int(k.sum()), len(b)) or not a.is_floating_point()
+                for a, b, k in zip(self.aps, self.bins, self.known)
+            )
         ):
             raise APSCacheError(f"{path}: not a consistent APS cache (its shapes do not fit together); delete it.")
         for cell, a in zip(self.cell_ids, self.aps, strict=True):
@@ -335,6 +392,12 @@ def _read(path: Path) -> dict[str, Any]:
     except Exception as exc:  # damaged archives raise anything from RuntimeError to EOFError
         first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
         raise APSCacheError(f"{path}: not a readable rflscm APS cache (damaged or truncated: {first}).") from None
+    if isinstance(archive, dict) and str(archive.get("format", "")).startswith("rflscm-aps-cache/"):
+        if archive["format"] != CACHE_FORMAT:
+            raise APSCacheError(
+                f"{path}: an APS cache of another format ({archive['format']}, this rflscm reads {CACHE_FORMAT}); "
+                "delete it and render the APS again."
+            )
     if not isinstance(archive, dict) or archive.get("format") != CACHE_FORMAT:
         raise APSCacheError(f"{path}: not an rflscm APS cache (no `{CACHE_FORMAT}` header).")
     payload = archive.get("payload")
@@ -381,4 +444,13 @@ def load_or_render(
     return cache, time.perf_counter() - t0
 
 
-__all__ = ["CACHE_FORMAT", "APSCache", "APSCacheError", "ScenarioAPS", "load_or_render", "measured_grids"]
+__all__ = [
+    "CACHE_FORMAT",
+    "REACH_MARGIN",
+    "APSCache",
+    "APSCacheError",
+    "ScenarioAPS",
+    "hearing_range_m",
+    "load_or_render",
+    "render_rows",
+]

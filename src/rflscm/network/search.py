@@ -94,6 +94,8 @@ class NetworkEvaluator:
         """Pairs the objective scores: the model's known pairs on the grids of ``grid_mask`` (the rest held out)."""
         self.known = torch.as_tensor(known)
         self.all_known = bool(known.all())
+        self._rows = [None if row.all() else torch.as_tensor(np.flatnonzero(row)) for row in cache.known]
+        """Per cell, the grid positions its cached APS rows stand for (None: every grid)."""
         dirs = cache.angle_grid.directions(dtype=torch.float32)
         self.sensing = [
             CellSensing(scenario, int(c), base_round, dirs[torch.as_tensor(cache.bins[i])], space.cells[i])
@@ -107,9 +109,16 @@ class NetworkEvaluator:
 
     # --- building blocks -----------------------------------------------------------------------------
     def _powers(self, pos: int, indices: Config) -> torch.Tensor:
-        """Best-beam power ``[num_candidates, num_grids]`` [mW] of cell ``pos`` under candidate indices."""
+        """Best-beam power ``[num_candidates, num_grids]`` [mW] of cell ``pos`` under candidate indices (zero at
+        the grids out of the cell's reach, which its cached APS has no row for)."""
         self.evaluations += len(indices)
-        return best_beam_power(self.cache.aps[pos], self.sensing[pos].matrices(indices))
+        power = best_beam_power(self.cache.aps[pos], self.sensing[pos].matrices(indices))
+        rows = self._rows[pos]
+        if rows is None:
+            return power
+        full = power.new_zeros(len(indices), len(self.cache.grid_ids))
+        full[:, rows] = power
+        return full
 
     def _carrier(self, g: int, power: torch.Tensor) -> dict[str, torch.Tensor]:
         rows = self.groups[g][1]

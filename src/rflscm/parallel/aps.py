@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 
 from rflscm.data import BEAM_TYPES
 from rflscm.errors import ConfigError, RflscmError, UnsupportedError
-from rflscm.eval.cache import APSCache, measured_grids
+from rflscm.eval.cache import APSCache, render_rows
 from rflscm.parallel.engine import Engine, ray_session
 from rflscm.parallel.plan import Call, cache_misses, predict_blocks, split_even
 
@@ -236,15 +236,10 @@ def evaluation_cache(
 
 def render_requests(model: APSSource, scenario: Scenario, chunk: int = 1024) -> list[tuple[np.ndarray, np.ndarray]]:
     """What :meth:`rflscm.eval.cache.ScenarioAPS.render` (the optimiser's APS) asks its source for: cell by
-    cell, every grid (field models) or the measured ones (WNOMP), in blocks of ``chunk``."""
+    cell, the grids in reach (:func:`rflscm.eval.cache.render_rows`), in blocks of ``chunk``."""
     grid_ids = scenario.grid_ids()
     requests = []
-    for cell in scenario.cell_ids():
-        rows = (
-            np.arange(len(grid_ids))
-            if model.supports_unseen_grids
-            else np.searchsorted(grid_ids, measured_grids(scenario, int(cell)))
-        )
+    for cell, rows in zip(scenario.cell_ids(), render_rows(model, scenario), strict=True):
         for start in range(0, len(rows), chunk):
             sel = rows[start : start + chunk]
             requests.append((np.full(len(sel), cell), grid_ids[sel]))

@@ -5,8 +5,10 @@ is of another checkpoint or scenario, damaged, non-finite, or not a cache at all
 from __future__ import annotations
 
 import builtins
+import dataclasses
 import pickle
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -15,7 +17,16 @@ import torch
 from rflscm.data import load_scenario
 from rflscm.data.examples import tiny_scenario
 from rflscm.eval import UnseenProtocol, fit_with_protocol
-from rflscm.eval.cache import CACHE_FORMAT, APSCache, APSCacheError, ScenarioAPS, load_or_render
+from rflscm.eval.cache import (
+    CACHE_FORMAT,
+    REACH_MARGIN,
+    APSCache,
+    APSCacheError,
+    ScenarioAPS,
+    hearing_range_m,
+    load_or_render,
+    render_rows,
+)
 from rflscm.geometry import AngleGrid
 from rflscm.models import MODEL_REGISTRY, LSCMModel, load_model
 from rflscm.models.base import content_hash
@@ -107,7 +118,7 @@ def test_an_edited_cache_fails_its_hash_and_other_files_are_not_caches(fitted, t
     torch.save(archive, tmp_path / "edited.pt")
     with pytest.raises(APSCacheError, match="does not match the SHA-256"):
         ScenarioAPS.load(tmp_path / "edited.pt", model)
-    with pytest.raises(APSCacheError, match="no `rflscm-aps-cache/1` header"):
+    with pytest.raises(APSCacheError, match=f"no `{CACHE_FORMAT}` header"):
         ScenarioAPS.load(ckpt, model)  # the checkpoint given as the cache: refused, never overwritten
     (tmp_path / "notes.txt").write_text("hello")
     cases = [
@@ -183,4 +194,71 @@ def test_a_tensor_larger_than_its_stored_data_is_refused_before_hashing(fitted, 
     assert (tmp_path / "stride0.pt").stat().st_size < 10**6
     with pytest.raises(APSCacheError, match="claims more elements than the file stores") as exc:
         ScenarioAPS.load(tmp_path / "stride0.pt", model, scenario)
+    _one_line(exc)
+
+
+class _DistanceField:
+    """A field source (unseen grids supported) whose APS is one bin of gain 1 / (1 + grid id)."""
+
+    name, angle_grid, device, supports_unseen_grids, fingerprint = "field", GRID, torch.device("cpu"), True, None
+    run_info: ClassVar[dict] = {}
+
+    def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
+        out = torch.zeros(len(cell_ids), GRID.num_bins)
+        out[:, 7] = torch.as_tensor(1.0 / (1.0 + np.asarray(grid_ids, dtype=np.float64)), dtype=torch.float32)
+        return out
+
+    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> None:
+        return None
+
+    def content_sha256(self) -> str:
+        return "d" * 64
+
+
+def test_a_field_model_is_rendered_at_the_grids_within_the_networks_hearing_range(fitted) -> None:
+    scenario, model, _, _ = fitted
+    source = _DistanceField()
+    m = scenario.measurements
+    r1 = m[(m["round"] == 1).to_numpy()]
+    cells = scenario.cells[1].set_index("cell_id")
+    grids = scenario.grids.set_index("grid_id")
+    far = np.hypot(
+        cells.loc[r1["cell_id"], "x"].to_numpy() - grids.loc[r1["grid_id"], "x"].to_numpy(),
+        cells.loc[r1["cell_id"], "y"].to_numpy() - grids.loc[r1["grid_id"], "y"].to_numpy(),
+    ).max()
+    assert hearing_range_m(scenario) == pytest.approx(far)
+    # A grid moved 400 m away, with its reports dropped: out of the network's hearing range.
+    moved = scenario.grids.copy()
+    last = moved.index[-1]
+    moved.loc[last, "x"] += 400.0
+    kept = m[(m["grid_id"] != moved.loc[last, "grid_id"]).to_numpy()].reset_index(drop=True)
+    near = dataclasses.replace(scenario, grids=moved, measurements=kept)
+    grids = moved.set_index("grid_id")
+    reach = REACH_MARGIN * hearing_range_m(near)
+    assert reach < 400.0
+    rows = render_rows(source, near)
+    cache = ScenarioAPS.render(source, near)
+    for i, cell in enumerate(near.cell_ids()):
+        d = np.hypot(*(grids.loc[near.grid_ids(), ["x", "y"]].to_numpy() - cells.loc[cell, ["x", "y"]].to_numpy()).T)
+        np.testing.assert_array_equal(rows[i], np.flatnonzero(d <= reach))
+        np.testing.assert_array_equal(cache.known[i], d <= reach)
+        # compact rows: one per grid in reach, the source's own values there
+        assert cache.aps[i].shape == (len(rows[i]), 1)
+        expect = 1.0 / (1.0 + near.grid_ids()[rows[i]].astype(np.float64))
+        np.testing.assert_allclose(cache.aps[i][:, 0].numpy(), expect, rtol=1e-7)
+    assert 0 < cache.known.sum() < cache.known.size
+    # a WNOMP-like source keeps its measured pairs, whatever the range
+    wn = render_rows(model, near)
+    pairs = near.measurements[(near.measurements["round"] == 1).to_numpy()]
+    for i, cell in enumerate(near.cell_ids()):
+        measured = np.unique(pairs.loc[pairs["cell_id"] == cell, "grid_id"].to_numpy())
+        np.testing.assert_array_equal(near.grid_ids()[wn[i]], measured)
+
+
+def test_a_cache_of_an_older_format_is_refused_with_what_to_do(fitted, tmp_path: Path) -> None:
+    scenario, model, _, _ = fitted
+    payload = ScenarioAPS.render(model, scenario)._payload()
+    torch.save({"format": "rflscm-aps-cache/1", "sha256": content_hash(payload), "payload": payload}, tmp_path / "o.pt")
+    with pytest.raises(APSCacheError, match=r"another format .*delete it") as exc:
+        ScenarioAPS.load(tmp_path / "o.pt", model)
     _one_line(exc)

@@ -64,6 +64,11 @@ class FakeScenario:
     def __init__(self, grid_ids: np.ndarray, cell_ids: np.ndarray | None = None) -> None:
         self.grids = pd.DataFrame({"grid_id": grid_ids, "x": grid_ids * 1.0, "y": 0.0, "z": 1.5})
         self._cells = np.arange(3) if cell_ids is None else cell_ids
+        self.cells = {1: pd.DataFrame({"cell_id": self._cells, "x": 0.0, "y": 0.0, "z": 25.0})}
+        heard = grid_ids[len(grid_ids) // 2]  # round 1 hears every cell at the middle grid only
+        self.measurements = pd.DataFrame(
+            {"round": 1, "cell_id": self._cells, "grid_id": heard, "beam_type": "ssb", "beam_id": 0, "rsrp_dbm": -90.0}
+        )
 
     def cell_ids(self) -> np.ndarray:
         return self._cells
@@ -151,7 +156,8 @@ def test_the_optimisers_render_reads_a_filled_cache_and_gets_the_serial_aps() ->
     source = FakeSource()
     filled = FilledAPSCache(source)
     requests = render_requests(source, scenario, chunk=1024)
-    assert [len(c) for c, _ in requests] == [25, 25]
+    # the grids within 1.25 × the farthest report (the middle grid, x = 24 m) of the cells at x = 0: x <= 30 m
+    assert [g.tolist() for _, g in requests] == [list(range(0, 31, 2))] * 2
     fill_cache(filled, scenario, requests, 2, lambda chunks: [answer(FakeSource(), c) for c in chunks])  # type: ignore[arg-type]
     parallel = ScenarioAPS.render(filled, scenario)  # type: ignore[arg-type]
     serial = ScenarioAPS.render(FakeSource(), scenario)  # type: ignore[arg-type]
