@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from rflscm.bench import BENCHMARKS, load_all
-from rflscm.bench.b10_scale import B10Plan, growth_exponent, run_b10, run_stage
+from rflscm.bench.b10_scale import B10Plan, _commands, growth_exponent, project_wall, run_b10, run_stage
 from rflscm.errors import ConfigError
 
 TINY = B10Plan(sites=(1, 2), grids_per_site=12, scene="small", carriers="3.5e9")
@@ -19,7 +19,7 @@ def test_b10_runs_every_stage_at_two_sizes(tmp_path: Path) -> None:
     result = run_b10(TINY, tmp_path)
     rows = result["stages"]
     assert [(r["sites"], r["stage"]) for r in rows] == [
-        (s, st) for s in (1, 2) for st in ("simulate", "check", "train_wnomp", "evaluate_wnomp")
+        (s, st) for s in (1, 2) for st in ("simulate", "check", "train_wnomp", "evaluate_wnomp", "optimize_wnomp")
     ]
     assert all(r["status"] == "ok" for r in rows), [(r["stage"], r["status"]) for r in rows]
     assert [s["cells"] for s in result["sizes"]] == [3, 6]
@@ -28,7 +28,10 @@ def test_b10_runs_every_stage_at_two_sizes(tmp_path: Path) -> None:
     for r in rows:
         assert r["wall_s"] > 0 and r["peak_rss_mb"] > 100  # a Python process with torch: well above 100 MB
         assert r["command"].startswith("rflscm --threads 1 ")
-    assert set(result["growth"]) == {"simulate", "check", "train_wnomp", "evaluate_wnomp"}
+    assert set(result["growth"]) == {"simulate", "check", "train_wnomp", "evaluate_wnomp", "optimize_wnomp"}
+    assert (tmp_path / "b10" / "city2" / "opt_wnomp").is_dir()  # the optimiser wrote its report
+    proj = result["projection"]["stages"]["optimize_wnomp"]
+    assert proj["from_cells"] == 6 and not proj["spread"]
     assert (tmp_path / "b10" / "b10_scale.png").is_file() and result["plot"] == "b10_scale.png"
     csv_lines = (tmp_path / "b10" / "b10_scale.csv").read_text().splitlines()
     assert len(csv_lines) == 1 + len(rows) and csv_lines[0].startswith("sites,cells,stage")
@@ -66,11 +69,62 @@ def test_plan_from_config_yaml_and_command_line(tmp_path: Path) -> None:
 
     assert plan_of(ctx()).sites == QUICK_SITES and plan_of(ctx(size="full")).sites == FULL_SITES
     yaml_file = tmp_path / "b10.yaml"
-    yaml_file.write_text("sites: [5, 9]\ngrids_per_site: 6\nscene: ground\nrflscm_minutes: 2\n")
+    yaml_file.write_text(
+        "sites: [5, 9]\ngrids_per_site: 6\nscene: ground\nrflscm_minutes: 2\ntile_sites: 3\nworkers: [1, 2]\n"
+        "extra: {optimize_rflscm: [--restarts, 0]}\n"
+    )
     plan = plan_of(ctx(config=str(yaml_file)))
     assert (plan.sites, plan.grids_per_site, plan.scene, plan.rflscm_minutes) == ((5, 9), 6, "ground", 2)
+    assert (plan.tile_sites, plan.workers, plan.extra) == (3, (1, 2), {"optimize_rflscm": ("--restarts", "0")})
     plan = plan_of(ctx(config=str(yaml_file), sites=(3,), minutes=1.5))
     assert plan.sites == (3,) and plan.rflscm_minutes == 1.5 and plan.grids_per_site == 6
     yaml_file.write_text("sites: [5]\ngrid: 6\n")
     with pytest.raises(ConfigError, match="unknown B10 key"):
         plan_of(ctx(config=str(yaml_file)))
+    yaml_file.write_text("sites: [5]\nextra: {optimise: [--restarts, 0]}\n")
+    with pytest.raises(ConfigError, match="unknown stage"):
+        plan_of(ctx(config=str(yaml_file)))
+
+
+def test_rflscm_stages_run_tiled_and_once_per_worker_count(tmp_path: Path) -> None:
+    plan = B10Plan(
+        sites=(4,), rflscm_minutes=2.0, tile_sites=2, workers=(1, 2), extra={"optimize_rflscm": ("--restarts", "0")}
+    )
+    cmds = _commands(plan, 4, tmp_path)
+    assert list(cmds) == [
+        "simulate",
+        "check",
+        "train_wnomp",
+        "evaluate_wnomp",
+        "optimize_wnomp",
+        "train_rflscm",
+        "predict_rflscm",
+        "predict_rflscm@2",
+        "evaluate_rflscm",
+        "evaluate_rflscm@2",
+        "optimize_rflscm",
+        "optimize_rflscm@2",
+    ]
+    train = cmds["train_rflscm"]
+    assert train[train.index("--tile-sites") + 1] == "2" and train[train.index("--workers") + 1] == "2"
+    assert "--workers" not in cmds["evaluate_rflscm"] and cmds["evaluate_rflscm@2"][-2:] == ["--workers", "2"]
+    assert cmds["optimize_rflscm"][-2:] == ["--restarts", "0"] and cmds["optimize_rflscm@2"][-2:] == ["--restarts", "0"]
+    outs = {c[c.index("--out") + 1] for k, c in cmds.items() if k.startswith("optimize")}
+    assert len(outs) == 3  # serial and parallel runs never write over each other
+    with pytest.raises(ConfigError, match="tile_sites"):
+        B10Plan(tile_sites=0)
+    with pytest.raises(ConfigError, match="workers"):
+        B10Plan(workers=(0,))
+
+
+def test_projection_is_linear_in_cells_and_divides_only_the_stages_that_spread() -> None:
+    rows = [
+        {"stage": "simulate", "status": "ok", "cells": 100, "wall_s": 50.0},
+        {"stage": "simulate", "status": "ok", "cells": 1000, "wall_s": 400.0},
+        {"stage": "evaluate_rflscm", "status": "ok", "cells": 1000, "wall_s": 300.0},
+        {"stage": "train_rflscm", "status": "failed (exit 1)", "cells": 1000, "wall_s": 1.0},
+    ]
+    proj = project_wall(rows, 10_000, (1, 8))
+    assert proj["stages"]["simulate"]["wall_s"] == {"1": pytest.approx(4000.0), "8": pytest.approx(4000.0)}
+    assert proj["stages"]["evaluate_rflscm"]["wall_s"] == {"1": pytest.approx(3000.0), "8": pytest.approx(375.0)}
+    assert "train_rflscm" not in proj["stages"]  # a failed stage projects nothing

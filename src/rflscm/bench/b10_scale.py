@@ -6,14 +6,24 @@ its own process, the stages a user runs:
 * ``simulate``: ``rflscm simulate --backend procedural --sites N`` (the grown city of docs/scale.md: area,
   buildings and grids grow with N; ``--grids`` only when the plan fixes it);
 * ``check``: ``rflscm check`` of that scenario;
-* ``train_wnomp`` and ``evaluate_wnomp``: ``rflscm train --model wnomp`` and ``rflscm evaluate`` of it;
-* with ``--rflscm-minutes M``, also ``train_rflscm`` (``rflscm train --minutes M``) and ``evaluate_rflscm``.
+* ``train_wnomp``, ``evaluate_wnomp`` and ``optimize_wnomp``: ``rflscm train --model wnomp``, ``rflscm evaluate``
+  and ``rflscm optimize`` of it;
+* with ``--rflscm-minutes M``, also ``train_rflscm`` (``rflscm train --minutes M``; tiled with ``tile_sites``,
+  its tiles on the largest of ``workers``), ``predict_rflscm`` (``--pairs measured``), ``evaluate_rflscm`` and
+  ``optimize_rflscm``; each of the last three once per worker count of ``workers`` (``evaluate_rflscm@2`` is the
+  2-worker run), so serial and parallel are measured side by side on one checkpoint.
 
 Every stage runs as ``python -m rflscm.cli --threads T …`` with the running package on ``PYTHONPATH`` and the
 parent's thread count (``rflscm --threads``); its wall time is the parent's clock around the process and its
 peak memory the process's own peak resident set (``ru_maxrss`` of that child from ``os.wait4``: exact, not
 sampled).  A stage that fails (an error, or killed for memory) is recorded with its exit status and the
 size's later stages are skipped.  Logs are in ``<out>/b10/city<N>/<stage>.log``.
+
+A tiled RF-LSCM's per-tile figures (tiles, training seconds and pairs per tile) are read from its checkpoint's
+run information.  Projection: from the largest size's per-cell cost of each stage, the wall time of a network of
+``project_cells`` cells at the same density on ``project_machines`` machines like this one
+(:func:`project_wall`: linear in cells; the stages that spread — tiles, prediction, evaluation and the optimiser's
+rendering — divided over the machines, the others not).
 
 Growth: for each stage with at least two sizes done, the exponent b of time ∝ cellsᵇ and of peak memory ∝
 cellsᵇ (least squares in log-log); b ≈ 1 is linear growth in cells.  The memory exponent is also given for
@@ -47,7 +57,21 @@ from rflscm.runtime import MALLOC_ENV
 
 QUICK_SITES = (7, 19, 37)
 FULL_SITES = (7, 19, 37, 167)
-STAGES = ("simulate", "check", "train_wnomp", "evaluate_wnomp", "train_rflscm", "evaluate_rflscm")
+STAGES = (
+    "simulate",
+    "check",
+    "train_wnomp",
+    "evaluate_wnomp",
+    "optimize_wnomp",
+    "train_rflscm",
+    "predict_rflscm",
+    "evaluate_rflscm",
+    "optimize_rflscm",
+)
+SPREAD_STAGES = ("train_rflscm", "predict_rflscm", "evaluate_rflscm", "optimize_rflscm")
+"""Stages whose work spreads over Ray workers and machines (tiles; the APS of prediction, evaluation, optimiser)."""
+WORKER_STAGES = ("predict_rflscm", "evaluate_rflscm", "optimize_rflscm")
+"""Stages run once per worker count of :attr:`B10Plan.workers`."""
 
 
 @dataclass(frozen=True)
@@ -63,6 +87,12 @@ class B10Plan:
     threads: int = 1
     rflscm_minutes: float | None = None
     """Also train RF-LSCM with ``--minutes`` this and evaluate it (``None``: WNOMP only)."""
+    tile_sites: int | None = None
+    """Train RF-LSCM in tiles of about this many sites (``--tile-sites``; ``None``: one model)."""
+    workers: tuple[int, ...] = (1,)
+    """Worker counts of the parallel stages (:data:`WORKER_STAGES`); a tiled training uses the largest."""
+    project_cells: int = 10_000
+    project_machines: tuple[int, ...] = (1, 8, 64)
     timeout_s: float | None = None
     """A stage running longer is stopped and recorded as failed (``None``: no limit)."""
     extra: dict[str, tuple[str, ...]] = field(default_factory=dict)
@@ -73,6 +103,12 @@ class B10Plan:
             raise ConfigError("b10: --sites needs one or more site counts >= 1, e.g. --sites 7,19,37.")
         if self.rflscm_minutes is not None and not self.rflscm_minutes > 0:
             raise ConfigError(f"b10: --rflscm-minutes must be > 0 (got {self.rflscm_minutes}).")
+        if self.tile_sites is not None and int(self.tile_sites) < 1:
+            raise ConfigError(f"b10: tile_sites must be >= 1 (got {self.tile_sites}).")
+        if not self.workers or any(int(w) < 1 for w in self.workers):
+            raise ConfigError(f"b10: workers must be one or more counts >= 1 (got {list(self.workers)}).")
+        if int(self.project_cells) < 1 or not self.project_machines or any(int(m) < 1 for m in self.project_machines):
+            raise ConfigError("b10: project_cells and project_machines must be >= 1.")
 
 
 def _package_src() -> str:
@@ -122,23 +158,53 @@ def _commands(plan: B10Plan, sites: int, folder: Path) -> dict[str, list[str]]:
     if plan.carriers is not None:
         sim += ["--carriers", plan.carriers]
     quiet = ["--no-progress", "--device", "cpu", "--force"]
+    wn = str(folder / "wnomp.ckpt")
     commands = {
         "simulate": sim,
         "check": [*cli, "check", scen],
-        "train_wnomp": [*cli, "train", scen, "--model", "wnomp", "--out", str(folder / "wnomp.ckpt"), *quiet],
-        "evaluate_wnomp": [*cli, "evaluate", str(folder / "wnomp.ckpt"), scen, "--device", "cpu", "--force"],
+        "train_wnomp": [*cli, "train", scen, "--model", "wnomp", "--out", wn, *quiet],
+        "evaluate_wnomp": [*cli, "evaluate", wn, scen, "--device", "cpu", "--force"],
+        "optimize_wnomp": [
+            *cli,
+            "optimize",
+            wn,
+            scen,
+            "--out",
+            str(folder / "opt_wnomp"),
+            "--device",
+            "cpu",
+            "--force",
+        ],
     }
     commands["evaluate_wnomp"] += ["--json", str(folder / "wnomp_eval.json")]
     if plan.rflscm_minutes is not None:
         rf = str(folder / "rflscm.ckpt")
         budget = ["--minutes", f"{plan.rflscm_minutes:g}"]
-        commands["train_rflscm"] = [*cli, "train", scen, "--model", "rflscm", "--out", rf, *budget, *quiet]
-        commands["evaluate_rflscm"] = [*cli, "evaluate", rf, scen, "--device", "cpu", "--force"]
-        commands["evaluate_rflscm"] += ["--json", str(folder / "rflscm_eval.json")]
+        train = [*cli, "train", scen, "--model", "rflscm", "--out", rf, *budget, *quiet]
+        if plan.tile_sites is not None:
+            train += ["--tile-sites", str(plan.tile_sites), "--workers", str(max(plan.workers))]
+        commands["train_rflscm"] = train
+        for w in plan.workers:
+            tag = "" if w == 1 else f"@{w}"
+            par = ["--workers", str(w)] if w != 1 else []
+            commands[f"predict_rflscm{tag}"] = [
+                *[*cli, "predict", rf, scen, "--pairs", "measured", "--device", "cpu", "--force"],
+                *["--out", str(folder / f"predict{tag.replace('@', '_w')}.parquet"), *par],
+            ]
+            commands[f"evaluate_rflscm{tag}"] = [
+                *[*cli, "evaluate", rf, scen, "--device", "cpu", "--force"],
+                *["--json", str(folder / f"rflscm_eval{tag.replace('@', '_w')}.json"), *par],
+            ]
+            commands[f"optimize_rflscm{tag}"] = [
+                *[*cli, "optimize", rf, scen, "--out", str(folder / f"opt_rflscm{tag.replace('@', '_w')}")],
+                *["--device", "cpu", "--force", *par],
+            ]
     for stage, args in plan.extra.items():
-        if stage in commands:
-            commands[stage] = [*commands[stage], *args]
-    return commands
+        for name in commands:
+            if name.split("@")[0] == stage:
+                commands[name] = [*commands[name], *args]
+    order = {stage: i for i, stage in enumerate(STAGES)}
+    return dict(sorted(commands.items(), key=lambda kv: order[kv[0].split("@")[0]]))
 
 
 def _scenario_size(scen: Path) -> dict[str, int]:
@@ -182,6 +248,8 @@ def run_b10(plan: B10Plan, out_dir: Path) -> dict[str, Any]:
             result = run_stage(cmd, folder / f"{stage}.log", plan.timeout_s)
             if stage == "simulate" and result["rc"] == 0:
                 size.update(_scenario_size(folder / "scenario"))
+            if stage == "train_rflscm" and result["rc"] == 0:
+                size.update(_tile_figures(folder / "rflscm.ckpt"))
             status = "ok" if result["rc"] == 0 else f"failed (exit {result['rc']})"
             if result["rc"] != 0:
                 failed = stage
@@ -192,7 +260,7 @@ def run_b10(plan: B10Plan, out_dir: Path) -> dict[str, Any]:
     for row in rows:
         row["cells"] = cells_of.get(row["sites"], 0)
     growth: dict[str, Any] = {}
-    for stage in STAGES:
+    for stage in dict.fromkeys(r["stage"] for r in rows):
         done = [r for r in rows if r["stage"] == stage and r.get("status") == "ok" and r["cells"] > 0]
         if len(done) < 2:
             continue
@@ -207,7 +275,59 @@ def run_b10(plan: B10Plan, out_dir: Path) -> dict[str, Any]:
         }
     _write_csv(root / "b10_scale.csv", rows)
     plot = _plot(rows, root)
-    return {"plan": _plan_dict(plan), "sizes": sizes, "stages": rows, "growth": growth, "plot": plot}
+    projection = project_wall(rows, plan.project_cells, plan.project_machines)
+    return {
+        "plan": _plan_dict(plan),
+        "sizes": sizes,
+        "stages": rows,
+        "growth": growth,
+        "projection": projection,
+        "plot": plot,
+    }
+
+
+def _tile_figures(ckpt: Path) -> dict[str, Any]:
+    """Tiles and per-tile training seconds and pairs of a tiled checkpoint (empty for one model)."""
+    from rflscm.models.base import read_checkpoint
+
+    info = read_checkpoint(ckpt).get("run_info", {})
+    fits = info.get("tile_fits") or []
+    if not fits:
+        return {}
+    seconds = [float(f["seconds"]) for f in fits]
+    pairs = [int(f["pairs"]) for f in fits]
+    return {
+        "tiles": len(fits),
+        "tile_seconds_mean": float(np.mean(seconds)),
+        "tile_seconds_max": float(max(seconds)),
+        "tile_pairs_mean": float(np.mean(pairs)),
+        "tile_pairs_max": int(max(pairs)),
+    }
+
+
+def project_wall(rows: list[dict[str, Any]], cells: int, machines: tuple[int, ...]) -> dict[str, Any]:
+    """Wall time [s] of each stage on a network of ``cells`` cells (same density) on each machine count.
+
+    From the largest size measured, per stage: its wall time per cell × ``cells`` (growth linear in cells, which
+    B10's exponents check), divided by the machine count for :data:`SPREAD_STAGES` (each machine runs tiles or
+    APS chunks like this one did; its serial driver part is counted in) and not divided for the others (one
+    process).  A worker-count variant is projected from its own row.  Returns per stage and machine count the
+    seconds, and the basis (cells and wall time measured)."""
+    done = [r for r in rows if r.get("status") == "ok" and r.get("cells", 0) > 0]
+    if not done:
+        return {}
+    out: dict[str, Any] = {"cells": int(cells), "machines": [int(m) for m in machines], "stages": {}}
+    for stage in dict.fromkeys(r["stage"] for r in done):
+        largest = max((r for r in done if r["stage"] == stage), key=lambda r: r["cells"])
+        per_cell = float(largest["wall_s"]) / float(largest["cells"])
+        spread = stage.split("@")[0] in SPREAD_STAGES
+        out["stages"][stage] = {
+            "from_cells": int(largest["cells"]),
+            "from_wall_s": float(largest["wall_s"]),
+            "spread": spread,
+            "wall_s": {str(m): per_cell * cells / (m if spread else 1) for m in machines},
+        }
+    return out
 
 
 def _shown(cmd: list[str]) -> str:
@@ -222,6 +342,10 @@ def _plan_dict(plan: B10Plan) -> dict[str, Any]:
         "carriers": plan.carriers,
         "threads": plan.threads,
         "rflscm_minutes": plan.rflscm_minutes,
+        "tile_sites": plan.tile_sites,
+        "workers": list(plan.workers),
+        "project_cells": plan.project_cells,
+        "project_machines": list(plan.project_machines),
     }
 
 
@@ -246,7 +370,7 @@ def _plot(rows: list[dict[str, Any]], root: Path) -> str | None:
     if not done:
         return None
     fig, (ax_t, ax_m) = new_figure(2)
-    for stage in STAGES:
+    for stage in dict.fromkeys(r["stage"] for r in done):
         pts = sorted((r["cells"], r["wall_s"], r["peak_rss_mb"]) for r in done if r["stage"] == stage)
         if not pts:
             continue
@@ -267,7 +391,19 @@ def _plot(rows: list[dict[str, Any]], root: Path) -> str | None:
     return save_figure(fig, ctx, "b10_scale")
 
 
-PLAN_KEYS = ("sites", "grids_per_site", "scene", "carriers", "rflscm_minutes", "timeout_s")
+PLAN_KEYS = (
+    "sites",
+    "grids_per_site",
+    "scene",
+    "carriers",
+    "rflscm_minutes",
+    "timeout_s",
+    "tile_sites",
+    "workers",
+    "project_cells",
+    "project_machines",
+    "extra",
+)
 """Keys of a ``--config`` YAML of B10 (the :class:`B10Plan` fields; the command line's --sites and
 --rflscm-minutes win)."""
 
@@ -293,13 +429,24 @@ def plan_of(ctx: BenchContext) -> B10Plan:
     if ctx.minutes is not None:
         given["rflscm_minutes"] = ctx.minutes
     sites = given.pop("sites", None) or (FULL_SITES if ctx.size == "full" else QUICK_SITES)
+    for key in ("workers", "project_machines"):
+        if key in given:
+            given[key] = tuple(int(v) for v in given[key])
+    if "extra" in given:
+        extra = given["extra"]
+        if not isinstance(extra, dict) or not all(isinstance(v, list) for v in extra.values()):
+            raise ConfigError("b10 config: `extra` maps a stage name to a list of extra arguments.")
+        unknown = sorted(set(extra) - set(STAGES))
+        if unknown:
+            raise ConfigError(f"b10 config: `extra` names unknown stage(s) {', '.join(unknown)}.")
+        given["extra"] = {k: tuple(str(a) for a in v) for k, v in extra.items()}
     try:
         return B10Plan(sites=tuple(int(s) for s in sites), threads=torch.get_num_threads(), **given)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"b10 config: {exc}.") from None
 
 
-@register_bench("b10", "Scale: time and peak memory of simulate, check, train and evaluate vs network size")
+@register_bench("b10", "Scale: time and peak memory of simulate, check, train, predict, evaluate and optimize vs network size")
 def bench_b10(ctx: BenchContext) -> dict[str, Any]:
     if ctx.scenario is not None:
         raise ConfigError("b10 simulates its own procedural networks; drop --scenario (give --sites instead).")
