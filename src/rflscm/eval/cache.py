@@ -244,7 +244,7 @@ class ScenarioAPS:
                 with torch.no_grad():
                     x = checked_aps(source, np.full(len(sel), cell), grid_ids[sel], xyz_all[sel])
                 dense[start : start + len(sel)] = x.detach().float().cpu()
-            keep = torch.nonzero(dense.amax(dim=0) > 0).reshape(-1)
+            keep = torch.nonzero(dense.amax(dim=0) > 0).reshape(-1) if len(rows) else torch.zeros(0, dtype=torch.long)
             bins.append(keep.numpy())
             aps.append(dense[:, keep].contiguous())
             if on_cell is not None:
@@ -392,12 +392,12 @@ def _read(path: Path) -> dict[str, Any]:
     except Exception as exc:  # damaged archives raise anything from RuntimeError to EOFError
         first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
         raise APSCacheError(f"{path}: not a readable rflscm APS cache (damaged or truncated: {first}).") from None
-    if isinstance(archive, dict) and str(archive.get("format", "")).startswith("rflscm-aps-cache/"):
-        if archive["format"] != CACHE_FORMAT:
-            raise APSCacheError(
-                f"{path}: an APS cache of another format ({archive['format']}, this rflscm reads {CACHE_FORMAT}); "
-                "delete it and render the APS again."
-            )
+    fmt = str(archive.get("format", "")) if isinstance(archive, dict) else ""
+    if fmt.startswith("rflscm-aps-cache/") and fmt != CACHE_FORMAT:
+        raise APSCacheError(
+            f"{path}: an APS cache of another format ({fmt}, this rflscm reads {CACHE_FORMAT}); "
+            "delete it and render the APS again."
+        )
     if not isinstance(archive, dict) or archive.get("format") != CACHE_FORMAT:
         raise APSCacheError(f"{path}: not an rflscm APS cache (no `{CACHE_FORMAT}` header).")
     payload = archive.get("payload")

@@ -169,20 +169,50 @@ def area_kpis(
     n = best.shape[-1]
     if n == 0:
         raise ConfigError("no (grid, carrier) sample has a known pair; the network KPIs are undefined.")
-    rsrp_dbm = 10.0 * torch.log10(best.clamp_min(MIN_POWER_MW))
-    sinr_db = (10.0 * torch.log10(sinr.clamp_min(MIN_POWER_MW))).clamp_min(SINR_FLOOR_DB)
-    lo, hi = SINR_CLIP_DB
+    rsrp_dbm, sinr_db = _sample_db(best, sinr)
+    terms = objective_terms(rsrp_dbm, sinr_db, cfg)
     return {
-        "coverage": (rsrp_dbm >= cfg.threshold_dbm).to(best.dtype).mean(dim=-1),
+        "coverage": terms["coverage"].mean(dim=-1),
         "mean_sinr_db": sinr_db.mean(dim=-1),
         "p5_sinr_db": torch.quantile(sinr_db, 0.05, dim=-1) if percentile else torch.full_like(best[..., 0], torch.nan),
         "overlap": overlap.to(best.dtype).mean(dim=-1),
         "mean_rsrp_dbm": rsrp_dbm.clamp_min(RSRP_FLOOR_DBM).mean(dim=-1),
         "no_signal": (best <= 0).to(best.dtype).mean(dim=-1),
-        "margin": ((rsrp_dbm - cfg.threshold_dbm) / 10.0).clamp(-1.0, 1.0).mean(dim=-1),
-        "mean_sinr_clipped_db": sinr_db.clamp(lo, hi).mean(dim=-1),
+        "margin": terms["margin"].mean(dim=-1),
+        "mean_sinr_clipped_db": terms["mean_sinr_clipped_db"].mean(dim=-1),
         "num_samples": torch.full_like(best[..., 0], float(n)),
     }
+
+
+def _sample_db(best: torch.Tensor, sinr: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-sample best-server RSRP [dBm] and SINR [dB] (floored at :data:`SINR_FLOOR_DB`)."""
+    rsrp_dbm = 10.0 * torch.log10(best.clamp_min(MIN_POWER_MW))
+    sinr_db = (10.0 * torch.log10(sinr.clamp_min(MIN_POWER_MW))).clamp_min(SINR_FLOOR_DB)
+    return rsrp_dbm, sinr_db
+
+
+def objective_terms(rsrp_dbm: torch.Tensor, sinr_db: torch.Tensor, cfg: KPIConfig) -> dict[str, torch.Tensor]:
+    """Per-sample terms whose means are the objectives' KPIs: ``coverage`` (1 where RSRP ≥ threshold),
+    ``margin`` ((RSRP − threshold)/10 dB clipped to ±1) and ``mean_sinr_clipped_db`` (SINR clipped to
+    :data:`SINR_CLIP_DB`), each ``[..., num_samples]``."""
+    lo, hi = SINR_CLIP_DB
+    return {
+        "coverage": (rsrp_dbm >= cfg.threshold_dbm).to(rsrp_dbm.dtype),
+        "margin": ((rsrp_dbm - cfg.threshold_dbm) / 10.0).clamp(-1.0, 1.0),
+        "mean_sinr_clipped_db": sinr_db.clamp(lo, hi),
+    }
+
+
+def objective_sums(samples: list[dict[str, torch.Tensor]], cfg: KPIConfig) -> dict[str, torch.Tensor]:
+    """Sums ``[...]`` (float64) over the valid samples of ``samples`` (as :func:`area_kpis` takes them) of the
+    :func:`objective_terms`: what a change confined to some grids moves the objectives' KPIs by, × samples."""
+    out: dict[str, torch.Tensor] = {}
+    for s in samples:
+        rsrp_dbm, sinr_db = _sample_db(s["best_mw"][..., s["valid"]], s["sinr_lin"][..., s["valid"]])
+        for key, term in objective_terms(rsrp_dbm, sinr_db, cfg).items():
+            total = term.double().sum(dim=-1)
+            out[key] = out[key] + total if key in out else total
+    return out
 
 
 def network_kpis(

@@ -29,6 +29,7 @@ from rflscm.network.kpi import (
     carrier_groups,
     carrier_samples,
     network_kpis,
+    objective_sums,
 )
 from rflscm.network.space import SHARED_VARIABLES, VARIABLES, SearchSpace
 
@@ -136,21 +137,54 @@ class NetworkEvaluator:
 
     def score_moves(self, moves: list[dict[int, tuple[int, ...]]]) -> torch.Tensor:
         """Objective ``[num_moves]`` of the current configuration with each move applied; every move sets the
-        same cells (e.g. the cells of one antenna panel, which may lie on different carriers)."""
+        same cells (e.g. the cells of one antenna panel, which may lie on different carriers).
+
+        Where the moved cells' APS cover only some grids (a large network: the grids in reach), only those grids
+        are scored again: the objective moves by the change of its per-sample terms there
+        (:func:`~rflscm.network.kpi.objective_sums`), added to the current objective, so a move that changes
+        nothing scores the current objective exactly and the work per move follows the cells' reach, not the
+        network."""
         positions = list(moves[0])
         n = len(moves)
         cand = {p: self._powers(p, [m[p] for m in moves]) for p in positions}  # [C, num_grids] each
-        samples = list(self._samples)
+        if any(self._rows[p] is None for p in positions):
+            samples = list(self._samples)
+            for g in sorted({int(self.group_of[p]) for p in positions}):
+                rows = self.groups[g][1]
+                power = self.power[torch.as_tensor(rows)].unsqueeze(0).repeat(n, 1, 1)  # [C, n_g, grids]
+                for p in positions:
+                    if int(self.group_of[p]) == g:
+                        power[:, int(np.flatnonzero(rows == p)[0])] = cand[p]
+                samples[g] = self._carrier(g, power)
+            samples = [_expand(s, n) for s in samples]
+            kpis = area_kpis(samples, self.kpi, percentile=False)  # no objective uses the percentile
+            return objective_value(kpis, self.objective, self.sinr_weight)
+        cols = torch.as_tensor(
+            np.unique(np.concatenate([r.numpy() for p in positions if (r := self._rows[p]) is not None]))
+        )
+        before, after = [], []
         for g in sorted({int(self.group_of[p]) for p in positions}):
             rows = self.groups[g][1]
-            power = self.power[torch.as_tensor(rows)].unsqueeze(0).repeat(n, 1, 1)  # [C, n_g, grids]
-            for p in positions:
-                if int(self.group_of[p]) == g:
-                    power[:, int(np.flatnonzero(rows == p)[0])] = cand[p]
-            samples[g] = self._carrier(g, power)
-        samples = [_expand(s, n) for s in samples]
-        kpis = area_kpis(samples, self.kpi, percentile=False)  # no objective uses the percentile
-        return objective_value(kpis, self.objective, self.sinr_weight)
+            known = self.known[torch.as_tensor(rows)][:, cols]  # [n_g, cols]
+            moved = [p for p in positions if int(self.group_of[p]) == g]
+            keep = known.any(dim=1)  # cells heard at none of these grids add nothing there
+            keep[torch.as_tensor([int(np.flatnonzero(rows == p)[0]) for p in moved])] = True
+            idx = torch.nonzero(keep).reshape(-1)
+            power = self.power[torch.as_tensor(rows)[idx]][:, cols]  # [k, cols]
+            known = known[idx]
+            local = power.unsqueeze(0).repeat(n, 1, 1)  # [C, k, cols]
+            for p in moved:
+                local[:, int(torch.nonzero(idx == int(np.flatnonzero(rows == p)[0]))[0])] = cand[p][:, cols]
+            before.append(carrier_samples(power, self.noise_mw[g], known, self.kpi))
+            after.append(carrier_samples(local, self.noise_mw[g], known, self.kpi))
+        old, new = objective_sums(before, self.kpi), objective_sums(after, self.kpi)
+        count = float(sum(int(s["valid"].sum()) for s in self._samples))
+        delta = objective_value(
+            {k: (new[k] - old[k]) / count for k in new} | {"num_samples": torch.full((n,), count)},
+            self.objective,
+            self.sinr_weight,
+        )
+        return self.score() + delta
 
     def set_cell(self, pos: int, index: tuple[int, ...], power: torch.Tensor | None = None) -> None:
         """Move cell ``pos`` to ``index`` (``power [num_grids]`` if already known)."""

@@ -147,3 +147,58 @@ def test_cells_sharing_a_panel_never_get_different_azimuths(scen) -> None:
     ev = NetworkEvaluator(scen, 1, cache, space, KPIConfig(), "sinr")
     result = coordinate_descent(ev, restarts=1)
     assert space.cells[0].config(result.config[0])["azimuth_deg"] != 60.0
+
+
+def _four_cells(root: Path):
+    """The tiny scenario with two more 3.5 GHz cells (13, 14) on the same site, other azimuths."""
+    import pandas as pd
+
+    from rflscm.data import read_table, write_table
+    from rflscm.data.examples import tiny_scenario
+
+    tiny_scenario(root, seed=1)
+    for name in ("cells_round1.csv", "cells_round2.csv"):
+        cells = read_table(root / name)
+        extra = []
+        for cell, az in ((13, 180.0), (14, 300.0)):
+            row = cells[cells["cell_id"] == 11].copy()
+            row["cell_id"], row["azimuth_deg"], row["x"] = cell, az, row["x"] + cell
+            extra.append(row)
+        write_table(pd.concat([cells, *extra], ignore_index=True), root / name)
+    return load(root)
+
+
+@pytest.mark.parametrize("objective", ["coverage", "sinr", "weighted"])
+def test_moves_scored_on_the_grids_in_reach_equal_the_whole_network_scored_again(tmp_path: Path, objective) -> None:
+    from rflscm.eval.cache import ScenarioAPS
+    from rflscm.network.search import _moves
+
+    scen = _four_cells(tmp_path / "four")
+    cells, grids = scen.cell_ids(), scen.grid_ids()
+    rng = np.random.default_rng(0)
+    known = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 0, 0]], dtype=bool)  # no cell reaches every grid
+    bins = [np.sort(rng.choice(GRID.num_bins, 6, replace=False)) for _ in cells]
+    aps = [torch.as_tensor(10.0 ** rng.uniform(-14, -10, (int(k.sum()), 6)), dtype=torch.float32) for k in known]
+    cache = ScenarioAPS(cells, grids, bins, aps, known, GRID, "synthetic")
+    space = build_space(NO_STEP, scen.cells[1], scen.meta.codebooks)
+    ev = NetworkEvaluator(scen, 1, cache, space, KPIConfig(threshold_dbm=-100.0), objective)
+    assert all(r is not None for r in ev._rows)  # the local path is the one under test
+    checked = 0
+    for pos in range(len(cells)):
+        for var in range(4):
+            moves = _moves(ev, pos, var)
+            if len(moves) < 2:
+                continue
+            scores = ev.score_moves(moves)
+            base = list(ev.config)
+            for k, move in enumerate(moves):
+                config = list(base)
+                for p, i in move.items():
+                    config[p] = i
+                ev.set_config(config)
+                assert float(scores[k]) == pytest.approx(ev.score(), rel=1e-6, abs=1e-6), (pos, var, k)  # float32 KPIs
+                ev.set_config(base)
+                if move[pos] == base[pos]:
+                    assert float(scores[k]) == ev.score()  # the present state scores the current objective
+                checked += 1
+    assert checked > 20
