@@ -446,7 +446,9 @@ def plan_of(ctx: BenchContext) -> B10Plan:
         raise ConfigError(f"b10 config: {exc}.") from None
 
 
-@register_bench("b10", "Scale: time and peak memory of simulate, check, train, predict, evaluate and optimize vs network size")
+@register_bench(
+    "b10", "Scale: time and peak memory of simulate, check, train, predict, evaluate and optimize vs network size"
+)
 def bench_b10(ctx: BenchContext) -> dict[str, Any]:
     if ctx.scenario is not None:
         raise ConfigError("b10 simulates its own procedural networks; drop --scenario (give --sites instead).")
