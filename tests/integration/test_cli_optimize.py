@@ -133,6 +133,8 @@ def test_optimize_writes_a_round_that_checks_and_predicts_the_same_kpis(simulate
         (["--tilt-range", "0:40"], "--tilt-range 0:40: the mechanical tilt must stay within the physical limits"),
         (["--azimuth-range", "-90:90:10"], "physical limits -60…60 degrees"),
         (["--freeze", "424242"], "unknown cell 424242"),
+        (["--cells", "424242"], "--cells 424242: no such cell(s) 424242"),
+        (["--cells", "a,b"], "--cells takes comma-separated cell ids"),
         (["--codebooks", "nope"], "'nope' is not a codebook of scenario.yaml"),
         (
             [
@@ -271,3 +273,27 @@ def test_a_wnomp_recommendation_with_a_negative_true_gain_is_flagged(simulated, 
     assert summary["verdict"]["flagged"] and summary["verdict"]["basis"] == "true"
     report = write_report(result, scenario, tmp_path / "o", kpi, 3, tmp_path / "o" / "scenario").read_text()
     assert "color:red" in report and "do not apply: the true mean SS-SINR gain is" in report
+
+
+def test_cells_frees_a_cluster_renders_where_it_reaches_and_a_cache_of_another_cluster_is_refused(
+    simulated, tmp_path
+) -> None:
+    scenario, ckpt = simulated
+    cache = tmp_path / "aps.pt"
+    small = ["--tilt-range", "0:4:2", "--elec-tilt-range", "0:0", "--azimuth-range", "0:0", "--restarts", "0"]
+    small += ["--no-verify", "--device", "cpu", "--aps-cache", str(cache)]
+    m = scenario.measurements
+    r1 = m[(m["round"] == 1).to_numpy()]
+    heard = r1.groupby("cell_id")["grid_id"].nunique().sort_values()
+    cell = int(heard.index[0])  # the cell heard at the fewest grids: its area is a part of the network
+    run = rflscm("optimize", str(ckpt), str(scenario.root), "--out", str(tmp_path / "o1"), "--cells", str(cell), *small)
+    assert run.returncode == 0, run.stderr
+    summary = json.loads((tmp_path / "o1" / "summary.json").read_text())
+    changed = {int(c) for c in pd.read_csv(tmp_path / "o1" / "changes.csv")["cell_id"]}
+    assert changed <= {cell}  # every other cell frozen
+    area = set(r1.loc[r1["cell_id"] == cell, "grid_id"])
+    in_area = r1[r1["grid_id"].isin(area)].drop_duplicates(["cell_id", "grid_id"])
+    assert summary["kpi_pair_count"] == len(in_area) < len(r1.drop_duplicates(["cell_id", "grid_id"]))
+    run = rflscm("optimize", str(ckpt), str(scenario.root), "--out", str(tmp_path / "o2"), *small)
+    assert run.returncode == 2 and "rendered for other grids" in run.stderr, run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1

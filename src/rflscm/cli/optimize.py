@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Iterable
 from enum import StrEnum
 from pathlib import Path
 
@@ -51,8 +52,11 @@ def search_spec(
     codebooks: str | None,
     freeze: str | None,
     max_changed: int | None,
+    cells: str | None = None,
+    cell_ids: Iterable[int] | None = None,
 ) -> dict:
-    """The search spec: the YAML file's, with CLI flags laid over its ``defaults``."""
+    """The search spec: the YAML file's, with CLI flags laid over its ``defaults``; ``cells`` (``--cells``)
+    freezes every cell of ``cell_ids`` but these."""
     from rflscm.network.space import check_physical, load_spec, parse_range
 
     spec = load_spec(search)
@@ -74,6 +78,16 @@ def search_spec(
             spec["frozen"] = [int(v) for v in freeze.split(",") if v.strip()]
         except ValueError:
             raise ConfigError(f"--freeze takes comma-separated cell ids (got {freeze!r}).") from None
+    if cells is not None:
+        try:
+            only = {int(v) for v in cells.split(",") if v.strip()}
+        except ValueError:
+            raise ConfigError(f"--cells takes comma-separated cell ids (got {cells!r}).") from None
+        known = {int(c) for c in (cell_ids if cell_ids is not None else [])}
+        unknown = sorted(only - known)
+        if not only or unknown:
+            raise ConfigError(f"--cells {cells}: no such cell(s) {', '.join(map(str, unknown)) or '(none given)'}.")
+        spec["frozen"] = sorted({*(int(c) for c in spec.get("frozen") or []), *(known - only)})
     if max_changed is not None:
         spec["max_changed_cells"] = max_changed
     return spec
@@ -144,6 +158,13 @@ def optimize(
     ),
     codebooks: str | None = typer.Option(
         None, "--codebooks", metavar="NAMES", help="Comma-separated SSB codebooks of scenario.yaml (default: all)."
+    ),
+    cells: str | None = typer.Option(
+        None,
+        "--cells",
+        metavar="IDS",
+        help="Comma-separated cell ids that may change (the others are frozen); the APS are rendered only "
+        "at the grids these cells reach, and the KPIs are those grids' (a cluster of a large network).",
     ),
     freeze: str | None = typer.Option(
         None, "--freeze", metavar="IDS", help="Comma-separated cell ids that must not change."
@@ -218,8 +239,11 @@ def optimize(
             f"--round {base_round}: scenario {scen.meta.name!r} has rounds {', '.join(map(str, scen.rounds()))}."
         )
     kpi = KPIConfig(threshold_dbm=threshold, noise_figure_db=noise_figure)
-    spec = search_spec(search, tilt_range, elec_range, azimuth_range, codebooks, freeze, max_changed)
+    spec = search_spec(
+        search, tilt_range, elec_range, azimuth_range, codebooks, freeze, max_changed, cells, scen.cell_ids()
+    )
     space = build_space(spec, scen.cells[base_round], scen.meta.codebooks)
+    free_cells = scen.cell_ids()[space.free_cells()]
     if verify:
         from rflscm.sim.truth import truth_folder
 
@@ -231,7 +255,7 @@ def optimize(
         from rflscm.parallel.aps import checkpoint_loader, render_cache
 
         load = checkpoint_loader(checkpoint, scenario, model.device)
-        source = render_cache(model, scen, Engine(workers, ray_address), load)
+        source = render_cache(model, scen, Engine(workers, ray_address), load, free_cells)
     columns = (
         TextColumn("{task.description}"),
         BarColumn(),
@@ -245,6 +269,7 @@ def optimize(
             scen,
             aps_cache,
             on_cell=lambda done, _: bar.update(task, completed=done),
+            free_cells=free_cells,
         )
         passes = (restarts + 1) * 8 * len(space.free_cells()) if method_name == "cd" else None
         task = bar.add_task(f"searching ({method_name}, {objective_name})", total=passes)

@@ -171,7 +171,7 @@ def hearing_range_m(scenario: Scenario) -> float:
     return farthest
 
 
-def render_rows(source: APSSource, scenario: Scenario) -> list[np.ndarray]:
+def render_rows(source: APSSource, scenario: Scenario, free_cells: np.ndarray | None = None) -> list[np.ndarray]:
     """Per cell (``scenario.cell_ids()`` order), the positions in ``scenario.grid_ids()`` whose APS
     :meth:`ScenarioAPS.render` renders, ascending.
 
@@ -179,19 +179,28 @@ def render_rows(source: APSSource, scenario: Scenario) -> list[np.ndarray]:
     :data:`REACH_MARGIN` × :func:`hearing_range_m` of the cell's antenna (horizontal distance); beyond, the pair
     counts as not heard, as WNOMP's unmeasured pairs do.  So the work grows with cells × grids in reach, linear in
     the network at a fixed density, instead of cells × all grids; on a network whose every cell is heard across
-    it (the shipped one) every grid is in reach.
+    it (the shipped one) every grid is in reach.  With ``free_cells`` (the cell ids a search may change), only
+    the grids some free cell reaches are rendered, for every cell heard there: the area a change can touch.
     """
     grid_ids = scenario.grid_ids()
     if not source.supports_unseen_grids:
-        return _measured_rows(scenario)
-    reach = REACH_MARGIN * hearing_range_m(scenario)
-    grid_xy = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y"]].to_numpy()
-    cells = scenario.cells[1].set_index("cell_id").loc[scenario.cell_ids(), ["x", "y"]].to_numpy()
-    rows = []
-    for x, y in cells:
-        d2 = (grid_xy[:, 0] - x) ** 2 + (grid_xy[:, 1] - y) ** 2
-        rows.append(np.flatnonzero(d2 <= reach * reach))
-    return rows
+        rows = _measured_rows(scenario)
+    else:
+        reach = REACH_MARGIN * hearing_range_m(scenario)
+        grid_xy = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y"]].to_numpy()
+        cells = scenario.cells[1].set_index("cell_id").loc[scenario.cell_ids(), ["x", "y"]].to_numpy()
+        rows = []
+        for x, y in cells:
+            d2 = (grid_xy[:, 0] - x) ** 2 + (grid_xy[:, 1] - y) ** 2
+            rows.append(np.flatnonzero(d2 <= reach * reach))
+    if free_cells is None:
+        return rows
+    free = np.isin(scenario.cell_ids(), np.asarray(free_cells))
+    area = np.zeros(len(grid_ids), dtype=bool)
+    for r, is_free in zip(rows, free, strict=True):
+        if is_free:
+            area[r] = True
+    return [r[area[r]] for r in rows]
 
 
 @dataclass
@@ -227,16 +236,18 @@ class ScenarioAPS:
         scenario: Scenario,
         chunk: int = 1024,
         on_cell: Callable[[int, int], None] | None = None,
+        free_cells: np.ndarray | None = None,
     ) -> ScenarioAPS:
         """Render the APS of every pair within reach once (:func:`render_rows`: field models the grids within
         the network's hearing range of each cell, WNOMP the measured pairs) and keep the bins any of a cell's
         grids uses; a non-finite or negative APS is refused (:func:`~rflscm.models.source.checked_aps`).
-        ``on_cell(done, total)`` after each cell.  Memory: one cell's rows × all bins at a time."""
+        ``on_cell(done, total)`` after each cell; ``free_cells``: only where these cells reach (:func:`render_rows`).
+        Memory: one cell's rows × all bins at a time."""
         cell_ids, grid_ids = scenario.cell_ids(), scenario.grid_ids()
         xyz_all = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
         known = np.zeros((len(cell_ids), len(grid_ids)), dtype=bool)
         bins, aps = [], []
-        for i, (cell, rows) in enumerate(zip(cell_ids, render_rows(source, scenario), strict=True)):
+        for i, (cell, rows) in enumerate(zip(cell_ids, render_rows(source, scenario, free_cells), strict=True)):
             known[i, rows] = True
             dense = torch.zeros(len(rows), source.angle_grid.num_bins)
             for start in range(0, len(rows), chunk):
@@ -431,14 +442,24 @@ def load_or_render(
     scenario: Scenario,
     path: str | Path | None,
     on_cell: Callable[[int, int], None] | None = None,
+    free_cells: np.ndarray | None = None,
 ) -> tuple[ScenarioAPS, float]:
-    """``source``'s APS of ``scenario``: read from ``path`` when it exists (refused unless written for this very
-    source and scenario, see :meth:`ScenarioAPS.load`), else rendered and, with ``path``, written there.
-    Returns the cache and the seconds it took."""
+    """``source``'s APS of ``scenario`` (where ``free_cells`` reach, see :func:`render_rows`): read from ``path``
+    when it exists (refused unless written for this very source, scenario and area, see :meth:`ScenarioAPS.load`),
+    else rendered and, with ``path``, written there.  Returns the cache and the seconds it took."""
     t0 = time.perf_counter()
     if path is not None and Path(path).exists():
-        return ScenarioAPS.load(path, source, scenario), time.perf_counter() - t0
-    cache = ScenarioAPS.render(source, scenario, on_cell=on_cell)
+        cache = ScenarioAPS.load(path, source, scenario)
+        expected = np.zeros_like(cache.known)
+        for i, rows in enumerate(render_rows(source, scenario, free_cells)):
+            expected[i, rows] = True
+        if not np.array_equal(cache.known, expected):
+            raise APSCacheError(
+                f"{path}: this APS cache was rendered for other grids ({int(cache.known.sum())} pairs, this search "
+                f"needs {int(expected.sum())}: other cells free to change); delete it or give another --aps-cache path."
+            )
+        return cache, time.perf_counter() - t0
+    cache = ScenarioAPS.render(source, scenario, on_cell=on_cell, free_cells=free_cells)
     if path is not None:
         cache.save(path)
     return cache, time.perf_counter() - t0

@@ -247,6 +247,12 @@ def test_a_field_model_is_rendered_at_the_grids_within_the_networks_hearing_rang
         expect = 1.0 / (1.0 + near.grid_ids()[rows[i]].astype(np.float64))
         np.testing.assert_allclose(cache.aps[i][:, 0].numpy(), expect, rtol=1e-7)
     assert 0 < cache.known.sum() < cache.known.size
+    # free cells: only the grids some free cell reaches, for every cell heard there
+    first = near.cell_ids()[:1]
+    area = np.zeros(len(near.grid_ids()), dtype=bool)
+    area[rows[0]] = True
+    for r, r_free in zip(rows, render_rows(source, near, first), strict=True):
+        np.testing.assert_array_equal(r_free, r[area[r]])
     # a WNOMP-like source keeps its measured pairs, whatever the range
     wn = render_rows(model, near)
     pairs = near.measurements[(near.measurements["round"] == 1).to_numpy()]
