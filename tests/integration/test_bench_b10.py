@@ -12,7 +12,7 @@ from rflscm.bench import BENCHMARKS, load_all
 from rflscm.bench.b10_scale import B10Plan, _commands, growth_exponent, project_wall, run_b10, run_stage
 from rflscm.errors import ConfigError
 
-TINY = B10Plan(sites=(1, 2), grids_per_site=12, scene="small", carriers="3.5e9")
+TINY = B10Plan(sites=(1, 2), grids_per_site=12, scene="small", carriers="3.5e9", optimize_sites=1)
 
 
 def test_b10_runs_every_stage_at_two_sizes(tmp_path: Path) -> None:
@@ -30,6 +30,8 @@ def test_b10_runs_every_stage_at_two_sizes(tmp_path: Path) -> None:
         assert r["command"].startswith("rflscm --threads 1 ")
     assert set(result["growth"]) == {"simulate", "check", "train_wnomp", "evaluate_wnomp", "optimize_wnomp"}
     assert (tmp_path / "b10" / "city2" / "opt_wnomp").is_dir()  # the optimiser wrote its report
+    opt = next(r for r in rows if r["sites"] == 2 and r["stage"] == "optimize_wnomp")
+    assert "--cells" in opt["command"] and result["sizes"][1]["optimize_cells"] == 3  # one site's 3 cells
     proj = result["projection"]["stages"]["optimize_wnomp"]
     assert proj["from_cells"] == 6 and not proj["spread"]
     assert (tmp_path / "b10" / "b10_scale.png").is_file() and result["plot"] == "b10_scale.png"

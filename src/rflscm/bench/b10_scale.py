@@ -93,6 +93,9 @@ class B10Plan:
     """Worker counts of the parallel stages (:data:`WORKER_STAGES`); a tiled training uses the largest."""
     project_cells: int = 10_000
     project_machines: tuple[int, ...] = (1, 8, 64)
+    optimize_sites: int | None = None
+    """The optimiser changes only the cells of this many sites nearest the network's centre (``--cells``, a
+    cluster; ``None``: every cell)."""
     timeout_s: float | None = None
     """A stage running longer is stopped and recorded as failed (``None``: no limit)."""
     extra: dict[str, tuple[str, ...]] = field(default_factory=dict)
@@ -107,6 +110,8 @@ class B10Plan:
             raise ConfigError(f"b10: tile_sites must be >= 1 (got {self.tile_sites}).")
         if not self.workers or any(int(w) < 1 for w in self.workers):
             raise ConfigError(f"b10: workers must be one or more counts >= 1 (got {list(self.workers)}).")
+        if self.optimize_sites is not None and int(self.optimize_sites) < 1:
+            raise ConfigError(f"b10: optimize_sites must be >= 1 (got {self.optimize_sites}).")
         if int(self.project_cells) < 1 or not self.project_machines or any(int(m) < 1 for m in self.project_machines):
             raise ConfigError("b10: project_cells and project_machines must be >= 1.")
 
@@ -242,6 +247,10 @@ def run_b10(plan: B10Plan, out_dir: Path) -> dict[str, Any]:
         size: dict[str, Any] = {"sites": int(sites)}
         failed = None
         for stage, cmd in _commands(plan, int(sites), folder).items():
+            if stage.startswith("optimize") and plan.optimize_sites is not None and failed is None:
+                cluster = central_cells(folder / "scenario", int(plan.optimize_sites))
+                cmd = [*cmd, "--cells", ",".join(map(str, cluster))]
+                size["optimize_cells"] = len(cluster)
             if failed is not None:
                 rows.append({"sites": int(sites), "stage": stage, "status": f"skipped ({failed} failed)"})
                 continue
@@ -284,6 +293,18 @@ def run_b10(plan: B10Plan, out_dir: Path) -> dict[str, Any]:
         "projection": projection,
         "plot": plot,
     }
+
+
+def central_cells(scenario: Path, sites: int) -> list[int]:
+    """Cell ids of the ``sites`` sites nearest the centre of the scenario's sites (round 1's cells table)."""
+    from rflscm.data.io import read_table
+
+    cells = read_table(scenario / "cells_round1.parquet")  # what `rflscm simulate` writes
+    pos = cells.groupby("site_id")[["x", "y"]].first()
+    centre = pos.mean().to_numpy()
+    dist = np.hypot(pos["x"].to_numpy() - centre[0], pos["y"].to_numpy() - centre[1])
+    chosen = pos.index.to_numpy()[np.argsort(dist, kind="stable")[:sites]]
+    return sorted(int(c) for c in cells.loc[cells["site_id"].isin(chosen), "cell_id"])
 
 
 def _tile_figures(ckpt: Path) -> dict[str, Any]:
@@ -346,6 +367,7 @@ def _plan_dict(plan: B10Plan) -> dict[str, Any]:
         "workers": list(plan.workers),
         "project_cells": plan.project_cells,
         "project_machines": list(plan.project_machines),
+        "optimize_sites": plan.optimize_sites,
     }
 
 
@@ -402,6 +424,7 @@ PLAN_KEYS = (
     "workers",
     "project_cells",
     "project_machines",
+    "optimize_sites",
     "extra",
 )
 """Keys of a ``--config`` YAML of B10 (the :class:`B10Plan` fields; the command line's --sites and

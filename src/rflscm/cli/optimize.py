@@ -16,6 +16,7 @@ from rich.progress import (
     Progress,
     TextColumn,
     TimeElapsedColumn,
+    TimeRemainingColumn,
 )
 
 from rflscm.cli import app
@@ -261,6 +262,7 @@ def optimize(
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
+        TimeRemainingColumn(),  # the ETA; the search's total is an upper bound (passes stop when none improves)
     )
     with Progress(*columns, console=console, transient=True) as bar:
         task = bar.add_task(f"rendering APS ({model.name})", total=len(scen.cell_ids()))
