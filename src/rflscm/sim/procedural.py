@@ -27,9 +27,13 @@ import pandas as pd
 from rflscm.antenna import SPEED_OF_LIGHT
 from rflscm.errors import ConfigError
 from rflscm.sim.backend import PATH_COLUMNS, empty_path_table
+from rflscm.sim.grid_index import CellGrid
 
 ASPRS_GROUND, ASPRS_BUILDING = 2, 6
 _EPS_M = 1e-3  # a segment must run this far inside a box to count as blocked [m]
+_SEGMENTS_PER_CHUNK = 16_384  # segments tested against the box index at once
+_PAIRS_PER_CHUNK = 1_000_000  # (wall sequence, receiver) candidates traced at once
+_MAX_GRID_CELLS_PER_SIDE = 1024  # the index cells grow beyond the median building side to stay within this
 
 
 # ---- materials (ITU-R P.2040-1 Table 3) -----------------------------------------------------------
@@ -116,13 +120,18 @@ def segment_box_overlap(
         ``(t_in, t_out)`` ``[num_seg, num_boxes]``: the segment parameters (0…1) where it
         enters and leaves each box; the segment crosses box b where ``t_out > t_in``.
     """
-    d = (p1 - p0)[:, None, :]  # [S, 1, 3]
+    return _slab(p0[:, None], (p1 - p0)[:, None, :], lo[None], hi[None])
+
+
+def _slab(p0: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(t_in, t_out)`` of segments ``p0 → p0 + d`` against boxes ``lo … hi`` (all ``[..., 3]``, broadcast):
+    :func:`segment_box_overlap` for every pair, or for listed (segment, box) pairs with the same arithmetic."""
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / d
-        t0 = (lo[None] - p0[:, None]) * inv
-        t1 = (hi[None] - p0[:, None]) * inv
+        t0 = (lo - p0) * inv
+        t1 = (hi - p0) * inv
     parallel = np.abs(d) < 1e-12
-    inside = (p0[:, None] >= lo[None]) & (p0[:, None] <= hi[None])
+    inside = (p0 >= lo) & (p0 <= hi)
     t_lo = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t0, t1))
     t_hi = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
     t_in = np.maximum(t_lo.max(axis=-1), 0.0)
@@ -259,10 +268,24 @@ class ProceduralCity:
         self.interior_loss_db_per_m = float(interior_loss_db_per_m)
         self.wall_material = MATERIALS[wall_material]
         self.ground_material = MATERIALS[ground_material]
-        self.box_lo, self.box_hi = _place_buildings(
-            np.random.default_rng(self.seed), self.size_m, int(num_buildings), footprint_m, height_m, street_m
+        self._set_boxes(
+            *_place_buildings(
+                np.random.default_rng(self.seed), self.size_m, int(num_buildings), footprint_m, height_m, street_m
+            )
         )
+
+    def _set_boxes(self, box_lo: np.ndarray, box_hi: np.ndarray) -> None:
+        """The buildings, their walls and the x/y grid index of both (:mod:`rflscm.sim.grid_index`)."""
+        self.box_lo = np.asarray(box_lo, dtype=np.float64).reshape(-1, 3)
+        self.box_hi = np.asarray(box_hi, dtype=np.float64).reshape(-1, 3)
         self._walls = _Walls.of_boxes(self.box_lo, self.box_hi)
+        w = self._walls
+        self._wall_of = np.full((len(self.box_lo), 2, 2), -1, dtype=np.int64)  # [box, axis, outward sign > 0]
+        self._wall_of[w.box, w.axis, (w.sign > 0).astype(int)] = np.arange(len(w))
+        if len(self.box_lo):
+            side = float(np.median(self.box_hi[:, :2] - self.box_lo[:, :2]))
+            self._cell_m = _cell_size(self.box_lo[:, :2], self.box_hi[:, :2], side)
+            self._boxes = CellGrid(self.box_lo[:, :2], self.box_hi[:, :2], self._cell_m)
 
     @classmethod
     def from_scene(cls, scene: str, seed: int = 0, **overrides) -> ProceduralCity:
@@ -275,9 +298,7 @@ class ProceduralCity:
     def with_buildings(cls, box_lo: np.ndarray, box_hi: np.ndarray, **options) -> ProceduralCity:
         """A scene with the given boxes ``lo [n, 3]``, ``hi [n, 3]`` [m] (z from 0) instead of random ones."""
         city = cls(num_buildings=0, **options)
-        city.box_lo = np.asarray(box_lo, dtype=np.float64).reshape(-1, 3)
-        city.box_hi = np.asarray(box_hi, dtype=np.float64).reshape(-1, 3)
-        city._walls = _Walls.of_boxes(city.box_lo, city.box_hi)
+        city._set_boxes(box_lo, box_hi)
         return city
 
     @property
@@ -300,8 +321,13 @@ class ProceduralCity:
 
     def is_outdoor(self, xy: np.ndarray) -> np.ndarray:
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        inside = (xy[:, None] >= self.box_lo[None, :, :2]) & (xy[:, None] <= self.box_hi[None, :, :2])
-        return np.asarray(~inside.all(axis=-1).any(axis=-1))
+        out = np.ones(len(xy), dtype=bool)
+        if not self.num_buildings:
+            return out
+        point, box = self._boxes.items_of(*self._boxes.point_cells(xy))
+        inside = np.all((xy[point] >= self.box_lo[box, :2]) & (xy[point] <= self.box_hi[box, :2]), axis=1)
+        out[point[inside]] = False
+        return out
 
     def sample_point_cloud(self, points_per_m2: float, noise_std_m: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """Uniform random points on the outdoor ground, roofs and walls, plus Gaussian noise [m]."""
@@ -355,17 +381,23 @@ class ProceduralCity:
 
     def penetration_loss_db(self, p0: np.ndarray, p1: np.ndarray, freq_hz: float) -> np.ndarray:
         """Loss ``[num_seg]`` [dB] of segments ``p0 → p1`` ``[num_seg, 3]`` through the buildings:
-        walls crossed × :func:`wall_loss_db` + interior length × ``interior_loss_db_per_m``."""
+        walls crossed × :func:`wall_loss_db` + interior length × ``interior_loss_db_per_m``.
+
+        Only the boxes the grid index lists for a segment are tested; the per-box lengths are summed as a
+        sum over every box in box order would (exactly: see :func:`_box_order_sums`)."""
         if not self.num_buildings or len(p0) == 0:
             return np.zeros(len(p0))
         length = np.linalg.norm(p1 - p0, axis=-1)
         loss = np.zeros(len(p0))
-        for sl in _chunks(len(p0), max(1, 2_000_000 // max(self.num_buildings, 1))):
-            t_in, t_out = segment_box_overlap(p0[sl], p1[sl], self.box_lo, self.box_hi)
-            inside_m = np.maximum(t_out - t_in, 0.0) * length[sl, None]
+        for sl in _chunks(len(p0), _SEGMENTS_PER_CHUNK):
+            seg, box, t_in, t_out = self._overlaps(p0[sl], p1[sl], unique=True)
+            inside_m = np.maximum(t_out - t_in, 0.0) * length[sl][seg]
             crossed = inside_m > _EPS_M
             walls = crossed * ((t_in > 1e-9).astype(float) + (t_out < 1 - 1e-9))
-            loss[sl] = walls.sum(-1) * wall_loss_db(freq_hz) + inside_m.sum(-1) * self.interior_loss_db_per_m
+            num = sl.stop - sl.start
+            wall_count = np.bincount(seg, weights=walls, minlength=num)  # whole numbers: exact in any order
+            inside = _box_order_sums(seg, box, inside_m, num, self.num_buildings)
+            loss[sl] = wall_count * wall_loss_db(freq_hz) + inside * self.interior_loss_db_per_m
         return loss
 
     def _blocked(self, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
@@ -374,10 +406,22 @@ class ProceduralCity:
             return np.zeros(len(p0), dtype=bool)
         length = np.linalg.norm(p1 - p0, axis=-1)
         out = np.zeros(len(p0), dtype=bool)
-        for sl in _chunks(len(p0), max(1, 2_000_000 // self.num_buildings)):
-            t_in, t_out = segment_box_overlap(p0[sl], p1[sl], self.box_lo, self.box_hi)
-            out[sl] = ((t_out - t_in) * length[sl, None] > _EPS_M).any(-1)
+        for sl in _chunks(len(p0), _SEGMENTS_PER_CHUNK):
+            seg, _, t_in, t_out = self._overlaps(p0[sl], p1[sl], unique=False)
+            hit = (t_out - t_in) * length[sl][seg] > _EPS_M
+            out[sl.start + seg[hit]] = True
         return out
+
+    def _overlaps(
+        self, p0: np.ndarray, p1: np.ndarray, unique: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(segment, box, t_in, t_out)`` of :func:`segment_box_overlap` for the (segment, box) pairs whose
+        x/y grid cells meet (every pair that overlaps at all, and some that do not); ``unique``: each pair
+        once, sorted by segment then box (else a box spanning several cells of a segment comes again)."""
+        seg, cell = self._boxes.segment_cells(p0, p1)
+        seg, box = self._boxes.unique_items(seg, cell) if unique else self._boxes.items_of(seg, cell)
+        t_in, t_out = _slab(p0[seg], (p1 - p0)[seg], self.box_lo[box], self.box_hi[box])
+        return seg, box, t_in, t_out
 
     def _table(self, rx_index, power, first_hop, length, labels) -> pd.DataFrame:
         direction = first_hop / np.linalg.norm(first_hop, axis=-1, keepdims=True)
@@ -421,47 +465,70 @@ class ProceduralCity:
         return self._table(idx, power[idx], (point - tx)[idx], length[idx], labels[idx])
 
     def _wall_sequences(self, order: int) -> np.ndarray:
-        """Candidate wall sequences ``[num_seq, order]`` for the image method.
+        """Candidate wall sequences ``[num_seq, order]`` for the image method, sorted.
 
         Order 2 keeps the street-canyon double bounces: pairs of parallel walls of different
-        buildings that face each other across at most ``max_canyon_m`` with overlapping extents.
+        buildings that face each other across at most ``max_canyon_m`` with overlapping extents
+        (found through the grid index: the boxes in front of a wall, within the canyon width).
         """
         w = self._walls
         n = len(w)
         if order == 1:
             return np.arange(n)[:, None]
-        grid_a, grid_b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-        a, b = grid_a.ravel(), grid_b.ravel()
+        if n == 0:
+            return np.zeros((0, 2), dtype=np.int64)
+        far = w.coord + w.sign * self.max_canyon_m
+        span = np.stack([np.minimum(w.coord, far), np.maximum(w.coord, far)], axis=1)  # along the normal
+        along = np.stack([w.u_lo, w.u_hi], axis=1)
+        lo = np.where(
+            w.axis[:, None] == 0, np.stack([span[:, 0], along[:, 0]], 1), np.stack([along[:, 0], span[:, 0]], 1)
+        )
+        hi = np.where(
+            w.axis[:, None] == 0, np.stack([span[:, 1], along[:, 1]], 1), np.stack([along[:, 1], span[:, 1]], 1)
+        )
+        a, box = self._boxes.unique_items(*self._boxes.rect_cells(lo, hi))
+        b = self._wall_of[box, w.axis[a], (w.sign[a] < 0).astype(int)]  # box's wall facing back at wall a
         gap = w.sign[a] * (w.coord[b] - w.coord[a])  # b lies this far in front of a
         facing = (w.axis[a] == w.axis[b]) & (w.sign[a] == -w.sign[b]) & (gap > 0) & (gap <= self.max_canyon_m)
         overlap = np.minimum(w.u_hi[a], w.u_hi[b]) - np.maximum(w.u_lo[a], w.u_lo[b]) > 0
         keep = facing & overlap & (w.box[a] != w.box[b])
-        return np.stack([a[keep], b[keep]], axis=1)
+        key = np.unique(a[keep] * n + b[keep])
+        return np.stack([key // n, key % n], axis=1)
 
     def _walls_order(self, tx, rx, freq_hz, wavelength, order: int) -> pd.DataFrame:
-        """Specular reflections off ``order`` walls (image method), unobstructed legs only."""
+        """Specular reflections off ``order`` walls (image method), unobstructed legs only.
+
+        The receivers of a wall sequence are those the grid index of the receivers lists in the wedge of its
+        last image through its last wall (a superset of those whose reflection point falls on that wall)."""
         w, seqs = self._walls, self._wall_sequences(order)
         first = seqs[:, 0]
         seqs = seqs[w.sign[first] * (tx[w.axis[first]] - w.coord[first]) > 1e-6]  # tx in front of wall 1
         eta = self.wall_material.permittivity(freq_hz)
         out = [empty_path_table()]
-        for sl in _chunks(len(seqs), max(1, 4_000_000 // max(len(rx), 1))):
-            out.append(self._reflect_chunk(tx, rx, seqs[sl], eta, wavelength))
-        return pd.concat([t for t in out if len(t)] or out, ignore_index=True)
-
-    def _reflect_chunk(self, tx, rx, seqs, eta, wavelength) -> pd.DataFrame:
-        """Reflections for wall sequences ``seqs [num_seq, order]`` × all receivers, on sparse candidates."""
-        w, order = self._walls, seqs.shape[1]
+        if len(rx) == 0 or len(seqs) == 0:
+            return out[0]
+        receivers = CellGrid(rx[:, :2], rx[:, :2], _cell_size(rx[:, :2], rx[:, :2], self._cell_m))
         images = [np.broadcast_to(tx, (len(seqs), 3))]
         for j in range(order):
             images.append(w.mirror(images[-1], seqs[:, j]))
-        last = seqs[:, -1]
-        front = w.sign[last][:, None] * (
-            rx[None, :, 0] * (w.axis[last] == 0)[:, None]
-            + rx[None, :, 1] * (w.axis[last] == 1)[:, None]
-            - w.coord[last][:, None]
-        )
-        s_idx, r_idx = np.nonzero(front > 1e-6)  # candidates: receiver in front of the last wall
+        for sl in _chunks(len(seqs), 4096):
+            last = seqs[sl, -1]
+            k, cell = receivers.wedge_cells(
+                images[-1][sl], w.axis[last], w.coord[last], w.sign[last], w.u_lo[last], w.u_hi[last], margin_m=1e-6
+            )
+            s_idx, r_idx = receivers.unique_items(k, cell)  # sorted by sequence, then receiver
+            s_idx += sl.start
+            last = seqs[s_idx, -1]
+            front = w.sign[last] * (rx[r_idx, w.axis[last]] - w.coord[last])
+            s_idx, r_idx = s_idx[front > 1e-6], r_idx[front > 1e-6]  # receiver in front of the last wall
+            for part in _chunks(len(s_idx), _PAIRS_PER_CHUNK):
+                out.append(self._reflect_pairs(tx, rx, seqs, images, s_idx[part], r_idx[part], eta, wavelength))
+        return pd.concat([t for t in out if len(t)] or out, ignore_index=True)
+
+    def _reflect_pairs(self, tx, rx, seqs, images, s_idx, r_idx, eta, wavelength) -> pd.DataFrame:
+        """Reflections for the candidate (wall sequence ``s_idx``, receiver ``r_idx``) pairs: ``seqs [num_seq,
+        order]`` with their images ``images[j] [num_seq, 3]`` (``images[0]`` the transmitter)."""
+        w, order = self._walls, seqs.shape[1]
         hops = [rx[r_idx]]  # hops from the receiver backwards: P_order+1 = rx, P_order, …, P_1
         for j in range(order - 1, -1, -1):
             wall, image, target = seqs[s_idx, j], images[j + 1][s_idx], hops[-1]
@@ -481,8 +548,9 @@ class ProceduralCity:
         hops = [np.broadcast_to(tx, (len(s_idx), 3)), *hops[::-1]]  # tx, P_1, …, P_order, rx
         blocked = np.zeros(len(s_idx), dtype=bool)
         gamma2 = np.ones(len(s_idx))
-        for j in range(len(hops) - 1):
-            blocked |= self._blocked(hops[j], hops[j + 1])
+        for j in range(len(hops) - 1):  # a leg is tested only where no earlier leg is blocked
+            open_ = np.flatnonzero(~blocked)
+            blocked[open_] = self._blocked(hops[j][open_], hops[j + 1][open_])
         for j in range(order):
             k_in = hops[j + 1] - hops[j]
             k_in /= np.linalg.norm(k_in, axis=-1, keepdims=True)
@@ -492,6 +560,36 @@ class ProceduralCity:
         power = (wavelength / (4 * np.pi * length)) ** 2 * gamma2
         labels = np.full(len(s_idx), "R" * order)
         return self._table(r_idx[keep], power[keep], (hops[1] - hops[0])[keep], length[keep], labels[keep])
+
+
+def _cell_size(lo: np.ndarray, hi: np.ndarray, side_m: float) -> float:
+    """Side of the grid index's cells [m]: ``side_m`` (the median building side), larger where the items'
+    extent would need more than :data:`_MAX_GRID_CELLS_PER_SIDE` cells along x or y."""
+    extent = float((hi.max(axis=0) - lo.min(axis=0)).max()) if len(lo) else 0.0
+    return max(side_m, extent / _MAX_GRID_CELLS_PER_SIDE, 1e-3)
+
+
+def _box_order_sums(seg: np.ndarray, box: np.ndarray, value: np.ndarray, num_seg: int, num_boxes: int) -> np.ndarray:
+    """Per segment, the sum ``[num_seg]`` of ``value`` over its listed boxes, equal bit for bit to the sum
+    over a row of every box in box order, zeros where not listed (what the whole-scene slab test summed).
+
+    Adding zeros is exact and a sum of at most two non-zero terms does not depend on the order, so segments
+    with ≤ 2 non-zero terms are summed directly; the others are scattered into rows of zeros in box order and
+    summed as rows, as numpy summed them (its pairwise summation groups terms by position)."""
+    nonzero = value != 0
+    count = np.bincount(seg[nonzero], minlength=num_seg)
+    out = np.bincount(seg[nonzero], weights=value[nonzero], minlength=num_seg)
+    many = np.flatnonzero(count > 2)
+    if len(many):
+        row_of = np.full(num_seg, -1)
+        row_of[many] = np.arange(len(many))
+        sel = np.flatnonzero(nonzero & (row_of[seg] >= 0))
+        for part in _chunks(len(many), max(1, 2_000_000 // max(num_boxes, 1))):
+            in_part = sel[(row_of[seg[sel]] >= part.start) & (row_of[seg[sel]] < part.stop)]
+            dense = np.zeros((part.stop - part.start, num_boxes))
+            dense[row_of[seg[in_part]] - part.start, box[in_part]] = value[in_part]
+            out[many[part]] = dense.sum(-1)
+    return out
 
 
 def _place_buildings(rng, size_m, num, footprint_m, height_m, street_m) -> tuple[np.ndarray, np.ndarray]:
