@@ -83,6 +83,9 @@ def test_plan_from_config_yaml_and_command_line(tmp_path: Path) -> None:
     yaml_file.write_text("sites: [5]\ngrid: 6\n")
     with pytest.raises(ConfigError, match="unknown B10 key"):
         plan_of(ctx(config=str(yaml_file)))
+    yaml_file.write_text(f"sites: [5]\ngiven: {{5: {tmp_path}}}\n")
+    with pytest.raises(ConfigError, match=r"has no scenario\.yaml"):
+        plan_of(ctx(config=str(yaml_file)))
     yaml_file.write_text("sites: [5]\nextra: {optimise: [--restarts, 0]}\n")
     with pytest.raises(ConfigError, match="unknown stage"):
         plan_of(ctx(config=str(yaml_file)))
@@ -113,6 +116,13 @@ def test_rflscm_stages_run_tiled_and_once_per_worker_count(tmp_path: Path) -> No
     assert cmds["optimize_rflscm"][-2:] == ["--restarts", "0"] and cmds["optimize_rflscm@2"][-2:] == ["--restarts", "0"]
     outs = {c[c.index("--out") + 1] for k, c in cmds.items() if k.startswith("optimize")}
     assert len(outs) == 3  # serial and parallel runs never write over each other
+    given = B10Plan(sites=(4,), rflscm_minutes=2.0, given={4: "/data/city4"}, predict=False)
+    cmds = _commands(given, 4, tmp_path)
+    assert (
+        cmds["check"][-1] == "/data/city4"
+        and cmds["evaluate_rflscm"][cmds["evaluate_rflscm"].index("evaluate") + 2] == "/data/city4"
+    )
+    assert not any(k.startswith("predict") for k in cmds)
     with pytest.raises(ConfigError, match="tile_sites"):
         B10Plan(tile_sites=0)
     with pytest.raises(ConfigError, match="workers"):

@@ -93,6 +93,11 @@ class B10Plan:
     """Worker counts of the parallel stages (:data:`WORKER_STAGES`); a tiled training uses the largest."""
     project_cells: int = 10_000
     project_machines: tuple[int, ...] = (1, 8, 64)
+    given: dict[int, str] = field(default_factory=dict)
+    """Site count → a scenario folder simulated before (by the same ``simulate`` command): that size's
+    ``simulate`` stage is not run again (its row says so) and the other stages read that folder."""
+    predict: bool = True
+    """Run the ``predict_rflscm`` stages (``--pairs measured``; the evaluation renders its own pairs anyway)."""
     optimize_sites: int | None = None
     """The optimiser changes only the cells of this many sites nearest the network's centre (``--cells``, a
     cluster; ``None``: every cell)."""
@@ -155,7 +160,7 @@ def _wait(proc: subprocess.Popen, timeout_s: float | None) -> tuple[int | None, 
 
 def _commands(plan: B10Plan, sites: int, folder: Path) -> dict[str, list[str]]:
     cli = [sys.executable, "-m", "rflscm.cli", "--threads", str(plan.threads)]
-    scen = str(folder / "scenario")
+    scen = str(plan.given.get(sites, folder / "scenario"))
     sim = [*cli, "simulate", "--backend", "procedural", "--scene", plan.scene, "--sites", str(sites)]
     sim += ["--out", scen, "--no-progress", "--force", "--device", "cpu"]
     if plan.grids_per_site is not None:
@@ -192,10 +197,11 @@ def _commands(plan: B10Plan, sites: int, folder: Path) -> dict[str, list[str]]:
         for w in plan.workers:
             tag = "" if w == 1 else f"@{w}"
             par = ["--workers", str(w)] if w != 1 else []
-            commands[f"predict_rflscm{tag}"] = [
-                *[*cli, "predict", rf, scen, "--pairs", "measured", "--device", "cpu", "--force"],
-                *["--out", str(folder / f"predict{tag.replace('@', '_w')}.parquet"), *par],
-            ]
+            if plan.predict:
+                commands[f"predict_rflscm{tag}"] = [
+                    *[*cli, "predict", rf, scen, "--pairs", "measured", "--device", "cpu", "--force"],
+                    *["--out", str(folder / f"predict{tag.replace('@', '_w')}.parquet"), *par],
+                ]
             commands[f"evaluate_rflscm{tag}"] = [
                 *[*cli, "evaluate", rf, scen, "--device", "cpu", "--force"],
                 *["--json", str(folder / f"rflscm_eval{tag.replace('@', '_w')}.json"), *par],
@@ -246,9 +252,14 @@ def run_b10(plan: B10Plan, out_dir: Path) -> dict[str, Any]:
         folder = root / f"city{sites}"
         size: dict[str, Any] = {"sites": int(sites)}
         failed = None
+        scen = Path(plan.given.get(int(sites), folder / "scenario"))
         for stage, cmd in _commands(plan, int(sites), folder).items():
+            if stage == "simulate" and int(sites) in plan.given:
+                size.update(_scenario_size(scen))
+                rows.append({"sites": int(sites), "stage": stage, "status": f"given ({scen})", "command": _shown(cmd)})
+                continue
             if stage.startswith("optimize") and plan.optimize_sites is not None and failed is None:
-                cluster = central_cells(folder / "scenario", int(plan.optimize_sites))
+                cluster = central_cells(scen, int(plan.optimize_sites))
                 cmd = [*cmd, "--cells", ",".join(map(str, cluster))]
                 size["optimize_cells"] = len(cluster)
             if failed is not None:
@@ -256,7 +267,7 @@ def run_b10(plan: B10Plan, out_dir: Path) -> dict[str, Any]:
                 continue
             result = run_stage(cmd, folder / f"{stage}.log", plan.timeout_s)
             if stage == "simulate" and result["rc"] == 0:
-                size.update(_scenario_size(folder / "scenario"))
+                size.update(_scenario_size(scen))
             if stage == "train_rflscm" and result["rc"] == 0:
                 size.update(_tile_figures(folder / "rflscm.ckpt"))
             status = "ok" if result["rc"] == 0 else f"failed (exit {result['rc']})"
@@ -368,6 +379,8 @@ def _plan_dict(plan: B10Plan) -> dict[str, Any]:
         "project_cells": plan.project_cells,
         "project_machines": list(plan.project_machines),
         "optimize_sites": plan.optimize_sites,
+        "given": {str(k): v for k, v in plan.given.items()},
+        "predict": plan.predict,
     }
 
 
@@ -425,6 +438,8 @@ PLAN_KEYS = (
     "project_cells",
     "project_machines",
     "optimize_sites",
+    "given",
+    "predict",
     "extra",
 )
 """Keys of a ``--config`` YAML of B10 (the :class:`B10Plan` fields; the command line's --sites and
@@ -455,6 +470,14 @@ def plan_of(ctx: BenchContext) -> B10Plan:
     for key in ("workers", "project_machines"):
         if key in given:
             given[key] = tuple(int(v) for v in given[key])
+    if "given" in given:
+        folders = given["given"]
+        if not isinstance(folders, dict):
+            raise ConfigError("b10 config: `given` maps a site count to a scenario folder simulated before.")
+        for folder in folders.values():
+            if not (Path(str(folder)) / "scenario.yaml").is_file():
+                raise ConfigError(f"b10 config: `given` folder {folder} has no scenario.yaml.")
+        given["given"] = {int(k): str(v) for k, v in folders.items()}
     if "extra" in given:
         extra = given["extra"]
         if not isinstance(extra, dict) or not all(isinstance(v, list) for v in extra.values()):
