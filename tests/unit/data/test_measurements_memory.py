@@ -52,3 +52,26 @@ def test_a_duplicate_is_still_named_with_both_rows(tiny: Scenario) -> None:
     doubled = pd.concat([m, m.iloc[[3]]], ignore_index=True)
     with pytest.raises(DataError, match=rf"row {len(m) + 1}: .* duplicates row 4; .*1 duplicate row\(s\) in all"):
         tiny.with_measurements(doubled)
+
+
+def test_check_summary_counts_match_a_group_by_of_the_table(tiny: Scenario) -> None:
+    from rflscm.data.reporting import reported_fraction
+    from rflscm.data.summary import measurement_stats
+
+    m = tiny.measurements
+    stats = measurement_stats(tiny).set_index(["round", "beam_type"])
+    for (rnd, bt), rows in m.groupby(["round", "beam_type"]):
+        row = stats.loc[(rnd, bt)]
+        assert row["rows"] == len(rows)
+        assert row["pairs"] == len(rows[["cell_id", "grid_id"]].drop_duplicates())
+        assert row["cells"] == rows["cell_id"].nunique() and row["grids"] == rows["grid_id"].nunique()
+        assert row["missing"] == rows["rsrp_dbm"].isna().mean()
+        assert row["below_threshold"] == int((rows["rsrp_dbm"] < tiny.meta.rsrp_threshold_dbm).sum())
+    frac = reported_fraction(tiny).set_index(["round", "beam_type"])
+    for rnd in sorted(m["round"].unique()):
+        sub = m[m["round"] == rnd]
+        pairs = sub[["cell_id", "grid_id"]].drop_duplicates()
+        for bt in ("ssb", "csi"):
+            possible = sum(tiny.num_beams(int(c), bt, int(rnd)) for c in pairs["cell_id"])
+            reported = int(sub[sub["beam_type"] == bt]["rsrp_dbm"].notna().sum())
+            assert frac.loc[(rnd, bt), "possible"] == possible and frac.loc[(rnd, bt), "reported"] == reported
