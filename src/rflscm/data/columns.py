@@ -167,19 +167,28 @@ def _as_float(series: pd.Series, ref: TableRef, column: str) -> np.ndarray:
 
 
 def float_column(
-    df: pd.DataFrame, ref: TableRef, column: str, *, default: float | np.ndarray | None = None, allow_nan: bool = False
+    df: pd.DataFrame,
+    ref: TableRef,
+    column: str,
+    *,
+    default: float | np.ndarray | None = None,
+    allow_nan: bool = False,
+    copy: bool = True,
 ) -> np.ndarray:
     """A numeric column as float64 ``[num_rows]``.
 
     A missing column or an empty value takes ``default`` (scalar or per row) when
     one is given; otherwise an empty value is an error unless ``allow_nan``.
-    ±inf is always an error.
+    ±inf is always an error.  ``copy=False`` (no ``default``): the column's own float64 values where it has them,
+    possibly a read-only view (a large table is not duplicated).
     """
     if column not in df.columns:
         if default is None:
             raise DataError(f"{ref.name}: missing column `{column}`.")
         return np.broadcast_to(np.asarray(default, dtype=np.float64), (len(df),)).copy()
-    values = np.array(_as_float(df[column], ref, column))  # writable copy: pandas may hand out read-only views
+    values = _as_float(df[column], ref, column)
+    if copy or default is not None:
+        values = np.array(values)  # writable copy: pandas may hand out read-only views
     nan = np.isnan(values)
     if default is not None and nan.any():
         values[nan] = np.broadcast_to(np.asarray(default, dtype=np.float64), values.shape)[nan]
@@ -199,14 +208,21 @@ def int_column(df: pd.DataFrame, ref: TableRef, column: str, *, default: int | N
     series = df[column] if column in df.columns else None
     if series is not None and isinstance(series.dtype, np.dtype) and series.dtype.kind == "i":
         values = series.to_numpy(dtype=np.int64)
-        raise_rows(ref, np.abs(values) > MAX_INT, column, series, _TOO_BIG)
+        raise_rows(ref, _beyond(values, MAX_INT), column, series, _TOO_BIG)
         return values
     values = float_column(df, ref, column, default=None if default is None else float(default))
     fractional = values != np.round(values)
     raw = df[column] if column in df.columns else values
     raise_rows(ref, fractional, column, raw, "is not a whole number; give an integer")
-    raise_rows(ref, np.abs(values) > MAX_INT, column, raw, _TOO_BIG)
+    raise_rows(ref, _beyond(values, MAX_INT), column, raw, _TOO_BIG)
     return values.astype(np.int64)
+
+
+def _beyond(values: np.ndarray, limit: float) -> np.ndarray:
+    """``|values| > limit`` without a temporary of the values' size (a bool mask only)."""
+    mask = values > limit
+    mask |= values < -limit
+    return mask
 
 
 _TOO_BIG = f"is too large; integers here must lie within ±{MAX_INT} (2^53)"

@@ -88,7 +88,14 @@ def read_table(path: str | Path) -> pd.DataFrame:
     try:
         # Page checksums verified (a flipped value in a file that has them is an error, not data); one thread:
         # a threaded read of a corrupted page can abort the process (exit 134) instead of raising.
-        df = pd.read_parquet(io.BytesIO(data), page_checksum_verification=True, use_threads=False)
+        # Arrow's buffers are released column by column as pandas takes them (self_destruct, split_blocks): the
+        # read's peak is about the table's size once, not twice (issue 29, memory).
+        df = pd.read_parquet(
+            io.BytesIO(data),
+            page_checksum_verification=True,
+            use_threads=False,
+            to_pandas_kwargs={"self_destruct": True, "split_blocks": True},
+        )
     except Exception as exc:
         raise DataError(f"{path.name}: not a readable Parquet file ({_first_line(exc)}).") from None
     names = [str(c) for c in df.columns]

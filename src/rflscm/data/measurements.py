@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa  # type: ignore[import-untyped]
 
 from rflscm.data.columns import (
     TableRef,
@@ -79,21 +80,56 @@ def normalise_measurements(
 
     Returns:
         The table with :data:`MEASUREMENT_COLUMNS` in their dtypes (+ extra columns), in file order.
+
+    Memory: a column already in its dtype is kept, not copied (a Parquet file written by rflscm is: the table as
+    read becomes the table returned); the positions of each row's round, cell, grid and beam type are held in the
+    smallest integer type that holds them; the duplicate check sorts one packed int64 key per row instead of
+    hashing.  The peak is the table plus about 20 bytes a row (issue 29, docs/scale.md).
     """
     df = clean_column_names(df, ref)
     check_not_empty(df, ref, "one row per (round, cell, grid, beam)")
     require_columns(df, ref, list(MEASUREMENT_COLUMNS))
     check_unknown_columns(df, ref, MEASUREMENT_COLUMNS)
-    out, r_idx, c_idx, g_idx = _ids(df, ref, meta, cells, grid_ids, grids_name)
-    t_idx = _beam_types(df, ref)
-    out["beam_type"] = pd.array(np.asarray(BEAM_TYPES, dtype=object)[t_idx], dtype="str")
-    out["beam_id"] = _beam_ids(df, ref, codebook_sizes(cells, meta), r_idx, c_idx, t_idx, cells)
-    out["rsrp_dbm"] = _rsrp(df, ref)
-    shape = (len(cells), len(cells[1]), len(grid_ids), 2, int(out["beam_id"].max()) + 1)
-    packed = np.ravel_multi_index((r_idx, c_idx, g_idx, t_idx, out["beam_id"].to_numpy()), shape)
+    ids, r_idx, c_idx, g_idx = _ids(df, ref, meta, cells, grid_ids, grids_name)
+    t_idx, exact = _beam_types(df, ref)
+    beam_id = _beam_ids(df, ref, codebook_sizes(cells, meta), r_idx, c_idx, t_idx, cells)
+    rsrp = _rsrp(df, ref)
+    shape = (len(cells), len(cells[1]), len(grid_ids), 2, int(beam_id.max()) + 1)
+    packed = _packed_key((r_idx, c_idx, g_idx, t_idx, beam_id), shape)
+    del r_idx, c_idx, g_idx
+    columns = {**ids, "beam_type": _beam_type_column(df, t_idx, exact), "beam_id": beam_id, "rsrp_dbm": rsrp}
+    out = pd.DataFrame(columns, copy=False)
     fix = "each beam of a cell is measured once per grid and round (average repeated measurements before import)"
-    duplicate_rows(ref, out, MEASUREMENT_KEY, fix, packed=packed)
+    if _has_duplicates(packed):
+        duplicate_rows(ref, out, MEASUREMENT_KEY, fix, packed=packed)
+    del packed
     return finish_table(out, df, None)
+
+
+def _packed_key(positions: tuple[np.ndarray, ...], shape: tuple[int, ...]) -> np.ndarray:
+    """One int64 ``[num_rows]`` per row, equal exactly when every position is (``np.ravel_multi_index``'s value,
+    computed in place: one array of the rows' size, not one per position)."""
+    key = np.asarray(positions[0], dtype=np.int64).copy()
+    for pos, size in zip(positions[1:], shape[1:], strict=True):
+        key *= size
+        key += pos
+    return key
+
+
+def _has_duplicates(packed: np.ndarray) -> bool:
+    """Whether two rows share a packed key (sorted copy: 8 bytes a row, against a hash table's several times)."""
+    if len(packed) < 2:
+        return False
+    ordered = np.sort(packed)
+    return bool((ordered[1:] == ordered[:-1]).any())
+
+
+def _compact_index(pos: np.ndarray, size: int) -> np.ndarray:
+    """``pos`` (positions < ``size``) in the smallest signed integer type that holds ``size``."""
+    for dtype in (np.int8, np.int16, np.int32):
+        if size <= np.iinfo(dtype).max:
+            return pos.astype(dtype)
+    return pos.astype(np.int64, copy=False)
 
 
 def _ids(
@@ -103,42 +139,61 @@ def _ids(
     cells: dict[int, pd.DataFrame],
     grid_ids: np.ndarray,
     grids_name: str,
-) -> tuple[pd.DataFrame, np.ndarray, np.ndarray, np.ndarray]:
-    """``round``, ``cell_id``, ``grid_id`` as a new table, and the positions ``[num_rows]`` of each row's
-    round, cell and grid in the sorted rounds, cell ids and grid ids."""
+) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
+    """``round``, ``cell_id``, ``grid_id`` (int64 columns), and the positions ``[num_rows]`` of each row's
+    round, cell and grid in the sorted rounds, cell ids and grid ids (smallest integer types)."""
     rounds = np.array(sorted(cells), dtype=np.int64)
     cell_ids = cells[1]["cell_id"].to_numpy()
-    out = pd.DataFrame({c: int_column(df, ref, c) for c in ("round", "cell_id", "grid_id")})
+    out = {c: int_column(df, ref, c) for c in ("round", "cell_id", "grid_id")}
     problem = (
         f"has no cells table; scenario.yaml `rounds` defines {fmt_list(rounds)} "
         "(add the round there with its cells file, or correct the value)"
     )
-    r_idx = _index_of(out["round"].to_numpy(), rounds, ref, "round", df, problem)
+    r_idx = _index_of(out["round"], rounds, ref, "round", df, problem)
     problem = f"is not a cell of {meta.rounds[1]} (cell ids: {fmt_list(cell_ids)})"
-    c_idx = _index_of(out["cell_id"].to_numpy(), cell_ids, ref, "cell_id", df, problem)
+    c_idx = _index_of(out["cell_id"], cell_ids, ref, "cell_id", df, problem)
     problem = f"is not a grid of {grids_name} (grid ids: {fmt_list(grid_ids)})"
-    g_idx = _index_of(out["grid_id"].to_numpy(), grid_ids, ref, "grid_id", df, problem)
+    g_idx = _index_of(out["grid_id"], grid_ids, ref, "grid_id", df, problem)
     return out, r_idx, c_idx, g_idx
 
 
 def _index_of(
     values: np.ndarray, known: np.ndarray, ref: TableRef, column: str, df: pd.DataFrame, problem: str
 ) -> np.ndarray:
-    """Positions ``[num_rows]`` of ``values`` in the sorted ``known``; a value not in it is an error."""
-    pos = np.clip(np.searchsorted(known, values), 0, len(known) - 1)
+    """Positions ``[num_rows]`` of ``values`` in the sorted ``known`` (smallest integer type); a value not in it is
+    an error."""
+    pos = np.searchsorted(known, values)
+    np.minimum(pos, len(known) - 1, out=pos)
     raise_rows(ref, known[pos] != values, column, df[column], problem)
-    return pos
+    return _compact_index(pos, len(known))
 
 
-def _beam_types(df: pd.DataFrame, ref: TableRef) -> np.ndarray:
-    """Beam-type index ``[num_rows]`` (0 = ssb, 1 = csi)."""
+def _beam_types(df: pd.DataFrame, ref: TableRef) -> tuple[np.ndarray, bool]:
+    """Beam-type index ``[num_rows]`` (int8: 0 = ssb, 1 = csi), and whether every value is already exactly
+    ``ssb`` or ``csi``."""
     codes, uniques = pd.factorize(df["beam_type"], use_na_sentinel=True)
-    lookup = np.array([_beam_type_index(u) for u in uniques] + [-1], dtype=np.int64)  # code −1 (empty) → −1
+    lookup = np.array([_beam_type_index(u) for u in uniques] + [-1], dtype=np.int8)  # code −1 (empty) → −1
     t_idx = lookup[codes]
     problem = "is empty (NaN); every row needs `ssb` or `csi`"
     raise_rows(ref, (t_idx < 0) & (codes < 0), "beam_type", df["beam_type"], problem)
     raise_rows(ref, t_idx < 0, "beam_type", df["beam_type"], "is not one of 'ssb', 'csi'")
-    return t_idx
+    exact = all(isinstance(u, str) and u in BEAM_TYPES for u in uniques)
+    return t_idx, exact
+
+
+_STR_DTYPE = pd.array([], dtype="str").dtype
+
+
+def _beam_type_column(df: pd.DataFrame, t_idx: np.ndarray, exact: bool) -> pd.api.extensions.ExtensionArray:
+    """The ``beam_type`` column (``str``): the column as read when it already holds exactly ``ssb`` / ``csi``
+    (``exact``; no copy), else built from the beam-type indices through a dictionary (no object array of the rows'
+    size)."""
+    column = df["beam_type"]
+    if exact and column.dtype == _STR_DTYPE:
+        return column.array
+    codes = pa.array(t_idx, type=pa.int8())
+    labels = pa.DictionaryArray.from_arrays(codes, pa.array(list(BEAM_TYPES), type=pa.large_string()))
+    return pd.array(labels.cast(pa.large_string()), dtype="str")
 
 
 def _beam_type_index(value: object) -> int:
@@ -158,7 +213,7 @@ def _beam_ids(
     """``beam_id`` ``[num_rows]`` checked against the codebook size of each row's cell, round and beam type."""
     beam_id = int_column(df, ref, "beam_id")
     raise_rows(ref, beam_id < 0, "beam_id", df["beam_id"], "must be ≥ 0 (a 0-based index into the cell's codebook)")
-    limit = sizes[r_idx, c_idx, t_idx]  # [num_rows]
+    limit = sizes.astype(np.int32)[r_idx, c_idx, t_idx]  # [num_rows]
     too_big = beam_id >= limit
     if too_big.any():
         i = int(np.flatnonzero(too_big)[0])
@@ -176,7 +231,7 @@ def _beam_ids(
 
 def _rsrp(df: pd.DataFrame, ref: TableRef) -> np.ndarray:
     """``rsrp_dbm`` ``[num_rows]`` (NaN = missing) within the reportable range."""
-    rsrp = float_column(df, ref, "rsrp_dbm", allow_nan=True)
+    rsrp = float_column(df, ref, "rsrp_dbm", allow_nan=True, copy=False)
     span = f"the reportable range {RSRP_MIN_DBM:g}…{RSRP_MAX_DBM:g} dBm".replace("-", "−")
     problem = f"is outside {span} (values in W or mW? convert to dBm)"
     raise_rows(ref, rsrp > RSRP_MAX_DBM, "rsrp_dbm", df["rsrp_dbm"], problem)

@@ -236,13 +236,22 @@ def reported_fraction(scenario) -> pd.DataFrame:
     """
     m = scenario.measurements
     out = []
-    for rnd in sorted(m["round"].unique()) if len(m) else []:
-        sub = m[(m["round"] == rnd).to_numpy()]
-        pairs = sub[["cell_id", "grid_id"]].drop_duplicates()
+    cell_ids, grid_ids = scenario.cell_ids(), scenario.grid_ids()
+    rounds = m["round"].to_numpy()
+    reported_rows = m["rsrp_dbm"].notna().to_numpy()
+    of_type = {bt: (m["beam_type"] == bt).to_numpy() for bt in BEAM_TYPES} if len(m) else {}
+    for rnd in sorted(np.unique(rounds)) if len(m) else []:
+        sel = rounds == rnd
+        c = np.searchsorted(cell_ids, m["cell_id"].to_numpy()[sel])
+        g = np.searchsorted(grid_ids, m["grid_id"].to_numpy()[sel])
+        pair_cells = np.unique(c * len(grid_ids) + g) // len(grid_ids)  # one entry per (cell, grid) pair
+        pairs_per_cell = np.bincount(pair_cells, minlength=len(cell_ids))
+        del c, g, pair_cells
+        table = scenario.cells[int(rnd)]  # sorted by cell_id, the same ids as round 1
         for beam_type in BEAM_TYPES:
-            possible = sum(scenario.num_beams(int(c), beam_type, int(rnd)) for c in pairs["cell_id"].to_numpy())
-            rows = sub[(sub["beam_type"] == beam_type).to_numpy()]
-            reported = int(rows["rsrp_dbm"].notna().sum())
+            beams = table[f"{beam_type}_codebook"].map(lambda name: scenario.meta.codebooks[name].num_beams)
+            possible = int((pairs_per_cell * beams.to_numpy(dtype=np.int64)).sum())
+            reported = int((sel & of_type[beam_type] & reported_rows).sum())
             out.append(
                 {
                     "round": int(rnd),

@@ -231,13 +231,9 @@ class Scenario:
             meta_part["reporting"] = meta["reporting"]
         digest.update(json.dumps(meta_part, sort_keys=True).encode())
         m = self.measurements
-        round1 = m[(m["round"] == 1).to_numpy()]
-        for label, table, columns in (
-            ("cells", self.cells[1], CELL_COLUMNS),
-            ("grids", self.grids, GRID_COLUMNS),
-            ("measurements", round1, MEASUREMENT_COLUMNS),
-        ):
-            _hash_table(digest, label, table, columns)
+        _hash_table(digest, "cells", self.cells[1], CELL_COLUMNS)
+        _hash_table(digest, "grids", self.grids, GRID_COLUMNS)
+        _hash_table(digest, "measurements", m, MEASUREMENT_COLUMNS, rows=(m["round"] == 1).to_numpy())
         if self.outside_ssb is not None:  # a cut-out part: the left-out cells' SSB sets its detection bounds
             outside = self.outside_ssb
             _hash_table(digest, "outside_ssb", outside[(outside["round"] == 1).to_numpy()], OUTSIDE_SSB_COLUMNS)
@@ -270,16 +266,39 @@ def _same_table(a: pd.DataFrame | None, b: pd.DataFrame | None) -> bool:
     return (a is None and b is None) or (a is not None and b is not None and a.equals(b))
 
 
-def _hash_table(digest: hashlib._Hash, label: str, table: pd.DataFrame, columns: tuple[str, ...]) -> None:
-    """Feed a table's standard columns into ``digest`` in a dtype-canonical byte form."""
-    digest.update(f"{label}:{len(table)}".encode())
+def _hash_table(
+    digest: hashlib._Hash, label: str, table: pd.DataFrame, columns: tuple[str, ...], rows: np.ndarray | None = None
+) -> None:
+    """Feed a table's standard columns (of the ``rows`` where True; all rows by default) into ``digest`` in a
+    dtype-canonical byte form, one column at a time (the selected rows are never copied as a table)."""
+    digest.update(f"{label}:{len(table) if rows is None else int(rows.sum())}".encode())
     for column in columns:
         digest.update(f"|{column}|".encode())
-        values = table[column].to_numpy()
+        dtype = table[column].dtype
+        if isinstance(dtype, pd.StringDtype) or pd.api.types.is_object_dtype(
+            dtype
+        ):  # text: never one Python object per row
+            _hash_text(digest, table[column] if rows is None else table[column][rows])
+            continue
+        values = table[column].to_numpy() if rows is None else table[column].to_numpy()[rows]
         if values.dtype.kind in "iub":
             digest.update(np.ascontiguousarray(values, dtype=np.int64).tobytes())
         elif values.dtype.kind == "f":
             values = np.where(np.isnan(values), np.nan, values).astype(np.float64)  # one NaN bit pattern
             digest.update(np.ascontiguousarray(values).tobytes())
         else:
-            digest.update("\x1f".join(table[column].fillna("").astype(str).tolist()).encode())
+            _hash_text(digest, table[column] if rows is None else table[column][rows])
+
+
+def _hash_text(digest: hashlib._Hash, series: pd.Series) -> None:
+    """Feed the values of a text column joined by ``\\x1f`` (empty for missing) into ``digest``, in blocks of rows
+    (the bytes of one join of them all)."""
+    for start in range(0, len(series), _TEXT_BLOCK):
+        if start:
+            digest.update(b"\x1f")
+        block = series.iloc[start : start + _TEXT_BLOCK]
+        digest.update("\x1f".join(block.fillna("").astype(str).tolist()).encode())
+
+
+_TEXT_BLOCK = 1 << 20
+"""Rows of a text column joined at once when hashing."""

@@ -27,29 +27,35 @@ def measurement_stats(scenario: Scenario) -> pd.DataFrame:
     columns = ["round", "beam_type", "rows", "pairs", "cells", "grids", "missing", "below_threshold"]
     if len(m) == 0:
         return pd.DataFrame(columns=columns)
-    rsrp = m["rsrp_dbm"].to_numpy()
-    frame = pd.DataFrame(
-        {
-            "round": m["round"].to_numpy(),
-            "beam_type": pd.Categorical(m["beam_type"].to_numpy(), categories=list(BEAM_TYPES)),
-            "cell_id": m["cell_id"].to_numpy(),
-            "grid_id": m["grid_id"].to_numpy(),
-            "pair": m["cell_id"].to_numpy() * (int(m["grid_id"].max()) + 1) + m["grid_id"].to_numpy(),
-            "missing": np.isnan(rsrp),
-            "below": rsrp < scenario.meta.rsrp_threshold_dbm,
-        }
-    )
-    stats = frame.groupby(["round", "beam_type"], sort=True, observed=True).agg(
-        rows=("pair", "size"),
-        pairs=("pair", "nunique"),
-        cells=("cell_id", "nunique"),
-        grids=("grid_id", "nunique"),
-        missing=("missing", "mean"),
-        below_threshold=("below", "sum"),
-    )
-    stats = stats.reset_index()
+    # Per (round, beam type), on numpy columns and sorted unique counts: no copy of the table, no hash of its rows.
+    rounds, rsrp = m["round"].to_numpy(), m["rsrp_dbm"].to_numpy()
+    cells, grids = m["cell_id"].to_numpy(), m["grid_id"].to_numpy()
+    grid_span = int(grids.max()) + 1
+    out = []
+    for rnd in np.unique(rounds):
+        in_round = rounds == rnd
+        for beam_type in BEAM_TYPES:
+            sel = in_round & (m["beam_type"] == beam_type).to_numpy()
+            rows = int(sel.sum())
+            if not rows:
+                continue
+            c, g, r = cells[sel], grids[sel], rsrp[sel]
+            missing = np.isnan(r)
+            out.append(
+                {
+                    "round": rnd,
+                    "beam_type": beam_type,
+                    "rows": rows,
+                    "pairs": len(np.unique(c * grid_span + g)),
+                    "cells": len(np.unique(c)),
+                    "grids": len(np.unique(g)),
+                    "missing": int(missing.sum()) / rows,
+                    "below_threshold": int((r < scenario.meta.rsrp_threshold_dbm).sum()),
+                }
+            )
+    stats = pd.DataFrame(out, columns=columns)
     stats["beam_type"] = stats["beam_type"].astype(str)
-    return stats[columns]
+    return stats
 
 
 def table_rows(scenario: Scenario) -> dict[str, int]:
