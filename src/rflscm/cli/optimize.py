@@ -40,6 +40,11 @@ class Objective(StrEnum):
     weighted = "weighted"
 
 
+class Pairs(StrEnum):
+    reach = "reach"
+    measured = "measured"
+
+
 class Method(StrEnum):
     cd = "cd"
     de = "de"
@@ -167,6 +172,12 @@ def optimize(
         help="Comma-separated cell ids that may change (the others are frozen); the APS are rendered only "
         "at the grids these cells reach, and the KPIs are those grids' (a cluster of a large network).",
     ),
+    pairs: Pairs = typer.Option(
+        Pairs.reach,
+        "--pairs",
+        help="Pairs the APS are rendered and the KPIs computed on: reach (every grid within the model's reach of "
+        "a cell; WNOMP: its measured pairs) or measured (round-1 measured pairs only, fewer to render).",
+    ),
     freeze: str | None = typer.Option(
         None, "--freeze", metavar="IDS", help="Comma-separated cell ids that must not change."
     ),
@@ -256,7 +267,7 @@ def optimize(
         from rflscm.parallel.aps import checkpoint_loader, render_cache
 
         load = checkpoint_loader(checkpoint, scenario, model.device)
-        source = render_cache(model, scen, Engine(workers, ray_address), load, free_cells)
+        source = render_cache(model, scen, Engine(workers, ray_address), load, free_cells, pairs == Pairs.measured)
     columns = (
         TextColumn("{task.description}"),
         BarColumn(),
@@ -272,6 +283,7 @@ def optimize(
             aps_cache,
             on_cell=lambda done, _: bar.update(task, completed=done),
             free_cells=free_cells,
+            measured=pairs == Pairs.measured,
         )
         passes = (restarts + 1) * 8 * len(space.free_cells()) if method_name == "cd" else None
         task = bar.add_task(f"searching ({method_name}, {objective_name})", total=passes)

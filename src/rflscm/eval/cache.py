@@ -171,7 +171,9 @@ def hearing_range_m(scenario: Scenario) -> float:
     return farthest
 
 
-def render_rows(source: APSSource, scenario: Scenario, free_cells: np.ndarray | None = None) -> list[np.ndarray]:
+def render_rows(
+    source: APSSource, scenario: Scenario, free_cells: np.ndarray | None = None, measured: bool = False
+) -> list[np.ndarray]:
     """Per cell (``scenario.cell_ids()`` order), the positions in ``scenario.grid_ids()`` whose APS
     :meth:`ScenarioAPS.render` renders, ascending.
 
@@ -181,9 +183,10 @@ def render_rows(source: APSSource, scenario: Scenario, free_cells: np.ndarray | 
     the network at a fixed density, instead of cells × all grids; on a network whose every cell is heard across
     it (the shipped one) every grid is in reach.  With ``free_cells`` (the cell ids a search may change), only
     the grids some free cell reaches are rendered, for every cell heard there: the area a change can touch.
+    ``measured``: a field model too only at the measured round-1 pairs (what WNOMP always answers).
     """
     grid_ids = scenario.grid_ids()
-    if not source.supports_unseen_grids:
+    if measured or not source.supports_unseen_grids:
         rows = _measured_rows(scenario)
     else:
         reach = REACH_MARGIN * hearing_range_m(scenario)
@@ -227,6 +230,8 @@ class ScenarioAPS:
     model: str
     source_sha256: str = ""
     fingerprint: str | None = None
+    pairs: str = ""
+    """Which pairs :attr:`known` holds, in words (for reports)."""
 
     # --- building ------------------------------------------------------------------------------------
     @classmethod
@@ -237,17 +242,21 @@ class ScenarioAPS:
         chunk: int = 1024,
         on_cell: Callable[[int, int], None] | None = None,
         free_cells: np.ndarray | None = None,
+        measured: bool = False,
     ) -> ScenarioAPS:
         """Render the APS of every pair within reach once (:func:`render_rows`: field models the grids within
         the network's hearing range of each cell, WNOMP the measured pairs) and keep the bins any of a cell's
         grids uses; a non-finite or negative APS is refused (:func:`~rflscm.models.source.checked_aps`).
-        ``on_cell(done, total)`` after each cell; ``free_cells``: only where these cells reach (:func:`render_rows`).
+        ``on_cell(done, total)`` after each cell; ``free_cells``: only where these cells reach, ``measured``: only
+        the measured round-1 pairs (:func:`render_rows`).
         Memory: one cell's rows × all bins at a time."""
         cell_ids, grid_ids = scenario.cell_ids(), scenario.grid_ids()
         xyz_all = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
         known = np.zeros((len(cell_ids), len(grid_ids)), dtype=bool)
         bins, aps = [], []
-        for i, (cell, rows) in enumerate(zip(cell_ids, render_rows(source, scenario, free_cells), strict=True)):
+        for i, (cell, rows) in enumerate(
+            zip(cell_ids, render_rows(source, scenario, free_cells, measured), strict=True)
+        ):
             known[i, rows] = True
             dense = torch.zeros(len(rows), source.angle_grid.num_bins)
             for start in range(0, len(rows), chunk):
@@ -261,7 +270,13 @@ class ScenarioAPS:
             if on_cell is not None:
                 on_cell(i + 1, len(cell_ids))
         key = source_sha256(source)
-        return cls(cell_ids, grid_ids, bins, aps, known, source.angle_grid, source.name, key, source.fingerprint)
+        if measured or not source.supports_unseen_grids:
+            pairs = "measured round-1 pairs only"
+        else:
+            pairs = "every (cell, grid) pair" if known.all() else "the (cell, grid) pairs within the model's reach"
+        if free_cells is not None and len(np.unique(free_cells)) < len(cell_ids):
+            pairs += ", at the grids the cells free to change reach"
+        return cls(cell_ids, grid_ids, bins, aps, known, source.angle_grid, source.name, key, source.fingerprint, pairs)
 
     # --- the file --------------------------------------------------------------------------------------
     def _payload(self) -> dict[str, Any]:
@@ -269,6 +284,7 @@ class ScenarioAPS:
             "model": self.model,
             "source_sha256": self.source_sha256,
             "fingerprint": self.fingerprint,
+            "pairs": self.pairs,
             "angle_grid": self.angle_grid.to_dict(),
             "cell_ids": torch.as_tensor(np.asarray(self.cell_ids, dtype=np.int64)),
             "grid_ids": torch.as_tensor(np.asarray(self.grid_ids, dtype=np.int64)),
@@ -354,6 +370,7 @@ class ScenarioAPS:
             model=str(p["model"]),
             source_sha256=str(p["source_sha256"]),
             fingerprint=None if fingerprint is None else str(fingerprint),
+            pairs=str(p.get("pairs", "")),
         )
 
     def _check(self, path: Path) -> None:
@@ -443,6 +460,7 @@ def load_or_render(
     path: str | Path | None,
     on_cell: Callable[[int, int], None] | None = None,
     free_cells: np.ndarray | None = None,
+    measured: bool = False,
 ) -> tuple[ScenarioAPS, float]:
     """``source``'s APS of ``scenario`` (where ``free_cells`` reach, see :func:`render_rows`): read from ``path``
     when it exists (refused unless written for this very source, scenario and area, see :meth:`ScenarioAPS.load`),
@@ -451,15 +469,16 @@ def load_or_render(
     if path is not None and Path(path).exists():
         cache = ScenarioAPS.load(path, source, scenario)
         expected = np.zeros_like(cache.known)
-        for i, rows in enumerate(render_rows(source, scenario, free_cells)):
+        for i, rows in enumerate(render_rows(source, scenario, free_cells, measured)):
             expected[i, rows] = True
         if not np.array_equal(cache.known, expected):
             raise APSCacheError(
                 f"{path}: this APS cache was rendered for other grids ({int(cache.known.sum())} pairs, this search "
-                f"needs {int(expected.sum())}: other cells free to change); delete it or give another --aps-cache path."
+                f"needs {int(expected.sum())}: other cells free to change or other --pairs); delete it or give another "
+                "--aps-cache path."
             )
         return cache, time.perf_counter() - t0
-    cache = ScenarioAPS.render(source, scenario, on_cell=on_cell, free_cells=free_cells)
+    cache = ScenarioAPS.render(source, scenario, on_cell=on_cell, free_cells=free_cells, measured=measured)
     if path is not None:
         cache.save(path)
     return cache, time.perf_counter() - t0

@@ -97,6 +97,8 @@ class OptimizeResult:
     held_out: dict[str, Any] | None = None
     """Predicted ``before`` / ``after`` KPIs on the grids the search did not see."""
     held_out_grids: int = 0
+    pairs_label: str = ""
+    """Which pairs the KPIs cover, in words (the APS cache's :attr:`~rflscm.eval.cache.ScenarioAPS.pairs`)."""
 
     def summary(self) -> dict[str, Any]:
         """JSON-able summary (KPIs, gains, changes, timings, search statistics)."""
@@ -106,7 +108,8 @@ class OptimizeResult:
             "model": self.model,
             "objective": self.objective,
             "method": self.search.method,
-            "kpi_pairs": "measured round-1 pairs only" if self.known is not None else "every (cell, grid) pair",
+            "kpi_pairs": self.pairs_label
+            or ("measured round-1 pairs only" if self.known is not None else "every (cell, grid) pair"),
             "kpi_pair_count": pairs,
             "predicted": self.predicted,
             "predicted_gain": {k: self.predicted["after"][k] - self.predicted["before"][k] for k in keys},
@@ -207,6 +210,7 @@ def run_optimize(
         power_after,
         known,
         timings,
+        pairs_label=cache.pairs,
     )
     if held.any():
         pairs_held = (cache.known if known is not None else np.ones_like(cache.known)) & held[None, :]

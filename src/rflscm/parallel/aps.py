@@ -235,13 +235,17 @@ def evaluation_cache(
 
 
 def render_requests(
-    model: APSSource, scenario: Scenario, chunk: int = 1024, free_cells: np.ndarray | None = None
+    model: APSSource,
+    scenario: Scenario,
+    chunk: int = 1024,
+    free_cells: np.ndarray | None = None,
+    measured: bool = False,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """What :meth:`rflscm.eval.cache.ScenarioAPS.render` (the optimiser's APS) asks its source for: cell by
     cell, the grids in reach (:func:`rflscm.eval.cache.render_rows`), in blocks of ``chunk``."""
     grid_ids = scenario.grid_ids()
     requests = []
-    for cell, rows in zip(scenario.cell_ids(), render_rows(model, scenario, free_cells), strict=True):
+    for cell, rows in zip(scenario.cell_ids(), render_rows(model, scenario, free_cells, measured), strict=True):
         for start in range(0, len(rows), chunk):
             sel = rows[start : start + chunk]
             requests.append((np.full(len(sel), cell), grid_ids[sel]))
@@ -254,8 +258,9 @@ def render_cache(
     engine: Engine,
     load: Callable[[], APSSource],
     free_cells: np.ndarray | None = None,
+    measured: bool = False,
 ) -> FilledAPSCache:
     """The model as ``ScenarioAPS.render`` / ``load_or_render`` (``rflscm optimize``) should get it: every APS
     it renders computed by Ray workers first when ``engine`` is parallel (the render then only reads them)."""
-    requests = render_requests(model, scenario, free_cells=free_cells) if engine.parallel else []
+    requests = render_requests(model, scenario, free_cells=free_cells, measured=measured) if engine.parallel else []
     return filled_cache(model, scenario, requests, engine, load)

@@ -253,6 +253,12 @@ def test_a_field_model_is_rendered_at_the_grids_within_the_networks_hearing_rang
     area[rows[0]] = True
     for r, r_free in zip(rows, render_rows(source, near, first), strict=True):
         np.testing.assert_array_equal(r_free, r[area[r]])
+    assert cache.pairs == "the (cell, grid) pairs within the model's reach"
+    # measured: a field model too only at the measured round-1 pairs, as WNOMP
+    only = ScenarioAPS.render(source, near, measured=True)
+    for a, b in zip(render_rows(source, near, measured=True), render_rows(model, near), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert only.pairs == "measured round-1 pairs only" and only.known.sum() <= cache.known.sum()
     # a WNOMP-like source keeps its measured pairs, whatever the range
     wn = render_rows(model, near)
     pairs = near.measurements[(near.measurements["round"] == 1).to_numpy()]
