@@ -11,9 +11,15 @@ Usage (from the repository root, one thread: deterministic and independent of th
     PYTHONPATH=src python experiments/unseen_variants.py refit SCENARIO OUT.pt '{}' '{"unseen_anchors": false}' ...
 
 Keys that start with ``_`` set :mod:`rflscm.models.rflscm.unseen`'s constants for that variant: ``_neighbours``
-(``NEIGHBOURS``), ``_lengths`` (``LENGTHS_M``, a list), ``_priors`` (``PRIOR_WEIGHTS``, a list).  ``diagnose`` splits the unseen MAE into each pair's level (median error) and shape, and scores the model asked at
-each unseen pair's nearest anchored grid instead.  Each ``refit`` variant prints one ``RESULT {json}`` line: the unseen MAE, bias (prediction − measurement) [dB]
-and the oracle's and trivial's MAE on the same beams, SSB and CSI-RS.
+(``NEIGHBOURS``), ``_lengths`` (``LENGTHS_M``, a list), ``_priors`` (``PRIOR_WEIGHTS``, a list).  Each ``refit``
+variant prints one ``RESULT {json}`` line: the unseen MAE, bias (prediction − measurement) [dB] and the oracle's
+and trivial's MAE on the same beams, SSB and CSI-RS.
+
+    PYTHONPATH=src python experiments/unseen_variants.py diagnose SCENARIO OUT.pt
+
+splits the unseen MAE into each pair's level (its median error) and shape (what is left), and scores the model and
+the oracle asked at each unseen pair's nearest anchored grid of the same cell instead (``DIAG`` lines), with the
+distance to that grid (``DIST``).
 """
 
 from __future__ import annotations
@@ -91,16 +97,21 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
 
 
 class _Nearest(APSCache):
-    """The model asked at each pair's nearest anchored grid of the same cell instead (its anchor and posterior with it)."""
+    """A source asked at each pair's nearest anchored grid of the same cell instead (a model: its anchor and posterior
+    with it; the oracle: the truth there, what a predictor that only knows the nearest measured grid could reach)."""
 
-    def __init__(self, inner, grids) -> None:
+    def __init__(self, inner, grids, anchors, run_info) -> None:
         super().__init__(inner)
-        anchors = inner.corrections.anchors
+        self._info = run_info
         self._seen = {
             int(c): anchors.xs(c, level="cell_id").index.to_numpy(np.int64)
             for c in anchors.index.get_level_values("cell_id").unique()
         }
         self._xyz = grids.set_index("grid_id")[["x", "y", "z"]]
+
+    @property
+    def run_info(self):
+        return self._info  # the trained model's: its protocol
 
     def aps(self, cell_ids, grid_ids, grid_xyz=None):
         cell_ids, grid_ids = np.asarray(cell_ids).reshape(-1), np.asarray(grid_ids).reshape(-1).copy()
@@ -126,6 +137,7 @@ def _split(res) -> dict:
     return {
         "mae": round(float(np.abs(err[ok]).mean()), 3),
         "bias": round(float(err[ok].mean()), 3),
+        "mae_without_bias": round(float(np.abs(err[ok] - err[ok].mean()).mean()), 3),
         "shape_mae": round(float(shape), 3),
         "level_mae": round(float((np.abs(level) * beams).sum() / beams.sum()), 3),
         "oracle_shape_mae": round(float(np.abs(oracle - o_level[:, None])[ok].mean()), 3),
@@ -139,9 +151,27 @@ def diagnose(scenario: str, path: str) -> None:
     data = _data(scenario)
     model = torch.load(path, weights_only=False)["model"]
     model.finish_training()
-    for label, source in (("model", APSCache(model)), ("nearest_seen", _Nearest(model, data.scenario.grids))):
+    anchors = model.corrections.anchors
+    nearest = _Nearest(model, data.scenario.grids, anchors, model.run_info)
+    truth_nearest = _Nearest(data.oracle, data.scenario.grids, anchors, model.run_info)
+    for label, source in (
+        ("model", APSCache(model)),
+        ("nearest_seen", nearest),
+        ("oracle_nearest_seen", truth_nearest),
+    ):
         ev = run_evaluation(source, data.scenario, PROTOCOL, oracle=data.oracle)
         print("DIAG", json.dumps({"source": label, **{bt: _split(ev.beams[bt]) for bt in ("ssb", "csi")}}), flush=True)
+    pairs = ev.beams["ssb"].pairs[~ev.beams["ssb"].seen]
+    xyz = nearest._xyz
+    dist = [
+        np.linalg.norm(xyz.loc[nearest._seen[int(c)]].to_numpy() - xyz.loc[int(g)].to_numpy(), axis=1).min()
+        for c, g in zip(pairs["cell_id"], pairs["grid_id"], strict=True)
+        if int(c) in nearest._seen
+    ]
+    print(
+        "DIST",
+        json.dumps({"nearest_anchored_grid_m": {"median": float(np.median(dist)), "mean": float(np.mean(dist))}}),
+    )
 
 
 if __name__ == "__main__":
