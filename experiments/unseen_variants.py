@@ -8,11 +8,10 @@ over the model's ``corrections`` config section and evaluate B6's unseen MAE (``
 Usage (from the repository root, one thread: deterministic and independent of the machine's load):
 
     PYTHONPATH=src python experiments/unseen_variants.py train SCENARIO OUT.pt [SEED]
-    PYTHONPATH=src python experiments/unseen_variants.py refit SCENARIO OUT.pt '{}' '{"unseen_anchors": false}' ...
+    PYTHONPATH=src python experiments/unseen_variants.py refit SCENARIO OUT.pt '{}' '{"pair_posterior": false}' ...
 
-Keys that start with ``_`` set :mod:`rflscm.models.rflscm.unseen`'s constants for that variant: ``_neighbours``
-(``NEIGHBOURS``), ``_lengths`` (``LENGTHS_M``, a list), ``_priors`` (``PRIOR_WEIGHTS``, a list).  Each ``refit``
-variant prints one ``RESULT {json}`` line: the unseen MAE, bias (prediction − measurement) [dB] and the oracle's
+(At commit ``8b7acb5`` the model had a switch ``corrections.unseen_anchors``, measured with this script and dropped;
+docs/DECISIONS.md, "Unseen grids (issue 28)".)  Each ``refit`` variant prints one ``RESULT {json}`` line: the unseen MAE, bias (prediction − measurement) [dB] and the oracle's
 and trivial's MAE on the same beams, SSB and CSI-RS.
 
     PYTHONPATH=src python experiments/unseen_variants.py diagnose SCENARIO OUT.pt
@@ -68,31 +67,14 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
     model = saved["model"]
     print("TRAINED-WITH", json.dumps(saved["unseen"]), flush=True)
     base = model.config
-    from rflscm.models.rflscm import unseen as unseen_mod
-
-    defaults = (unseen_mod.NEIGHBOURS, unseen_mod.LENGTHS_M, unseen_mod.PRIOR_WEIGHTS)
     for variant in variants:
-        consts = {k: v for k, v in variant.items() if k.startswith("_")}
-        unseen_mod.NEIGHBOURS = int(consts.get("_neighbours", defaults[0]))
-        unseen_mod.LENGTHS_M = tuple(consts.get("_lengths", defaults[1]))
-        unseen_mod.PRIOR_WEIGHTS = tuple(consts.get("_priors", defaults[2]))
-        knobs = {k: v for k, v in variant.items() if not k.startswith("_")}
-        corrections = dataclasses.replace(base.corrections, **knobs)
+        corrections = dataclasses.replace(base.corrections, **variant)
         model.config = dataclasses.replace(base, corrections=corrections)
         t0 = time.perf_counter()
         model.finish_training()
         fit_s = time.perf_counter() - t0
         metrics = run_evaluation(APSCache(model), data.scenario, PROTOCOL, oracle=data.oracle).metrics
-        field = model.corrections.unseen
-        kernel = None if field is None else [field.length_m, field.prior_weight]
-        scores = None if field is None else {str(k): round(v, 3) for k, v in sorted(field.scores.items())}
-        row = {
-            "variant": variant,
-            "unseen": _unseen(metrics),
-            "kernel": kernel,
-            "loo": scores,
-            "fit_s": round(fit_s, 1),
-        }
+        row = {"variant": variant, "unseen": _unseen(metrics), "fit_s": round(fit_s, 1)}
         print("RESULT", json.dumps(row), flush=True)
 
 

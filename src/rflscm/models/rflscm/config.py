@@ -349,11 +349,6 @@ class CorrectionsConfig:
     below WNOMP's (:func:`~rflscm.models.rflscm.posterior.with_atoms`): the field's strongest bins can miss the
     direction that a grid's reports point at.  How many atoms (2, 4 or none) is chosen with λ on held-aside
     reports.  Needs ``pair_posterior``."""
-    unseen_anchors: bool = True
-    """Give a pair without an anchor (an unseen grid, or a cell its grid did not report) the anchors of the same
-    cell at nearby grids, interpolated with a Gaussian kernel shrunk toward 0, its length and shrinkage chosen by
-    leave-one-out over the anchored pairs (off where no choice beats the level alone there;
-    :mod:`~rflscm.models.rflscm.unseen`).  Needs ``pair_anchors``."""
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,6 @@ from rflscm.models.rflscm.posterior import (
     with_atoms,
     wnomp_atoms,
 )
-from rflscm.models.rflscm.unseen import AnchorField, fit_anchor_field
 
 PAIR_CHUNK = 64
 """Pairs per render chunk (A columns and APS rows stay small)."""
@@ -71,25 +70,17 @@ CHUNK_MARGIN = 1.25
 @dataclass
 class PairCorrections:
     """Fitted corrections: ``levels [C, 2]`` [dB] (SSB, CSI-RS per cell index), ``anchors`` [dB] indexed by
-    (cell_id, grid_id), ``posterior`` gains and ``unseen`` the anchors interpolated to pairs without one
-    (:mod:`.unseen`); each None when switched off."""
+    (cell_id, grid_id) and ``posterior`` gains; each None when switched off."""
 
     levels: torch.Tensor | None = None
     anchors: pd.Series | None = None
     posterior: PairPosterior | None = None
-    unseen: AnchorField | None = None
 
     def apply(
-        self,
-        aps: torch.Tensor,
-        cell_index: np.ndarray,
-        cell_ids: np.ndarray,
-        grid_ids: np.ndarray,
-        xyz: np.ndarray | None = None,
+        self, aps: torch.Tensor, cell_index: np.ndarray, cell_ids: np.ndarray, grid_ids: np.ndarray
     ) -> torch.Tensor:
         """``aps [N, K]`` (normalised) of pairs (``cell_index`` into the scene's cells, their ids and grid ids)
-        with the SSB level, the anchors and the posterior applied; pairs without an anchor get the interpolated one
-        at their positions ``xyz [N, 3]`` [m] (when given and fitted)."""
+        with the SSB level, the anchors and the posterior applied."""
         cells = np.asarray(cell_ids, np.int64).reshape(-1)
         grids = np.asarray(grid_ids, np.int64).reshape(-1)
         out = aps
@@ -98,11 +89,7 @@ class PairCorrections:
             out = out * torch.pow(10.0, self.levels.to(aps.device)[index, 0] / 10.0)[:, None]
         if self.anchors is not None and len(self.anchors) and len(cells):
             at = pd.MultiIndex.from_arrays([cells, grids])
-            shift = self.anchors.reindex(at).to_numpy(np.float64, copy=True)
-            missing = np.isnan(shift)
-            if self.unseen is not None and xyz is not None and missing.any():
-                shift[missing] = self.unseen.predict(cells[missing], np.asarray(xyz).reshape(-1, 3)[missing])
-            shift = np.nan_to_num(shift, nan=0.0).astype(np.float32)
+            shift = self.anchors.reindex(at).fillna(0.0).to_numpy(np.float32, copy=True)
             out = out * torch.pow(10.0, torch.as_tensor(shift, device=aps.device) / 10.0)[:, None]
         if self.posterior is not None:
             out = self.posterior.apply(out, cells, grids)
@@ -127,7 +114,6 @@ class PairCorrections:
             "levels": self.levels.detach().cpu().clone() if self.levels is not None else None,
             "anchors": _anchors_state(self.anchors),
             "posterior": self.posterior.to_state() if self.posterior is not None else None,
-            "unseen": self.unseen.to_state() if self.unseen is not None else None,
         }
 
     @classmethod
@@ -144,7 +130,6 @@ class PairCorrections:
             torch.as_tensor(levels, dtype=torch.float32, device=device) if levels is not None else None,
             _anchors_from_state(state.get("anchors")),
             PairPosterior.from_state(state.get("posterior"), num_bins),  # type: ignore[arg-type]
-            AnchorField.from_state(state.get("unseen")),
         )
 
 
@@ -206,22 +191,18 @@ def fit_corrections(
     index = pd.MultiIndex.from_arrays([ids, data.grid_ids[kept]], names=["cell_id", "grid_id"])
     median = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)
     anchor_series = pd.Series(median, index=index, name="anchor_db") if cfg.pair_anchors else None
-    unseen = None
-    if cfg.pair_anchors and cfg.unseen_anchors:
-        beams = data.observed[torch.as_tensor(kept, device=data.observed.device)].sum(1).cpu().numpy()
-        unseen = fit_anchor_field(ids, data.grid_xyz.cpu().double().numpy()[kept], median, beams)
     if not cfg.pair_posterior:
-        return PairCorrections(levels, anchor_series, None, unseen)
+        return PairCorrections(levels, anchor_series, None)
     if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
         empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
         posterior = PairPosterior(
             empty, torch.zeros(0, 0, dtype=torch.long), torch.zeros(0, 0), lam, scores, None, atom_scores
         )
-        return PairCorrections(levels, anchor_series, posterior, unseen)
+        return PairCorrections(levels, anchor_series, posterior)
     gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
     base = torch.cat(bases) if bases else None
     posterior = PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores, base, atom_scores)
-    return PairCorrections(levels, anchor_series, posterior, unseen)
+    return PairCorrections(levels, anchor_series, posterior)
 
 
 @dataclass(frozen=True)

@@ -435,7 +435,7 @@ class RFLSCM(LSCMModel):
         if keys:
             slot = {keys[i]: j for j, i in enumerate(todo)}
             out = rendered[torch.as_tensor([slot[k] for k in keys], dtype=torch.long, device=self.device)]
-        out = self.corrections.apply(out, cells, cell_ids, grid_ids, xyz)
+        out = self.corrections.apply(out, cells, cell_ids, grid_ids)
         return out * self.scene.x_ref
 
     def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
