@@ -19,6 +19,11 @@ and trivial's MAE on the same beams, SSB and CSI-RS.
 splits the unseen MAE into each pair's level (its median error) and shape (what is left), and scores the model and
 the oracle asked at each unseen pair's nearest anchored grid of the same cell instead (``DIAG`` lines), with the
 distance to that grid (``DIST``).
+
+    PYTHONPATH=src python experiments/unseen_variants.py b1split SCENARIO B1.pt
+
+splits B1 quick's round-2 error of a model saved by ``posterior_variants.py train`` into pairs with a round-1
+anchor and pairs without (``SPLIT`` lines), the model's and the oracle's MAE on the same beams.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import torch
 
 from rflscm.bench import BenchContext
@@ -156,10 +162,41 @@ def diagnose(scenario: str, path: str) -> None:
     )
 
 
+def b1split(scenario: str, path: str) -> None:
+    """B1 quick's round-2 error of a trained ``posterior_variants.py train`` model, split by pair: with a round-1 anchor
+    (reports at that grid for that cell) or without; all and changed cells, model against oracle, and the beams."""
+    from rflscm.eval import AdjustProtocol
+
+    data = _data(scenario)
+    model = torch.load(path, weights_only=False)["model"]
+    model.finish_training()
+    ev = run_evaluation(APSCache(model), data.scenario, AdjustProtocol(), oracle=data.oracle)
+    anchored = model.corrections.anchors.index
+    for bt in ("ssb", "csi"):
+        res = ev.beams[bt]
+        has = np.asarray(pd.MultiIndex.from_frame(res.pairs[["cell_id", "grid_id"]]).isin(anchored), dtype=bool)
+        out = {}
+        for which, cells in (("all", np.ones(len(has), bool)), ("changed", res.changed)):
+            for part, rows in (("anchored", has), ("unanchored", ~has)):
+                sel = cells & rows
+                err = (res.model - res.measured)[sel]
+                orc = (res.oracle - res.measured)[sel]
+                ok = np.isfinite(err) & np.isfinite(orc)
+                out[f"{which}_{part}"] = {
+                    "beams": int(ok.sum()),
+                    "mae": round(float(np.abs(err[ok]).mean()), 3) if ok.any() else None,
+                    "oracle": round(float(np.abs(orc[ok]).mean()), 3) if ok.any() else None,
+                    "bias": round(float(err[ok].mean()), 3) if ok.any() else None,
+                }
+        print("SPLIT", bt, json.dumps(out), flush=True)
+
+
 if __name__ == "__main__":
     torch.set_num_threads(1)
     if sys.argv[1] == "train":
         train(sys.argv[2], sys.argv[3], int(sys.argv[4]) if len(sys.argv) > 4 else 0)
+    elif sys.argv[1] == "b1split":
+        b1split(sys.argv[2], sys.argv[3])
     elif sys.argv[1] == "diagnose":
         diagnose(sys.argv[2], sys.argv[3])
     else:
