@@ -73,8 +73,9 @@ def decode_text(data: bytes, name: str) -> str:
     return text
 
 
-def read_table(path: str | Path) -> pd.DataFrame:
-    """Read a CSV or Parquet table (by extension).
+def read_table(path: str | Path, where: dict[str, object] | None = None) -> pd.DataFrame:
+    """Read a CSV or Parquet table (by extension); ``where`` (column → value) keeps only the rows equal to every
+    value (a Parquet file is filtered as it is read, so the rows left out never take memory).
 
     Raises:
         DataError: the file is missing, a folder, unreadable, empty, not a readable table of its format,
@@ -84,7 +85,13 @@ def read_table(path: str | Path) -> pd.DataFrame:
     kind = table_kind(path)
     data = read_bytes(path, "table file")
     if kind == "csv":
-        return _read_csv(data, path.name)
+        df = _read_csv(data, path.name)
+        if where:
+            keep = np.ones(len(df), dtype=bool)
+            for column, value in where.items():
+                keep &= (df[column] == value).to_numpy()
+            df = df[keep].reset_index(drop=True)
+        return df
     try:
         # Page checksums verified (a flipped value in a file that has them is an error, not data); one thread:
         # a threaded read of a corrupted page can abort the process (exit 134) instead of raising.
@@ -94,6 +101,7 @@ def read_table(path: str | Path) -> pd.DataFrame:
             io.BytesIO(data),
             page_checksum_verification=True,
             use_threads=False,
+            filters=[(column, "==", value) for column, value in where.items()] if where else None,
             to_pandas_kwargs={"self_destruct": True, "split_blocks": True},
         )
     except Exception as exc:

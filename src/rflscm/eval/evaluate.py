@@ -339,8 +339,9 @@ def _noiseless(scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFra
 
     if scenario.meta.truth is None or not (scenario.root / scenario.meta.truth / "rsrp_noiseless.parquet").is_file():
         return None
-    table = read_table(scenario.root / scenario.meta.truth / "rsrp_noiseless.parquet")
-    table = table[((table["round"] == round) & (table["beam_type"].astype(str) == beam_type)).to_numpy()]
+    table = read_table(  # only this round's and beam type's rows (the whole truth is ~cells × grids × beams)
+        scenario.root / scenario.meta.truth / "rsrp_noiseless.parquet", where={"round": round, "beam_type": beam_type}
+    )
     out = np.full((len(pairs), width), np.nan)
     index = pd.MultiIndex.from_frame(pairs[["cell_id", "grid_id"]].astype("int64"))
     row = index.get_indexer(pd.MultiIndex.from_frame(table[["cell_id", "grid_id"]].astype("int64")))

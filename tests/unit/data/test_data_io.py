@@ -69,3 +69,14 @@ def test_strict_csv_reading(tmp_path) -> None:
     path.write_text("a,a\n1,2\n")
     with pytest.raises(DataError, match="column `a` appears twice"):
         read_table(path)
+
+
+@pytest.mark.parametrize("ext", [".parquet", ".csv"])
+def test_read_table_keeps_only_the_rows_where_every_column_equals_its_value(tmp_path: Path, ext: str) -> None:
+    table = pd.DataFrame(
+        {"round": [1, 2, 2, 2], "beam_type": ["ssb", "ssb", "csi", "ssb"], "rsrp_dbm": [-80.0, -81.0, -82.0, -83.0]}
+    )
+    write_table(table, tmp_path / f"t{ext}")
+    got = read_table(tmp_path / f"t{ext}", where={"round": 2, "beam_type": "ssb"})
+    assert got["rsrp_dbm"].tolist() == [-81.0, -83.0]
+    assert len(read_table(tmp_path / f"t{ext}")) == 4
