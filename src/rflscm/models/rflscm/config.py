@@ -349,6 +349,11 @@ class CorrectionsConfig:
     below WNOMP's (:func:`~rflscm.models.rflscm.posterior.with_atoms`): the field's strongest bins can miss the
     direction that a grid's reports point at.  How many atoms (2, 4 or none) is chosen with λ on held-aside
     reports.  Needs ``pair_posterior``."""
+    wnomp_fallback: bool = True
+    """Within a time budget, the training pairs that the pass after training cannot reach get WNOMP's APS of their
+    own round-1 reports (no render; :mod:`~rflscm.models.rflscm.fallback`) instead of the field with its level,
+    when that predicts the held-aside reports of the rendered pairs better.  Without a budget every pair is reached
+    and this does nothing."""
 
 
 @dataclass(frozen=True)
