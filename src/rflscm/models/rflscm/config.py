@@ -302,7 +302,7 @@ class TrainConfig:
     finish_share: float = 0.5
     """In a time-budget run, the pass after training (the pair corrections) may take at most this share of the
     budget; where the model measures that it needs more, the pass covers the pairs that fit in it and the others
-    keep the level correction only (:mod:`~rflscm.models.rflscm.corrections`)."""
+    get WNOMP's APS of their reports or the level correction only (``corrections.wnomp_fallback``)."""
     val_pairs: int = 128
     """Pairs with held-aside round-1 beams (a quarter of each pair's reported beams, never trained on) for the
     running validation MAE (0: none)."""

@@ -17,9 +17,11 @@ Validation beams are used by none, so the trainer's validation MAE stays a held-
 result, applies it and saves it on its own (tensors only).
 
 Within a time budget (``time_left``) the pass is sized to the time left: the pairs the levels and λ are measured
-on come first, then the other pairs in a seeded random order (spread over cells and grids), a chunk at a time,
-while a chunk still fits; the pairs left over keep the level correction only (no anchor, no posterior).
-:func:`seconds_per_pair` measures the pass's cost on one chunk, so that a budget run can keep time for it.
+on come first (one per cell, then as many of the others as half the time left allows), then the other pairs in a
+seeded random order (spread over cells and grids), a chunk at a time, while a chunk still fits.  When the pass
+cannot reach every pair, the pairs left over get WNOMP's APS of their own reports (:mod:`.fallback`, no render)
+where that predicts the held-aside reports better than the field with its level, else they keep the level only.
+:func:`measure_pass` measures the pass's cost on two chunks, so that a budget run can keep time for it.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import torch
 from rflscm.errors import CheckpointError
 from rflscm.models.pairs import PairData
 from rflscm.models.rflscm.config import CorrectionsConfig
-from rflscm.models.rflscm.fallback import SOLVER, PairFallback, held_mae_db, predicted_reports, solve_reports
+from rflscm.models.rflscm.fallback import PairFallback, held_mae_db, predicted_reports, solve_reports
 from rflscm.models.rflscm.posterior import (
     HOLDOUT,
     LAMBDA_PAIRS,
@@ -555,16 +557,11 @@ class _Fit:
     ) -> PairFallback:
         """WNOMP's APS of ``pairs`` (``cell_ids`` of the cell indices) from all their training reports."""
         d = self.data
-        bins, gains = [torch.zeros(0, SOLVER.k_max, dtype=torch.long)], [torch.zeros(0, SOLVER.k_max)]
-        for start in range(0, pairs.numel(), FALLBACK_CHUNK):
-            part = pairs[start : start + FALLBACK_CHUNK]
-            b, g = self.solve(part, d.observed[part], levels)
-            bins.append(b.cpu())
-            gains.append(g.cpu())
+        bins, gains = self.solve(pairs, d.observed[pairs], levels)
         kept = pairs.cpu().numpy()
         ids = np.asarray(cell_ids, np.int64)[d.cell_index.cpu().numpy()[kept]]
         index = pd.MultiIndex.from_arrays([ids, d.grid_ids[kept]], names=["cell_id", "grid_id"])
-        return PairFallback(index, torch.cat(bins), torch.cat(gains), scores)
+        return PairFallback(index, bins.cpu(), gains.cpu(), scores)
 
     def _add_atoms(self, chunk: _PairChunk, level: torch.Tensor, held: torch.Tensor | None) -> None:
         """Add WNOMP's atoms of the chunk's reports (not ``held`` aside) to its candidate bins; ``level [B]`` [dB]:

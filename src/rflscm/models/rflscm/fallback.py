@@ -28,8 +28,7 @@ import pandas as pd
 import torch
 
 from rflscm.errors import CheckpointError
-from rflscm.models.wnomp import WNOMPConfig
-from rflscm.models.wnomp_solver import wnomp_solve
+from rflscm.models.wnomp import CellMatrices, WNOMPConfig, solve_jobs
 
 SOLVER = WNOMPConfig()
 """The WNOMP baseline's own settings (atoms, tolerance, weighting): a left-over pair gets what WNOMP would fit."""
@@ -57,23 +56,21 @@ def solve_reports(
     if csi_shift_db is not None:
         down = torch.pow(10.0, -csi_shift_db.double().to(r.device) / 10.0)[cells]  # [B]
         r[:, num_ssb:] = r[:, num_ssb:] * down[:, None]
-    bins = torch.full((rsrp.shape[0], SOLVER.k_max), -1, dtype=torch.long, device=rsrp.device)
-    gains = torch.zeros(rsrp.shape[0], SOLVER.k_max, dtype=torch.float32, device=rsrp.device)
-    for cell in cells.unique().tolist():  # one solve per cell: its pairs share the matrix
-        rows = torch.nonzero(cells == cell).squeeze(1)
-        idx, val = wnomp_solve(
-            matrix(int(cell)),
-            r[rows],
-            SOLVER.k_max,
-            SOLVER.tolerance,
-            SOLVER.weighting,
-            None,
-            SOLVER.chunk_size,
-            SOLVER.residual_floor,
-            SOLVER.gain_prior,
-        )
-        bins[rows], gains[rows] = idx, val.clamp_min(0.0).float()
-    return bins, gains
+    bins = torch.full((rsrp.shape[0], SOLVER.k_max), -1, dtype=torch.long)
+    gains = torch.zeros(rsrp.shape[0], SOLVER.k_max, dtype=torch.float32)
+    # the WNOMP baseline's own jobs (a cell's pairs in chunks) over its worker threads
+    of_cell, r_np = cells.cpu().numpy(), r.cpu().numpy()
+    matrices = CellMatrices(lambda cell: matrix(cell).double())
+    jobs = []
+    for cell in np.unique(of_cell):
+        rows = np.flatnonzero(of_cell == cell)
+        for s in range(0, len(rows), SOLVER.chunk_size):
+            jobs.append((int(cell), rows[s : s + SOLVER.chunk_size], r_np[rows[s : s + SOLVER.chunk_size]]))
+            matrices.expect(int(cell))
+    for rows, idx, val in solve_jobs(jobs, matrices, SOLVER, None, torch.device("cpu")):
+        at = torch.as_tensor(rows, dtype=torch.long)
+        bins[at], gains[at] = torch.as_tensor(idx), torch.as_tensor(val).clamp_min(0.0).float()
+    return bins.to(rsrp.device), gains.to(rsrp.device)
 
 
 def predicted_reports(
