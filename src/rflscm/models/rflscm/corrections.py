@@ -546,11 +546,9 @@ class _Fit:
     def solve(
         self, pairs: torch.Tensor, mask: torch.Tensor, levels: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """WNOMP's APS ``(bins, gains) [B, k]`` of ``pairs [B]`` from their ``mask``-ed reports (:mod:`.fallback`),
-        CSI-RS reports fitted ``levels``' CSI-RS shift lower."""
+        """WNOMP's APS ``(bins, gains) [B, k]`` of ``pairs [B]`` from their ``mask``-ed reports (:mod:`.fallback`)."""
         d = self.data
-        shift = None if levels is None else levels[:, 1] - levels[:, 0]
-        return solve_reports(self.matrix, d.cell_index[pairs], d.rsrp[pairs], mask, shift, self.num_ssb)
+        return solve_reports(self.matrix, d.cell_index[pairs], d.rsrp[pairs], mask)
 
     def fallback(
         self, pairs: torch.Tensor, cell_ids: np.ndarray, levels: torch.Tensor | None, scores: dict[str, float]
@@ -636,7 +634,6 @@ def _left_over(
     held = torch.rand(d.rsrp.shape, generator=torch.Generator().manual_seed(seed)) < HOLDOUT
     level_sum = wnomp_sum = 0.0
     count = 0
-    shift = None if levels is None else levels[:, 1] - levels[:, 0]
     for start in range(0, pairs.numel(), FALLBACK_CHUNK):
         part = pairs[start : start + FALLBACK_CHUNK]
         cells, observed = d.cell_index[part], d.observed[part]
@@ -646,7 +643,7 @@ def _left_over(
             beam_type = (torch.arange(pred.shape[1], device=pred.device) >= fit.num_ssb).long()
             pred = pred * torch.pow(10.0, levels[cells][:, beam_type] / 10.0)
         bins, gains = fit.solve(part, observed & ~score, levels)
-        wnomp = predicted_reports(fit.columns, cells, bins, gains, shift, fit.num_ssb)
+        wnomp = predicted_reports(fit.columns, cells, bins, gains)
         level_err, n = held_mae_db(d.rsrp[part], pred, score)
         wnomp_err, _ = held_mae_db(d.rsrp[part], wnomp, score)
         level_sum, wnomp_sum, count = level_sum + level_err, wnomp_sum + wnomp_err, count + n

@@ -12,9 +12,8 @@ did render: WNOMP fitted on the other reports against the field with its level (
 the same score).  The better one is kept for every left-over pair; :class:`PairFallback` holds the solutions
 (bins and normalised path gains per pair), and a model answers those pairs with them, without rendering.
 
-The model's CSI-RS predictions carry a per-cell level relative to SSB (``level_offset_db``), which a left-over
-pair's prediction also gets; its CSI-RS reports are therefore fitted that much lower, so that its predictions
-reproduce WNOMP's fit of its reports.
+The model's CSI-RS predictions carry a per-cell level relative to SSB (``level_offset_db``); a left-over pair's do
+not (the model asks :meth:`PairCorrections.unrendered`), so that its predictions are WNOMP's fit of its reports.
 """
 
 from __future__ import annotations
@@ -39,8 +38,6 @@ def solve_reports(
     cells: torch.Tensor,
     rsrp: torch.Tensor,
     mask: torch.Tensor,
-    csi_shift_db: torch.Tensor | None,
-    num_ssb: int,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """WNOMP's solution of each pair's ``mask``-ed reports: bins ``[B, k]`` (−1: none) and gains ``[B, k]``.
 
@@ -49,13 +46,8 @@ def solve_reports(
         cells: each pair's cell index ``[B]``.
         rsrp: the reports ``[B, M]`` (normalised linear; the gains come out in the unit ``rsrp / a_norm``).
         mask: ``[B, M]`` the reports to fit.
-        csi_shift_db: ``[C]`` dB the model adds to each cell's CSI-RS predictions (fitted that much lower), or None.
-        num_ssb: columns ``0 … num_ssb − 1`` are SSB beams.
     """
     r = torch.where(mask, rsrp, torch.full_like(rsrp, math.nan)).double()
-    if csi_shift_db is not None:
-        down = torch.pow(10.0, -csi_shift_db.double().to(r.device) / 10.0)[cells]  # [B]
-        r[:, num_ssb:] = r[:, num_ssb:] * down[:, None]
     bins = torch.full((rsrp.shape[0], SOLVER.k_max), -1, dtype=torch.long)
     gains = torch.zeros(rsrp.shape[0], SOLVER.k_max, dtype=torch.float32)
     # the WNOMP baseline's own jobs (a cell's pairs in chunks) over its worker threads
@@ -78,17 +70,11 @@ def predicted_reports(
     cells: torch.Tensor,
     bins: torch.Tensor,
     gains: torch.Tensor,
-    csi_shift_db: torch.Tensor | None,
-    num_ssb: int,
 ) -> torch.Tensor:
     """The reports ``[B, M]`` (normalised) that the sparse APS ``(bins, gains) [B, k]`` predict through
-    ``columns`` (``(cells [B], bins [B, k])`` → ``[B, M, k]``), CSI-RS shifted."""
+    ``columns`` (``(cells [B], bins [B, k])`` → ``[B, M, k]``)."""
     cols = columns(cells, bins.clamp_min(0))
-    pred = torch.einsum("bmk,bk->bm", cols, torch.where(bins >= 0, gains, 0.0))
-    if csi_shift_db is not None:
-        up = torch.pow(10.0, csi_shift_db.to(pred.device, pred.dtype) / 10.0)[cells]
-        pred = torch.cat([pred[:, :num_ssb], pred[:, num_ssb:] * up[:, None]], 1)
-    return pred
+    return torch.einsum("bmk,bk->bm", cols, torch.where(bins >= 0, gains, 0.0))
 
 
 CLIP_DB = 20.0

@@ -445,12 +445,17 @@ class RFLSCM(LSCMModel):
         out = self.corrections.apply(out, cells, cell_ids, grid_ids)
         return out * self.scene.x_ref
 
-    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
+    def level_offset_db(
+        self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
+    ) -> np.ndarray | None:
         """CSI-RS predictions carry each cell's CSI-RS level correction relative to its SSB one (the APS carries
         the SSB one; :mod:`~rflscm.models.rflscm.corrections`)."""
         if self.scene is None:
             return None
-        return self.corrections.level_offset_db(self.scene.cell_index(np.asarray(cell_ids)), beam_type)
+        offset = self.corrections.level_offset_db(self.scene.cell_index(np.asarray(cell_ids)), beam_type)
+        if offset is not None and grid_ids is not None:  # a pair answered by WNOMP's APS of its reports has none
+            offset = np.where(self.corrections.unrendered(cell_ids, grid_ids), 0.0, offset)
+        return offset
 
     def finish_training(
         self,
