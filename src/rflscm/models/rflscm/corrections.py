@@ -199,9 +199,8 @@ def fit_corrections(
     done, anchors, gains, bins_of, bases = [], [], [], [], []
     later = _later_pairs(pairs, first, seed)
     left_over = None
-    short = time_left is not None and time_left() < CHUNK_MARGIN * render_s * later.numel()
-    if short and cfg.wnomp_fallback and visible is not None:  # the pass will not reach every pair: WNOMP for the rest
-        # solved now for every later pair (no render: seconds), dropped below for the pairs the pass reaches
+    if time_left is not None and cfg.wnomp_fallback and visible is not None and later.numel():
+        # solved now for every later pair (no render: ~0.3 ms a pair), dropped below for the pairs the pass reaches
         on = subset if cfg.pair_posterior else first
         left_over = _left_over(fit, rendered, on, later, cell_ids, levels, seed)
     for chunk in fit.corrected_chunks(rendered, later, levels, fitting, time_left, clock, bar, PAIR_CHUNK * render_s):
@@ -307,26 +306,42 @@ def _first_pairs(
     pair, λ's pairs)``.  One pair per cell first (every cell needs its level), timed; then the levels' other pairs
     (up to ``LEVEL_PAIRS_PER_CELL`` per cell) and λ's ``subset`` as far as ``FIRST_SHARE`` of the time left allows:
     fewer per cell, then fewer of λ's pairs (at least ``PAIR_CHUNK``), when it does not."""
-    top = fit.cfg.pair_posterior
+    cfg = fit.cfg
+    top = cfg.pair_posterior
     one = fit.level_picks(1)
     begun = clock()
     rendered = fit.render_pairs(one, top=top, bar=bar)
-    per_pair = (clock() - begun) / max(one.numel(), 1)
-    room = FIRST_SHARE * time_left() / max(per_pair, 1e-9)  # pairs that fit
+    render_s = (clock() - begun) / max(one.numel(), 1)
+    # a chunk's preparation (residuals, columns, the most WNOMP atoms λ's choice may try), timed on the same pairs
+    fit.atoms = max(WNOMP_ATOMS) if top and cfg.wnomp_atoms and fit.visible is not None else 0
+    rows = torch.arange(min(one.numel(), PAIR_CHUNK), device=one.device)
+    begun = clock()
+    for _ in fit.chunks(rendered, rows, None, top):
+        pass
+    prep_s = (clock() - begun) / max(rows.numel(), 1)
+    fit.atoms = 0
+    options = 1 + (len(WNOMP_ATOMS) if top and cfg.wnomp_atoms else 0)
+    each = render_s + prep_s  # a pair rendered and corrected; λ's pairs are also prepared once per option
+    room = FIRST_SHARE * time_left()
     cells = max(one.numel(), 1)
+
+    def cost(per_cell: int, lam_pairs: int) -> float:
+        return (per_cell * cells + lam_pairs) * each + lam_pairs * options * prep_s
+
     for per_cell in range(LEVEL_PAIRS_PER_CELL, 0, -1):
         fit.level_per_cell = per_cell
-        if per_cell * cells + subset.numel() <= room:
+        if cost(per_cell, subset.numel()) <= room:
             break
-    if fit.level_per_cell * cells + subset.numel() > room and subset.numel():
-        subset = _spread(subset, max(PAIR_CHUNK, int(room) - cells))
+    if cost(fit.level_per_cell, subset.numel()) > room and subset.numel():
+        fits = (room - cost(fit.level_per_cell, 0)) / max(each + options * prep_s, 1e-12)
+        subset = _spread(subset, max(PAIR_CHUNK, int(fits)))
     first = torch.cat([fit.level_picks(), subset]).unique()
     more = first[~torch.isin(first, one)]
     begun = clock()
     extra = fit.render_pairs(more, top=top, bar=bar)
     if more.numel():
-        per_pair = (clock() - begun) / more.numel()
-    return first, _merged(rendered, extra), per_pair, subset
+        render_s = (clock() - begun) / more.numel()
+    return first, _merged(rendered, extra), render_s + prep_s, subset
 
 
 def _merged(a: _Rendered, b: _Rendered) -> _Rendered:
