@@ -218,7 +218,13 @@ def budget_summary(summary: dict[str, float]) -> str | None:
         pairs, corrected = summary.get("training_pairs"), summary.get("corrected_pairs")
         if pairs is not None and corrected is not None:
             line += f" and corrected {corrected:.0f} of {pairs:.0f} training pairs"
-            if corrected < pairs:
+            wnomp = summary.get("wnomp_pairs") or 0.0
+            if corrected < pairs and wnomp:
+                line += (
+                    f" ({wnomp:.0f} others get WNOMP's APS of their own reports, which predicted held-aside reports "
+                    f"better than the field's level: give more `--minutes` to correct them all)"
+                )
+            elif corrected < pairs:
                 line += " (the others keep the level correction: give more `--minutes` to correct them all)"
     if "total_s" in summary:
         line += f"; {summary['total_s']:.1f} s in all"

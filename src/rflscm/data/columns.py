@@ -265,8 +265,14 @@ def duplicate_rows(
     ``packed`` (int64 ``[num_rows]``), when given, is one integer per row that is equal exactly
     when the ``keys`` are: hashing one integer column is much faster than several columns.
     """
-    key_values = pd.Series(packed) if packed is not None else df[keys]
-    dup = key_values.duplicated(keep="first").to_numpy()
+    if packed is not None:  # a stable sort: pandas 3's hash of 12 M integers took 68 s, numpy's sort 1.3 s
+        order = np.argsort(packed, kind="stable")
+        ranked = packed[order]
+        repeats = order[1:][ranked[1:] == ranked[:-1]]  # every row but the first of its key, as keep="first"
+        dup = np.zeros(len(packed), dtype=bool)
+        dup[repeats] = True
+    else:
+        dup = df[keys].duplicated(keep="first").to_numpy()
     if not dup.any():
         return
     later = int(np.flatnonzero(dup)[0])

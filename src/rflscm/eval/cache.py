@@ -121,8 +121,10 @@ class APSCache(Predicts):
             out[j, bins.to(self.device)] = values.to(self.device)
         return out
 
-    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
-        return self.inner.level_offset_db(cell_ids, beam_type)
+    def level_offset_db(
+        self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
+    ) -> np.ndarray | None:
+        return self.inner.level_offset_db(cell_ids, beam_type, grid_ids)
 
 
 def _later_duplicates(keys: list[tuple[int, int]]) -> set[int]:

@@ -74,5 +74,7 @@ class OracleModel(Predicts):
             )
         return self._truth.aps(cell_ids, grid_ids, dtype=torch.float32, device=self.device)
 
-    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
+    def level_offset_db(
+        self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
+    ) -> np.ndarray | None:
         return None

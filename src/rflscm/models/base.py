@@ -156,9 +156,12 @@ class LSCMModel(abc.ABC):
 
         return predict_rsrp(self, scenario, round, beam_type, pairs, chunk)
 
-    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
-        """dB added to every ``beam_type`` prediction of each pair's cell ``cell_ids [P]`` on top of A x (a level
-        the APS cannot carry because it differs between beam types), or None (the default: nothing)."""
+    def level_offset_db(
+        self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
+    ) -> np.ndarray | None:
+        """dB added to every ``beam_type`` prediction of each pair (cell ``cell_ids [P]``, grid ``grid_ids [P]``,
+        None: every pair of those cells) on top of A x (a level the APS cannot carry because it differs between beam
+        types), or None (the default: nothing)."""
         return None
 
     # --- persistence --------------------------------------------------------------------------

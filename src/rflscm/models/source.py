@@ -64,8 +64,10 @@ class APSSource(Protocol):
         [num_pairs, 3]`` places grids the source has not seen.  :class:`UnsupportedError` where it has no answer."""
         ...
 
-    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
-        """dB added to each pair's ``beam_type`` prediction on top of A x, or None."""
+    def level_offset_db(
+        self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
+    ) -> np.ndarray | None:
+        """dB added to each pair's (``cell_ids``, ``grid_ids``) ``beam_type`` prediction on top of A x, or None."""
         ...
 
 
@@ -118,7 +120,7 @@ def predict_rsrp(
             out[sel, : a.shape[0]] = 10.0 * np.log10(power_mw.cpu().double().numpy())
             bar.update(len(sel))
     bar.close()
-    offset = source.level_offset_db(cell_ids, beam_type)
+    offset = source.level_offset_db(cell_ids, beam_type, grid_ids)
     return out if offset is None else out + offset[:, None]
 
 

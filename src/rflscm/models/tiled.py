@@ -136,14 +136,19 @@ class TiledModel(LSCMModel):
             out[torch.as_tensor(rows, device=self.device)] = answer.to(device=self.device, dtype=torch.float32)
         return out
 
-    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
+    def level_offset_db(
+        self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
+    ) -> np.ndarray | None:
         """Each pair's offset from its cell's tile (0 where a tile has none); None when no tile has one."""
         cell_ids = np.asarray(cell_ids, dtype=np.int64).reshape(-1)
+        grids = None if grid_ids is None else np.asarray(grid_ids, dtype=np.int64).reshape(-1)
         owner = self.tile_of(cell_ids)
         out, any_offset = np.zeros(len(cell_ids)), False
         for t in np.unique(owner):
             rows = np.flatnonzero(owner == t)
-            offset = self.tiles[int(t)].level_offset_db(cell_ids[rows], beam_type)
+            offset = self.tiles[int(t)].level_offset_db(
+                cell_ids[rows], beam_type, None if grids is None else grids[rows]
+            )
             if offset is not None:
                 out[rows], any_offset = np.asarray(offset, np.float64), True
         return out if any_offset else None

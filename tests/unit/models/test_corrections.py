@@ -105,7 +105,7 @@ def test_a_round_trip_through_torch_save_with_weights_only_keeps_every_part() ->
 
 
 def test_within_a_deadline_the_pass_corrects_the_pairs_that_fit_and_the_rest_keep_the_level() -> None:
-    """Every render costs 1 s of a fake clock. The level's pairs come first, then chunks of the others while the
+    """Every rendered pair costs 10 ms of a fake clock. The level's pairs come first, then chunks of the others while the
     slowest chunk so far (× CHUNK_MARGIN) still fits; pairs left over have no anchor; with time enough, every pair
     gets the anchor a pass without a deadline gives it."""
     from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL, PAIR_CHUNK
@@ -118,7 +118,7 @@ def test_within_a_deadline_the_pass_corrects_the_pairs_that_fit_and_the_rest_kee
     now = [0.0]
 
     def costly(pairs: torch.Tensor):
-        now[0] += 1.0
+        now[0] += 0.01 * pairs.numel()
         return render(aps, [])(pairs)
 
     cfg = CorrectionsConfig(pair_posterior=False)
@@ -126,7 +126,8 @@ def test_within_a_deadline_the_pass_corrects_the_pairs_that_fit_and_the_rest_kee
     full = fit_corrections(*args, seed=0)
     assert full.anchors is not None and len(full.anchors) == num
     now[0] = 0.0
-    cut = fit_corrections(*args, seed=0, time_left=lambda: 2.6 - now[0], clock=lambda: now[0])
+    # one pair per cell (0.02 s), the level's other 30 (0.3 s), one chunk of 64 (0.64 s); a second does not fit
+    cut = fit_corrections(*args, seed=0, time_left=lambda: 1.7 - now[0], clock=lambda: now[0])
     assert cut.anchors is not None and cut.corrected_pairs() == 2 * LEVEL_PAIRS_PER_CELL + PAIR_CHUNK
     assert set(cut.anchors.index) <= set(full.anchors.index)
     np.testing.assert_allclose(cut.anchors.to_numpy(), full.anchors.loc[cut.anchors.index].to_numpy(), atol=1e-5)
@@ -238,3 +239,103 @@ def test_wnomp_atoms_stay_on_the_bins_a_cell_may_hold() -> None:
     cell0 = torch.as_tensor(post.index.get_level_values("cell_id").to_numpy() == 7)
     assert not bool(((post.bins[cell0] >= 6) & (post.base[cell0] > 0)).any())
     assert bool(((post.bins[~cell0] >= 6) & (post.base[~cell0] > 0)).any())  # cell 1's atoms are there
+
+
+def test_a_short_deadline_measures_the_levels_on_fewer_pairs_per_cell() -> None:
+    """When the levels' 16 pairs per cell would take more than half of the time left, fewer per cell are rendered
+    (at least one per cell), and the pass still ends by the deadline."""
+    from rflscm.models.rflscm.corrections import FIRST_SHARE
+
+    num = 400
+    gen = torch.Generator().manual_seed(2)
+    aps = torch.rand(num, K, generator=gen) + 0.1
+    rsrp = (aps.sum(1, keepdim=True) * 10 ** (torch.randn(num, 2, generator=gen) / 10)).tolist()
+    cells = [i % 4 for i in range(num)]
+    now, rendered = [0.0], []
+
+    def costly(pairs: torch.Tensor):
+        now[0] += 0.01 * pairs.numel()
+        rendered.append(pairs.numel())
+        return render(aps, [])(pairs)
+
+    cfg = CorrectionsConfig(pair_posterior=False)
+    args = (cfg, data(rsrp, cells), 1, np.array([7, 8, 9, 10]), costly, columns)
+    cut = fit_corrections(*args, seed=0, time_left=lambda: 0.3 - now[0], clock=lambda: now[0])
+    # 4 pairs first (0.04 s), then FIRST_SHARE of the 0.26 s left: 13 pairs, so 3 per cell (12)
+    assert rendered[:2] == [4, 8] and int(FIRST_SHARE * 26) == 13
+    assert cut.anchors is not None and len(cut.anchors) == 12 and now[0] <= 0.3
+
+
+def fallback_problem(pairs: int = 400):
+    """:func:`atom_problem` with many pairs and a clock that charges 10 ms per rendered pair."""
+    pair_data, render_, columns_, truth, a2, cells = atom_problem(0, pairs=pairs)
+    now = [0.0]
+
+    def costly(p: torch.Tensor):
+        now[0] += 0.01 * p.numel()
+        return render_(p)
+
+    return pair_data, costly, columns_, truth, a2, cells, now
+
+
+def test_pairs_the_pass_cannot_reach_get_wnomps_aps_when_it_predicts_held_reports_better() -> None:
+    """Within a deadline the pairs left over get WNOMP's sparse APS of their own reports (the field misses their
+    atom, so WNOMP wins the held-aside choice); the corrected and the WNOMP pairs are disjoint and cover every pair;
+    such a pair's APS is WNOMP's whole, which predicts the changed antennas better than the field with its level;
+    without the switch they keep the level; and it survives a save."""
+    pair_data, costly, columns_, truth, a2, cells, now = fallback_problem()
+    visible = torch.ones(2, truth.shape[1], dtype=torch.bool)
+    ids = np.array([7, 8])
+
+    def run(on: bool) -> PairCorrections:
+        now[0] = 0.0
+        cfg = CorrectionsConfig(pair_posterior=False, wnomp_fallback=on)
+        return fit_corrections(
+            cfg, pair_data, 8, ids, costly, columns_, 0, time_left=lambda: 2.0 - now[0], clock=lambda: now[0],
+            visible=visible,
+        )  # fmt: skip
+
+    with_wnomp, level_only = run(True), run(False)
+    assert level_only.fallback is None
+    fb = with_wnomp.fallback
+    assert fb is not None and fb.scores["wnomp"] < fb.scores["level"]
+    assert with_wnomp.anchors is not None and len(fb.index) > 0
+    assert not set(fb.index) & set(with_wnomp.anchors.index)
+    assert len(fb.index) + len(with_wnomp.anchors) == len(cells)
+    rows = np.array([g for _, g in fb.index])
+    field = torch.full((len(rows), truth.shape[1]), 0.1)
+    c = cells.numpy()[rows]
+    out = with_wnomp.apply(field, c, ids[c], rows)
+    assert with_wnomp.unrendered(ids[c], rows).all()
+    dense = torch.zeros_like(out).scatter_add_(1, fb.bins.clamp_min(0), torch.where(fb.bins >= 0, fb.gains, 0.0))
+    torch.testing.assert_close(out, dense)
+
+    def mae(aps: torch.Tensor) -> float:
+        pred = torch.einsum("bmn,bn->bm", a2[cells[rows]], aps)
+        true = torch.einsum("bmn,bn->bm", a2[cells[rows]], truth[rows])
+        return float((10.0 * torch.log10(pred.clamp_min(1e-12) / true)).abs().mean())
+
+    assert mae(out) < mae(level_only.apply(field, c, ids[c], rows))
+    buffer = io.BytesIO()
+    torch.save(with_wnomp.to_state(), buffer)
+    buffer.seek(0)
+    loaded = PairCorrections.from_state(torch.load(buffer, weights_only=True), truth.shape[1])
+    torch.testing.assert_close(loaded.apply(field, c, ids[c], rows), out)
+
+
+def test_damaged_wnomp_pairs_are_refused_in_one_line() -> None:
+    from rflscm.models.rflscm.fallback import PairFallback
+
+    good = PairFallback(
+        pd.MultiIndex.from_arrays([np.array([1]), np.array([2])]), torch.tensor([[0, -1]]), torch.tensor([[1.0, 0.0]])
+    ).to_state()
+    assert PairFallback.from_state(good, 4) is not None
+    for key, value, why in (
+        ("gains", torch.tensor([[-1.0, 0.0]]), "negative"),
+        ("bins", torch.tensor([[9, -1]]), "off the angle grid"),
+        ("bins", torch.tensor([[0]]), "shapes"),
+    ):
+        with pytest.raises(CheckpointError, match=why):
+            PairFallback.from_state({**good, key: value}, 4)
+    with pytest.raises(CheckpointError, match="expected"):
+        PairFallback.from_state({"cell_id": 1}, 4)

@@ -66,8 +66,14 @@ CHANGES = [
     ("corrections", "wnomp_atoms", False),
 ]
 # options that bound memory or I/O only, or act only in a time-budget run (finish_share: its share of the budget, tested
-# in test_rflscm_budget.py): the same results in this step run, by design
-NEUTRAL = [("render", "chunk_samples", 64), ("train", "checkpoint_every", 1), ("train", "finish_share", 0.3)]
+# in test_rflscm_budget.py; wnomp_fallback: the pairs a budget's pass cannot reach, test_corrections.py): the same
+# results in this step run, by design
+NEUTRAL = [
+    ("render", "chunk_samples", 64),
+    ("train", "checkpoint_every", 1),
+    ("train", "finish_share", 0.3),
+    ("corrections", "wnomp_fallback", False),
+]
 EXTRA = {("field", "upsample_at"): {"init_voxel_m": 30.0}}
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # deterministic: a difference is the option's, not the threads'
@@ -100,7 +106,7 @@ def reference(scenario) -> str:
 
 
 def test_every_option_is_listed_once() -> None:
-    assert len(CHANGES) + len(NEUTRAL) + 1 == 37  # issue 11: at most 40
+    assert len(CHANGES) + len(NEUTRAL) + 1 == 38  # issue 11: at most 40
     listed = [(s, k) for s, k, _ in CHANGES + NEUTRAL] + [("field", "init_voxel_m")]  # tested with upsample_at
     sections = typing.get_type_hints(RFLSCMConfig)
     options = [(f.name, g.name) for f in dataclasses.fields(RFLSCMConfig) for g in dataclasses.fields(sections[f.name])]

@@ -44,7 +44,9 @@ class Fake(LSCMModel):
             out[:, 3] = torch.as_tensor(grid_xyz[:, 0], dtype=torch.float32)
         return out
 
-    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
+    def level_offset_db(
+        self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
+    ) -> np.ndarray | None:
         return None if self.offset is None else np.full(len(cell_ids), self.offset)
 
     def state_dict_for_checkpoint(self) -> dict[str, Any]:

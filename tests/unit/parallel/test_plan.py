@@ -53,7 +53,7 @@ class FakeSource(Predicts):
         x[:, 0] = float(n)  # depends on the batch: a wrong plan gives another value
         return x
 
-    def level_offset_db(self, cell_ids, beam_type):
+    def level_offset_db(self, cell_ids, beam_type, grid_ids=None):
         return None
 
     def content_sha256(self) -> str:

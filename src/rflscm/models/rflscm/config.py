@@ -302,7 +302,7 @@ class TrainConfig:
     finish_share: float = 0.5
     """In a time-budget run, the pass after training (the pair corrections) may take at most this share of the
     budget; where the model measures that it needs more, the pass covers the pairs that fit in it and the others
-    keep the level correction only (:mod:`~rflscm.models.rflscm.corrections`)."""
+    get WNOMP's APS of their reports or the level correction only (``corrections.wnomp_fallback``)."""
     val_pairs: int = 128
     """Pairs with held-aside round-1 beams (a quarter of each pair's reported beams, never trained on) for the
     running validation MAE (0: none)."""
@@ -349,6 +349,11 @@ class CorrectionsConfig:
     below WNOMP's (:func:`~rflscm.models.rflscm.posterior.with_atoms`): the field's strongest bins can miss the
     direction that a grid's reports point at.  How many atoms (2, 4 or none) is chosen with λ on held-aside
     reports.  Needs ``pair_posterior``."""
+    wnomp_fallback: bool = True
+    """Within a time budget, the training pairs that the pass after training cannot reach get WNOMP's APS of their
+    own round-1 reports (no render; :mod:`~rflscm.models.rflscm.fallback`) instead of the field with its level,
+    when that predicts the held-aside reports of the rendered pairs better.  Without a budget every pair is reached
+    and this does nothing."""
 
 
 @dataclass(frozen=True)

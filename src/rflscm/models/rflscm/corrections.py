@@ -17,9 +17,11 @@ Validation beams are used by none, so the trainer's validation MAE stays a held-
 result, applies it and saves it on its own (tensors only).
 
 Within a time budget (``time_left``) the pass is sized to the time left: the pairs the levels and λ are measured
-on come first, then the other pairs in a seeded random order (spread over cells and grids), a chunk at a time,
-while a chunk still fits; the pairs left over keep the level correction only (no anchor, no posterior).
-:func:`seconds_per_pair` measures the pass's cost on one chunk, so that a budget run can keep time for it.
+on come first (one per cell, then as many of the others as half the time left allows), then the other pairs in a
+seeded random order (spread over cells and grids), a chunk at a time, while a chunk still fits.  When the pass
+cannot reach every pair, the pairs left over get WNOMP's APS of their own reports (:mod:`.fallback`, no render)
+where that predicts the held-aside reports better than the field with its level, else they keep the level only.
+:func:`measure_pass` measures the pass's cost on two chunks, so that a budget run can keep time for it.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ import torch
 from rflscm.errors import CheckpointError
 from rflscm.models.pairs import PairData
 from rflscm.models.rflscm.config import CorrectionsConfig
+from rflscm.models.rflscm.fallback import PairFallback, held_mae_db, predicted_reports, solve_reports
 from rflscm.models.rflscm.posterior import (
     HOLDOUT,
     LAMBDA_PAIRS,
@@ -63,6 +66,10 @@ ColumnsFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """``(cells [B], bins [B, K])`` → normalised A columns ``[B, M, K]``."""
 TimeLeftFn = Callable[[], float]
 """Seconds left for the pass (a budget run's deadline); the pass stops starting chunks that would not fit."""
+FIRST_SHARE = 0.5
+"""Within a budget, the levels' and λ's pairs may take this share of the pass's time (fewer of them when short)."""
+FALLBACK_CHUNK = 1024
+"""Pairs per WNOMP solve of the left-over pairs (:mod:`.fallback`)."""
 CHUNK_MARGIN = 1.25
 """A further chunk is started only when the time left exceeds this many times the slowest chunk so far."""
 
@@ -75,6 +82,8 @@ class PairCorrections:
     levels: torch.Tensor | None = None
     anchors: pd.Series | None = None
     posterior: PairPosterior | None = None
+    fallback: PairFallback | None = None
+    """WNOMP's APS of the training pairs a budget's pass did not reach (:mod:`.fallback`), or None."""
 
     def apply(
         self, aps: torch.Tensor, cell_index: np.ndarray, cell_ids: np.ndarray, grid_ids: np.ndarray
@@ -93,7 +102,15 @@ class PairCorrections:
             out = out * torch.pow(10.0, torch.as_tensor(shift, device=aps.device) / 10.0)[:, None]
         if self.posterior is not None:
             out = self.posterior.apply(out, cells, grids)
+        if self.fallback is not None:
+            out = self.fallback.apply(out, cells, grids)
         return out
+
+    def unrendered(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray:
+        """bool ``[N]``: the pairs whose APS :meth:`apply` replaces whole (a model need not render them)."""
+        if self.fallback is None:
+            return np.zeros(len(np.asarray(cell_ids).reshape(-1)), bool)
+        return self.fallback.rows(cell_ids, grid_ids) >= 0
 
     def corrected_pairs(self) -> float:
         """How many training pairs carry their own correction (an anchor, or else a posterior)."""
@@ -114,6 +131,7 @@ class PairCorrections:
             "levels": self.levels.detach().cpu().clone() if self.levels is not None else None,
             "anchors": _anchors_state(self.anchors),
             "posterior": self.posterior.to_state() if self.posterior is not None else None,
+            "fallback": self.fallback.to_state() if self.fallback is not None else None,
         }
 
     @classmethod
@@ -130,6 +148,7 @@ class PairCorrections:
             torch.as_tensor(levels, dtype=torch.float32, device=device) if levels is not None else None,
             _anchors_from_state(state.get("anchors")),
             PairPosterior.from_state(state.get("posterior"), num_bins),  # type: ignore[arg-type]
+            PairFallback.from_state(state.get("fallback"), num_bins),
         )
 
 
@@ -163,10 +182,13 @@ def fit_corrections(
         return PairCorrections(fit.levels(fit.render_pairs(fit.level_picks(), top=False)))
     per_pair = 2 if cfg.pair_posterior else 1  # a render, and a fit with the posterior
     bar = tqdm(total=pairs.numel() * per_pair, desc="pair corrections", unit="pair", disable=not progress, leave=False)
-    spread = torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), LAMBDA_PAIRS)).round().long()
-    subset = pairs[spread] if cfg.pair_posterior else pairs[:0]  # the pairs λ is chosen on
-    first = pairs if time_left is None else torch.cat([fit.level_picks(), subset]).unique()
-    rendered = fit.render_pairs(first, top=cfg.pair_posterior, bar=bar)
+    subset = _spread(pairs, LAMBDA_PAIRS) if cfg.pair_posterior else pairs[:0]  # the pairs λ is chosen on
+    if time_left is None:
+        first = pairs
+        rendered = fit.render_pairs(first, top=cfg.pair_posterior, bar=bar)
+        render_s = 0.0
+    else:
+        first, rendered, render_s, subset = _first_pairs(fit, subset, time_left, clock, bar)
     levels = fit.levels(rendered) if cfg.calibrate_levels else None
     lam, scores, atom_scores = math.inf, dict[float, float](), dict[int, float]()
     if cfg.pair_posterior and pairs.numel():
@@ -176,7 +198,12 @@ def fit_corrections(
     fitting = cfg.pair_posterior and math.isfinite(lam)
     done, anchors, gains, bins_of, bases = [], [], [], [], []
     later = _later_pairs(pairs, first, seed)
-    for chunk in fit.corrected_chunks(rendered, later, levels, fitting, time_left, clock, bar):
+    left_over = None
+    if time_left is not None and cfg.wnomp_fallback and visible is not None and later.numel():
+        # solved now for every later pair (no render: ~0.3 ms a pair), dropped below for the pairs the pass reaches
+        on = subset if cfg.pair_posterior else first
+        left_over = _left_over(fit, rendered, on, later, cell_ids, levels, seed)
+    for chunk in fit.corrected_chunks(rendered, later, levels, fitting, time_left, clock, bar, PAIR_CHUNK * render_s):
         done.append(chunk.pairs)
         anchors.append(chunk.anchor)
         if chunk.top_bins is not None:
@@ -191,18 +218,20 @@ def fit_corrections(
     index = pd.MultiIndex.from_arrays([ids, data.grid_ids[kept]], names=["cell_id", "grid_id"])
     median = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)
     anchor_series = pd.Series(median, index=index, name="anchor_db") if cfg.pair_anchors else None
+    if left_over is not None:
+        left_over = left_over.without(index)
     if not cfg.pair_posterior:
-        return PairCorrections(levels, anchor_series, None)
+        return PairCorrections(levels, anchor_series, None, left_over)
     if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
         empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
         posterior = PairPosterior(
             empty, torch.zeros(0, 0, dtype=torch.long), torch.zeros(0, 0), lam, scores, None, atom_scores
         )
-        return PairCorrections(levels, anchor_series, posterior)
+        return PairCorrections(levels, anchor_series, posterior, left_over)
     gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
     base = torch.cat(bases) if bases else None
     posterior = PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores, base, atom_scores)
-    return PairCorrections(levels, anchor_series, posterior)
+    return PairCorrections(levels, anchor_series, posterior, left_over)
 
 
 @dataclass(frozen=True)
@@ -263,6 +292,70 @@ def measure_pass(
     cells_first = int(data.cell_index[first].unique().numel())
     setup = max(0.0, (t1 - t0) - (t2 - t1) * n_first / n_second) * num_cells / max(cells_first, 1)
     return PassTimes(setup, (t2 - t1) / n_second, (t3 - t2) / n_second, (t4 - t3) / n_second)
+
+
+def _spread(pairs: torch.Tensor, count: int) -> torch.Tensor:
+    """Up to ``count`` of ``pairs`` evenly spread over their order (which groups them by cell)."""
+    return pairs[torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), count)).round().long()]
+
+
+def _first_pairs(
+    fit: _Fit, subset: torch.Tensor, time_left: TimeLeftFn, clock: Callable[[], float], bar: object
+) -> tuple[torch.Tensor, _Rendered, float, torch.Tensor]:
+    """Within a budget, the pairs rendered before any other: the levels' and λ's, ``(pairs, rendered, seconds per
+    pair, λ's pairs)``.  One pair per cell first (every cell needs its level), timed; then the levels' other pairs
+    (up to ``LEVEL_PAIRS_PER_CELL`` per cell) and λ's ``subset`` as far as ``FIRST_SHARE`` of the time left allows:
+    fewer per cell, then fewer of λ's pairs (at least ``PAIR_CHUNK``), when it does not."""
+    cfg = fit.cfg
+    top = cfg.pair_posterior
+    one = fit.level_picks(1)
+    begun = clock()
+    rendered = fit.render_pairs(one, top=top, bar=bar)
+    render_s = (clock() - begun) / max(one.numel(), 1)
+    # a chunk's preparation (residuals, columns, the most WNOMP atoms λ's choice may try), timed on the same pairs
+    fit.atoms = max(WNOMP_ATOMS) if top and cfg.wnomp_atoms and fit.visible is not None else 0
+    rows = torch.arange(min(one.numel(), PAIR_CHUNK), device=one.device)
+    begun = clock()
+    for _ in fit.chunks(rendered, rows, None, top):
+        pass
+    prep_s = (clock() - begun) / max(rows.numel(), 1)
+    fit.atoms = 0
+    options = 1 + (len(WNOMP_ATOMS) if top and cfg.wnomp_atoms else 0)
+    each = render_s + prep_s  # a pair rendered and corrected; λ's pairs are also prepared once per option
+    room = FIRST_SHARE * time_left()
+    cells = max(one.numel(), 1)
+
+    def cost(per_cell: int, lam_pairs: int) -> float:
+        return (per_cell * cells + lam_pairs) * each + lam_pairs * options * prep_s
+
+    for per_cell in range(LEVEL_PAIRS_PER_CELL, 0, -1):
+        fit.level_per_cell = per_cell
+        if cost(per_cell, subset.numel()) <= room:
+            break
+    if cost(fit.level_per_cell, subset.numel()) > room and subset.numel():
+        fits = (room - cost(fit.level_per_cell, 0)) / max(each + options * prep_s, 1e-12)
+        subset = _spread(subset, max(PAIR_CHUNK, int(fits)))
+    first = torch.cat([fit.level_picks(), subset]).unique()
+    more = first[~torch.isin(first, one)]
+    begun = clock()
+    extra = fit.render_pairs(more, top=top, bar=bar)
+    if more.numel():
+        render_s = (clock() - begun) / more.numel()
+    return first, _merged(rendered, extra), render_s + prep_s, subset
+
+
+def _merged(a: _Rendered, b: _Rendered) -> _Rendered:
+    """The rendered pairs of ``a`` and ``b`` (disjoint) as one, sorted by pair."""
+    if not b.pairs.numel():
+        return a
+    pairs = torch.cat([a.pairs, b.pairs])
+    order = torch.argsort(pairs)
+
+    def both(x: torch.Tensor | None, y: torch.Tensor | None) -> torch.Tensor | None:
+        return None if x is None or y is None else torch.cat([x, y])[order]
+
+    pred = torch.cat([a.pred, b.pred])[order]
+    return _Rendered(pairs[order], pred, both(a.top_bins, b.top_bins), both(a.top_x, b.top_x))
 
 
 def _later_pairs(pairs: torch.Tensor, first: torch.Tensor, seed: int) -> torch.Tensor:
@@ -336,6 +429,8 @@ class _Fit:
     """bool ``[C, N]``: the bins of the angle grid each cell's APS may hold (WNOMP's atoms are searched there)."""
     atoms: int = 0
     """WNOMP's atoms per pair that :meth:`chunks` adds to the posterior's candidates (0: none)."""
+    level_per_cell: int = LEVEL_PAIRS_PER_CELL
+    """Pairs per cell the levels are measured on (fewer within a budget too short for them: :func:`_first_pairs`)."""
 
     def render_pairs(self, pairs: torch.Tensor, top: bool, bar: object = None) -> _Rendered:
         """Render ``pairs [P]`` (sorted) ``PAIR_CHUNK`` at a time: their predicted reports and, with ``top``, their
@@ -353,15 +448,16 @@ class _Fit:
         pred = torch.cat(preds) if preds else torch.zeros(0, self.data.rsrp.shape[1], device=pairs.device)
         return _Rendered(pairs, pred, torch.cat(tops) if tops else None, torch.cat(xs) if xs else None)
 
-    def level_picks(self) -> torch.Tensor:
-        """Up to ``LEVEL_PAIRS_PER_CELL`` evenly spaced pairs with reports per cell (sorted)."""
+    def level_picks(self, per_cell: int | None = None) -> torch.Tensor:
+        """Up to ``per_cell`` (default :attr:`level_per_cell`) evenly spaced pairs with reports per cell (sorted)."""
         d = self.data
         reported = d.observed.any(1)
         picks = []
+        count = self.level_per_cell if per_cell is None else per_cell
         for c in range(self.num_cells):
             p = torch.nonzero(reported & (d.cell_index == c)).squeeze(1)
             if p.numel():
-                picks.append(p[torch.linspace(0, p.numel() - 1, min(p.numel(), LEVEL_PAIRS_PER_CELL)).round().long()])
+                picks.append(p[torch.linspace(0, p.numel() - 1, min(p.numel(), count)).round().long()])
         return torch.cat(picks).unique() if picks else torch.zeros(0, dtype=torch.long, device=d.rsrp.device)
 
     def levels(self, rendered: _Rendered) -> torch.Tensor:
@@ -434,12 +530,14 @@ class _Fit:
         time_left: TimeLeftFn | None,
         clock: Callable[[], float],
         bar: object = None,
+        expected_s: float = 0.0,
     ) -> Iterator[_PairChunk]:
         """Every row of ``rendered``, then the ``later`` pairs rendered ``PAIR_CHUNK`` at a time (sorted within a
         chunk), as :meth:`chunks`; with ``time_left`` a chunk is started only while ``CHUNK_MARGIN`` times the slowest
-        chunk so far still fits (the rendered rows count their render in their first chunk's time)."""
+        chunk so far still fits (the rendered rows count their render in their first chunk's time; ``expected_s``, a
+        chunk's render as measured on the rendered pairs, counts as a chunk before any)."""
         rows = torch.arange(rendered.pairs.numel(), device=rendered.pairs.device)
-        slowest = 0.0
+        slowest = expected_s
         for start in range(0, rows.numel(), PAIR_CHUNK):
             begun = clock()
             yield from self.chunks(rendered, rows[start : start + PAIR_CHUNK], levels, with_columns)
@@ -452,6 +550,31 @@ class _Fit:
             more = self.render_pairs(part, top=with_columns, bar=bar)
             yield from self.chunks(more, torch.arange(part.numel(), device=part.device), levels, with_columns)
             slowest = max(slowest, clock() - begun)
+
+    def matrix(self, cell: int) -> torch.Tensor:
+        """Cell index ``cell``'s normalised stacked sensing matrix ``[M, N]`` over every bin (``visible``'s)."""
+        if self.visible is None:
+            raise ValueError("WNOMP's solutions need the bins of the angle grid (``visible``)")
+        every = torch.arange(self.visible.shape[1], device=self.data.rsrp.device)[None]
+        return self.columns(torch.tensor([cell], device=every.device), every)[0]
+
+    def solve(
+        self, pairs: torch.Tensor, mask: torch.Tensor, levels: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """WNOMP's APS ``(bins, gains) [B, k]`` of ``pairs [B]`` from their ``mask``-ed reports (:mod:`.fallback`)."""
+        d = self.data
+        return solve_reports(self.matrix, d.cell_index[pairs], d.rsrp[pairs], mask)
+
+    def fallback(
+        self, pairs: torch.Tensor, cell_ids: np.ndarray, levels: torch.Tensor | None, scores: dict[str, float]
+    ) -> PairFallback:
+        """WNOMP's APS of ``pairs`` (``cell_ids`` of the cell indices) from all their training reports."""
+        d = self.data
+        bins, gains = self.solve(pairs, d.observed[pairs], levels)
+        kept = pairs.cpu().numpy()
+        ids = np.asarray(cell_ids, np.int64)[d.cell_index.cpu().numpy()[kept]]
+        index = pd.MultiIndex.from_arrays([ids, d.grid_ids[kept]], names=["cell_id", "grid_id"])
+        return PairFallback(index, bins.cpu(), gains.cpu(), scores)
 
     def _add_atoms(self, chunk: _PairChunk, level: torch.Tensor, held: torch.Tensor | None) -> None:
         """Add WNOMP's atoms of the chunk's reports (not ``held`` aside) to its candidate bins; ``level [B]`` [dB]:
@@ -507,6 +630,41 @@ def _choose(
     scores[math.inf] = choices[0].mae_db().get(math.inf, math.inf)
     per_atoms = {a: min(c[0] for c in candidates if c[2] == a and math.isfinite(c[3])) for a in choices}
     return atoms, lam, scores, per_atoms if fit.cfg.wnomp_atoms else {}
+
+
+def _left_over(
+    fit: _Fit,
+    rendered: _Rendered,
+    on: torch.Tensor,
+    later: torch.Tensor,
+    cell_ids: np.ndarray,
+    levels: torch.Tensor | None,
+    seed: int,
+) -> PairFallback:
+    """WNOMP's APS of the ``later`` pairs (:mod:`.fallback`) when it beats the field with its level on the reports of
+    the rendered pairs ``on`` held aside as the posterior's λ holds them (``seed``), WNOMP fitted on their other
+    reports; else no pairs, with the scores (``"level"``, ``"wnomp"``: held-aside MAE [dB]) either way."""
+    d = fit.data
+    pairs = on.unique()
+    held = torch.rand(d.rsrp.shape, generator=torch.Generator().manual_seed(seed)) < HOLDOUT
+    level_sum = wnomp_sum = 0.0
+    count = 0
+    for start in range(0, pairs.numel(), FALLBACK_CHUNK):
+        part = pairs[start : start + FALLBACK_CHUNK]
+        cells, observed = d.cell_index[part], d.observed[part]
+        score = observed & held[part.cpu()].to(observed.device)
+        pred = rendered.pred[rendered.rows_of(part)]
+        if levels is not None:
+            beam_type = (torch.arange(pred.shape[1], device=pred.device) >= fit.num_ssb).long()
+            pred = pred * torch.pow(10.0, levels[cells][:, beam_type] / 10.0)
+        bins, gains = fit.solve(part, observed & ~score, levels)
+        wnomp = predicted_reports(fit.columns, cells, bins, gains)
+        level_err, n = held_mae_db(d.rsrp[part], pred, score)
+        wnomp_err, _ = held_mae_db(d.rsrp[part], wnomp, score)
+        level_sum, wnomp_sum, count = level_sum + level_err, wnomp_sum + wnomp_err, count + n
+    scores = {"level": level_sum / count, "wnomp": wnomp_sum / count} if count else {}
+    use = bool(scores) and scores["wnomp"] < scores["level"]
+    return fit.fallback(later.sort().values if use else later[:0], cell_ids, levels, scores)
 
 
 def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:

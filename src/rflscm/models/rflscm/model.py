@@ -420,9 +420,11 @@ class RFLSCM(LSCMModel):
             self.scene.grid_positions(grid_ids) if grid_xyz is None else np.asarray(grid_xyz, np.float64).reshape(-1, 3)
         )
         keys = [(int(c), *np.round(p, 3).tolist()) for c, p in zip(cells, xyz)]
+        skip = self.corrections.unrendered(cell_ids, grid_ids)  # answered whole by the corrections: not rendered
         first: dict[tuple, int] = {}
         for i, key in enumerate(keys):
-            first.setdefault(key, i)
+            if not skip[i]:
+                first.setdefault(key, i)
         todo = sorted(first.values(), key=lambda i: (keys[i][0], i))
         out = torch.zeros(len(keys), self.angle_grid.num_bins, device=self.device)
         rendered = torch.zeros(len(todo), self.angle_grid.num_bins, device=self.device)
@@ -432,18 +434,28 @@ class RFLSCM(LSCMModel):
             g = torch.as_tensor(xyz[rows], dtype=torch.float32, device=self.device)
             bins, values = R.output(c, g, self.position)
             rendered[start : start + len(rows)].scatter_add_(1, bins, values)
-        if keys:
+        if todo and not skip.any():
             slot = {keys[i]: j for j, i in enumerate(todo)}
             out = rendered[torch.as_tensor([slot[k] for k in keys], dtype=torch.long, device=self.device)]
+        elif todo:
+            slot = {keys[i]: j for j, i in enumerate(todo)}
+            answered = np.flatnonzero(~skip)
+            at = torch.as_tensor([slot[keys[i]] for i in answered], dtype=torch.long, device=self.device)
+            out[torch.as_tensor(answered, dtype=torch.long, device=self.device)] = rendered[at]
         out = self.corrections.apply(out, cells, cell_ids, grid_ids)
         return out * self.scene.x_ref
 
-    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> np.ndarray | None:
+    def level_offset_db(
+        self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
+    ) -> np.ndarray | None:
         """CSI-RS predictions carry each cell's CSI-RS level correction relative to its SSB one (the APS carries
         the SSB one; :mod:`~rflscm.models.rflscm.corrections`)."""
         if self.scene is None:
             return None
-        return self.corrections.level_offset_db(self.scene.cell_index(np.asarray(cell_ids)), beam_type)
+        offset = self.corrections.level_offset_db(self.scene.cell_index(np.asarray(cell_ids)), beam_type)
+        if offset is not None and grid_ids is not None:  # a pair answered by WNOMP's APS of its reports has none
+            offset = np.where(self.corrections.unrendered(cell_ids, grid_ids), 0.0, offset)
+        return offset
 
     def finish_training(
         self,
@@ -471,9 +483,11 @@ class RFLSCM(LSCMModel):
         )
         cfg = self.config.corrections
         if cfg.pair_anchors or cfg.pair_posterior:  # per-pair corrections: how many pairs the pass reached
+            fallback = self.corrections.fallback
             self.run_info["corrections"] = {
                 "training_pairs": float(int(train.data.observed.any(1).sum())),
                 "corrected_pairs": self.corrections.corrected_pairs(),
+                "wnomp_pairs": float(len(fallback.index)) if fallback is not None else 0.0,
             }
 
     def finish_seconds(self, clock: Callable[[], float] = time.perf_counter) -> PassCost:

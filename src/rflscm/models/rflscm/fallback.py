@@ -1,0 +1,171 @@
+"""The APS of the training pairs that a budget's pass after training cannot reach (issue 29).
+
+Within a ``--minutes`` budget the pass after training (:mod:`~rflscm.models.rflscm.corrections`) renders as
+many training pairs as fit; on a large network most pairs are left over (at 222 cells, a few thousand of tens
+of thousands) and would keep the field's APS with the per-cell level only.  A pair's own round-1 reports still
+say much about its APS, and reading them needs no render: WNOMP's sparse solution of those reports (through the
+model's own round-1 sensing columns) is the pair posterior's λ → 0 limit with WNOMP's atoms, at ~0.1 ms a pair
+instead of the render's tens of ms.
+
+Whether the left-over pairs get it is chosen like the posterior's λ, on held-aside reports of the pairs the pass
+did render: WNOMP fitted on the other reports against the field with its level (the same held-aside reports,
+the same score).  The better one is kept for every left-over pair; :class:`PairFallback` holds the solutions
+(bins and normalised path gains per pair), and a model answers those pairs with them, without rendering.
+
+The model's CSI-RS predictions carry a per-cell level relative to SSB (``level_offset_db``); a left-over pair's do
+not (the model asks :meth:`PairCorrections.unrendered`), so that its predictions are WNOMP's fit of its reports.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+import torch
+
+from rflscm.errors import CheckpointError
+from rflscm.models.wnomp import CellMatrices, WNOMPConfig, solve_jobs
+
+SOLVER = WNOMPConfig()
+"""The WNOMP baseline's own settings (atoms, tolerance, weighting): a left-over pair gets what WNOMP would fit."""
+
+
+def solve_reports(
+    matrix: Callable[[int], torch.Tensor],
+    cells: torch.Tensor,
+    rsrp: torch.Tensor,
+    mask: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """WNOMP's solution of each pair's ``mask``-ed reports: bins ``[B, k]`` (−1: none) and gains ``[B, k]``.
+
+    Args:
+        matrix: cell index → the model's normalised stacked sensing matrix ``[M, N]`` (SSB rows, then CSI-RS).
+        cells: each pair's cell index ``[B]``.
+        rsrp: the reports ``[B, M]`` (normalised linear; the gains come out in the unit ``rsrp / a_norm``).
+        mask: ``[B, M]`` the reports to fit.
+    """
+    r = torch.where(mask, rsrp, torch.full_like(rsrp, math.nan)).double()
+    bins = torch.full((rsrp.shape[0], SOLVER.k_max), -1, dtype=torch.long)
+    gains = torch.zeros(rsrp.shape[0], SOLVER.k_max, dtype=torch.float32)
+    # the WNOMP baseline's own jobs (a cell's pairs in chunks) over its worker threads
+    of_cell, r_np = cells.cpu().numpy(), r.cpu().numpy()
+    matrices = CellMatrices(lambda cell: matrix(cell).double())
+    jobs = []
+    for cell in np.unique(of_cell):
+        rows = np.flatnonzero(of_cell == cell)
+        for s in range(0, len(rows), SOLVER.chunk_size):
+            jobs.append((int(cell), rows[s : s + SOLVER.chunk_size], r_np[rows[s : s + SOLVER.chunk_size]]))
+            matrices.expect(int(cell))
+    for rows, idx, val in solve_jobs(jobs, matrices, SOLVER, None, torch.device("cpu")):
+        at = torch.as_tensor(rows, dtype=torch.long)
+        bins[at], gains[at] = torch.as_tensor(idx), torch.as_tensor(val).clamp_min(0.0).float()
+    return bins.to(rsrp.device), gains.to(rsrp.device)
+
+
+def predicted_reports(
+    columns: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    cells: torch.Tensor,
+    bins: torch.Tensor,
+    gains: torch.Tensor,
+) -> torch.Tensor:
+    """The reports ``[B, M]`` (normalised) that the sparse APS ``(bins, gains) [B, k]`` predict through
+    ``columns`` (``(cells [B], bins [B, k])`` → ``[B, M, k]``)."""
+    cols = columns(cells, bins.clamp_min(0))
+    return torch.einsum("bmk,bk->bm", cols, torch.where(bins >= 0, gains, 0.0))
+
+
+CLIP_DB = 20.0
+"""A held-aside report's error counts at most this much in the choice: a sparse solution that puts no power on a
+held beam's pattern predicts it at ~0 (hundreds of dB off), and a few such beams would outweigh every other report
+(measured on the shipped scenario: WNOMP's held-aside median error 5.2 dB against the field's 9.2 dB, its mean
+15.7 dB against 11.5 dB, its largest 313 dB)."""
+
+
+def held_mae_db(measured: torch.Tensor, predicted: torch.Tensor, score: torch.Tensor) -> tuple[float, int]:
+    """Sum of |measured − predicted| [dB], each at most ``CLIP_DB``, over the ``score`` mask, and how many."""
+    n = int(score.sum())
+    if not n:
+        return 0.0, 0
+    err = 10.0 * torch.log10(measured[score] / predicted[score].clamp_min(1e-30))
+    return float(err.abs().clamp_max(CLIP_DB).sum()), n
+
+
+@dataclass
+class PairFallback:
+    """WNOMP's APS of the training pairs the pass did not reach: row ``i`` of ``bins [P, k]`` (−1: none) and
+    ``gains [P, k]`` (the unit the corrections are applied in) belongs to pair ``index[i]`` = (cell_id, grid_id);
+    ``scores`` the held-aside MAE [dB] that chose it (``"level"``: the field with its level, ``"wnomp"``)."""
+
+    index: pd.MultiIndex
+    bins: torch.Tensor
+    gains: torch.Tensor
+    scores: dict[str, float] = field(default_factory=dict)
+
+    def rows(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray:
+        """Row of each pair (``cell_ids``, ``grid_ids`` [N]) in :attr:`index`, −1 where it has none."""
+        if not len(self.index):
+            return np.full(len(np.asarray(cell_ids).reshape(-1)), -1)
+        at = pd.MultiIndex.from_arrays(
+            [np.asarray(cell_ids, np.int64).reshape(-1), np.asarray(grid_ids, np.int64).reshape(-1)]
+        )
+        return np.asarray(self.index.get_indexer(at))
+
+    def apply(self, aps: torch.Tensor, cell_ids: np.ndarray, grid_ids: np.ndarray) -> torch.Tensor:
+        """``aps [N, K]`` with each left-over pair's row replaced by its WNOMP APS."""
+        at = self.rows(cell_ids, grid_ids)
+        dst = np.flatnonzero(at >= 0)
+        if not dst.size:
+            return aps
+        src = torch.as_tensor(at[dst], dtype=torch.long)
+        bins, gains = self.bins[src].to(aps.device), self.gains[src].to(aps.device, aps.dtype)
+        rows = torch.zeros(dst.size, aps.shape[1], dtype=aps.dtype, device=aps.device)
+        rows.scatter_add_(1, bins.clamp_min(0), torch.where(bins >= 0, gains, torch.zeros_like(gains)))
+        out = aps.clone()
+        out[torch.as_tensor(dst, dtype=torch.long, device=aps.device)] = rows
+        return out
+
+    def without(self, index: pd.MultiIndex) -> PairFallback:
+        """The same without the pairs of ``index`` (those the pass reached and corrected itself)."""
+        keep = ~self.index.isin(index)
+        if bool(keep.all()):
+            return self
+        rows = torch.as_tensor(np.flatnonzero(keep), dtype=torch.long)
+        return PairFallback(self.index[keep], self.bins[rows], self.gains[rows], self.scores)
+
+    def to_state(self) -> dict[str, object]:
+        return {
+            "cell_id": torch.as_tensor(self.index.get_level_values(0).to_numpy(np.int64, copy=True)),
+            "grid_id": torch.as_tensor(self.index.get_level_values(1).to_numpy(np.int64, copy=True)),
+            "bins": self.bins.to(torch.int32).cpu().clone(),
+            "gains": self.gains.float().cpu().clone(),
+            "scores": {k: float(v) for k, v in self.scores.items()},
+        }
+
+    @classmethod
+    def from_state(cls, state: object, num_bins: int) -> PairFallback | None:
+        """Inverse of :meth:`to_state`; refuses damaged data in one line (:class:`CheckpointError`)."""
+        if state is None:
+            return None
+        damaged = "the checkpoint's left-over pairs' APS is damaged"
+        keys = ("cell_id", "grid_id", "bins", "gains")
+        if not isinstance(state, dict) or any(k not in state for k in keys):
+            raise CheckpointError(f"{damaged} (expected {', '.join(keys)}); retrain the model.")
+        try:
+            cells = torch.as_tensor(state["cell_id"]).long().reshape(-1)
+            grids = torch.as_tensor(state["grid_id"]).long().reshape(-1)
+            bins = torch.as_tensor(state["bins"]).long()
+            gains = torch.as_tensor(state["gains"]).float()
+        except (TypeError, ValueError, RuntimeError):
+            raise CheckpointError(f"{damaged} (not numeric); retrain the model.") from None
+        if bins.dim() != 2 or bins.shape != gains.shape or not len(cells) == len(grids) == bins.shape[0]:
+            raise CheckpointError(f"{damaged} (columns of different shapes); retrain the model.")
+        if not bool(torch.isfinite(gains).all()) or bool((gains < 0).any()):
+            raise CheckpointError(f"{damaged} (negative or non-finite gains); retrain the model.")
+        if bins.numel() and (int(bins.min()) < -1 or int(bins.max()) >= num_bins):
+            raise CheckpointError(f"{damaged} (bins off the angle grid); retrain the model.")
+        index = pd.MultiIndex.from_arrays([cells.numpy(), grids.numpy()], names=["cell_id", "grid_id"])
+        scores = {str(k): float(v) for k, v in dict(state.get("scores") or {}).items()}
+        return cls(index, bins, gains, scores)
