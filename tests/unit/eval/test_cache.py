@@ -208,7 +208,7 @@ class _DistanceField:
         out[:, 7] = torch.as_tensor(1.0 / (1.0 + np.asarray(grid_ids, dtype=np.float64)), dtype=torch.float32)
         return out
 
-    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str) -> None:
+    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None) -> None:
         return None
 
     def content_sha256(self) -> str:
