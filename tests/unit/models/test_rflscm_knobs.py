@@ -64,6 +64,7 @@ CHANGES = [
     ("corrections", "pair_anchors", False),
     ("corrections", "pair_posterior", False),
     ("corrections", "wnomp_atoms", False),
+    ("corrections", "lambda_groups", 1),
 ]
 # options that bound memory or I/O only, or act only in a time-budget run (finish_share: its share of the budget, tested
 # in test_rflscm_budget.py): the same results in this step run, by design
@@ -91,6 +92,7 @@ def run(scenario, section: str | None = None, key: str | None = None, value=None
     # the pair posterior's choice of λ on held-aside reports (it is applied only where it beats the field)
     fitted = model.corrections.posterior
     posterior = None if fitted is None else (sorted(fitted.scores.items()), sorted(fitted.atom_scores.items()))
+    posterior = None if fitted is None else (*posterior, [sorted(g.items()) for g in fitted.groups])
     return repr((tuple(history), summary["val_mae_db"], tuple(aps), posterior))  # repr: NaN compares equal
 
 
@@ -100,7 +102,7 @@ def reference(scenario) -> str:
 
 
 def test_every_option_is_listed_once() -> None:
-    assert len(CHANGES) + len(NEUTRAL) + 1 == 37  # issue 11: at most 40
+    assert len(CHANGES) + len(NEUTRAL) + 1 == 38  # issue 11: at most 40
     listed = [(s, k) for s, k, _ in CHANGES + NEUTRAL] + [("field", "init_voxel_m")]  # tested with upsample_at
     sections = typing.get_type_hints(RFLSCMConfig)
     options = [(f.name, g.name) for f in dataclasses.fields(RFLSCMConfig) for g in dataclasses.fields(sections[f.name])]
