@@ -204,7 +204,13 @@ def fit_corrections(
     if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
         empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
         posterior = PairPosterior(
-            empty, torch.zeros(0, 0, dtype=torch.long), torch.zeros(0, 0), *plan.summary(), None, plan.atom_scores
+            empty,
+            torch.zeros(0, 0, dtype=torch.long),
+            torch.zeros(0, 0),
+            *plan.summary(),
+            None,
+            plan.atom_scores,
+            plan.groups,
         )
         return PairCorrections(levels, anchor_series, posterior)
     gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
