@@ -263,3 +263,29 @@ def test_pairs_with_few_and_many_reports_choose_their_posterior_apart() -> None:
     pooled, _ = fit_atoms(True, groups=1, thin=3)
     assert pooled.posterior is not None and len(pooled.posterior.groups) == 1
     assert pooled.posterior.groups[0]["lam"] == pooled.posterior.lam
+
+
+def test_the_mixed_prior_lowers_the_field_through_the_anchor_and_adds_wnomps_atoms() -> None:
+    from rflscm.models.rflscm.corrections import _Fit, _Plan
+    from rflscm.models.rflscm.posterior import WNOMP_PRIORS
+
+    pair_data, render, columns, truth, _, _ = atom_problem(0)
+    mix = next(i for i, (_, field_db) in enumerate(WNOMP_PRIORS) if field_db > 0)
+    cfg = CorrectionsConfig(calibrate_levels=False)
+    fit = _Fit(cfg, pair_data, 8, 2, render, columns, torch.ones(2, truth.shape[1], dtype=torch.bool))
+    rendered = fit.render_pairs(torch.arange(16), top=True)
+    rows = torch.arange(16)
+    fit.plan = _Plan.uniform(0, 0, 0.3)
+    (field,) = fit.chunks(rendered, rows, None)
+    fit.plan = _Plan.uniform(2, mix, 0.3)
+    (mixed,) = fit.chunks(rendered, rows, None)
+    lower = WNOMP_PRIORS[mix][1]
+    torch.testing.assert_close(mixed.anchor, field.anchor - lower)  # every bin of the field, in every round
+    torch.testing.assert_close(mixed.top_x[:, :6], field.top_x * 10 ** (-lower / 10))
+    assert mixed.base is not None and float(mixed.base[:, 6].min()) > 0.0  # WNOMP's first atom, off the field's bins
+    # the prior's prediction: the field's share plus the atoms'; the residuals are against it
+    cols, centre, rest = mixed.fit_inputs()
+    prior = torch.einsum("bmn,bn->bm", cols, centre) + rest
+    share = (torch.einsum("bmn,bn->bm", field.cols, field.top_x) + field.rest) * 10 ** (-lower / 10)
+    assert bool((prior >= share * (1 - 1e-5)).all()) and bool((prior > share * 1.01).any())
+    torch.testing.assert_close(mixed.resid, field.resid + lower - 10 * torch.log10(prior / share), atol=1e-4, rtol=0)
