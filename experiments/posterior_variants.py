@@ -13,16 +13,14 @@ Usage (from the repository root, one thread: deterministic and independent of th
 ``train`` runs B1 quick's RF-LSCM (training seed SEED, default 0; 1500 steps) and WNOMP on ``SCENARIO`` and saves the trained model with
 both MAE tables to ``OUT.pt``; ``refit`` lays each JSON object over the model's ``corrections`` config section,
 refits the corrections and prints one ``RESULT {json}`` line per variant.  Keys that start with ``_`` set the
-posterior's constants for that variant instead: ``_prior_db`` (``WNOMP_PRIOR_DB``), ``_atoms`` (``WNOMP_ATOMS``, a list),
-``_lambdas`` (the candidate λ list), ``_force`` (drop λ = ∞, no posterior, from the choice).
+posterior's constants for that variant instead: ``_priors`` (``WNOMP_PRIORS``, a list of [centre, field] pairs),
+``_atoms`` (``WNOMP_ATOMS``, a list), ``_lambdas`` (the candidate λ list).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -33,7 +31,6 @@ from rflscm.bench import BenchContext
 from rflscm.bench.harness import load_bench_data, quick_size, train_and_evaluate
 from rflscm.eval import AdjustProtocol, run_evaluation
 from rflscm.eval.cache import APSCache
-from rflscm.models.rflscm.posterior import LambdaChoice
 
 ROWS = [(bt, which) for bt in ("ssb", "csi") for which in ("all", "changed")]
 
@@ -61,13 +58,6 @@ def train(scenario: str, out: str, seed: int = 0) -> None:
     print("TRAINED", json.dumps({k: v for k, v in saved.items() if k != "model"}), flush=True)
 
 
-class _Forced(LambdaChoice):
-    """A λ choice without λ = ∞ (``_force``): the posterior is applied whatever the held-aside reports say."""
-
-    def mae_db(self) -> dict[float, float]:
-        return {k: v for k, v in super().mae_db().items() if math.isfinite(k)}
-
-
 def refit(scenario: str, path: str, variants: list[dict]) -> None:
     data = _data(scenario)
     saved = torch.load(path, weights_only=False)
@@ -79,17 +69,18 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
 
     for variant in variants:
         consts = {k: v for k, v in variant.items() if k.startswith("_")}
-        module.WNOMP_PRIOR_DB = float(consts.get("_prior_db", post_mod.WNOMP_PRIOR_DB))
+        module.WNOMP_PRIORS = tuple(tuple(map(float, c)) for c in consts.get("_priors", post_mod.WNOMP_PRIORS))
         module.WNOMP_ATOMS = tuple(consts.get("_atoms", post_mod.WNOMP_ATOMS))
-        choice_class = _Forced if consts.get("_force") else post_mod.LambdaChoice
-        module.LambdaChoice = functools.partial(choice_class, lambdas=tuple(consts.get("_lambdas", post_mod.LAMBDAS)))
+        module.LAMBDAS = tuple(consts.get("_lambdas", post_mod.LAMBDAS))
         knobs = {k: v for k, v in variant.items() if not k.startswith("_")}
         corrections = dataclasses.replace(base.corrections, **knobs)
         model.config = dataclasses.replace(base, corrections=corrections)
         t0 = time.perf_counter()
         model.finish_training()
         fit_s = time.perf_counter() - t0
-        mae = _table(run_evaluation(APSCache(model), data.scenario, AdjustProtocol(), oracle=data.oracle).metrics["mae_db"])
+        mae = _table(
+            run_evaluation(APSCache(model), data.scenario, AdjustProtocol(), oracle=data.oracle).metrics["mae_db"]
+        )
         posterior = model.corrections.posterior
         row = {
             "variant": variant,
@@ -98,7 +89,10 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
             "lam": None if posterior is None else posterior.lam,
             "candidates": None if posterior is None else int(posterior.bins.shape[1]),
             "scores": None if posterior is None else {str(k): round(v, 4) for k, v in posterior.scores.items()},
-            "atom_scores": None if posterior is None else {str(k): round(v, 4) for k, v in posterior.atom_scores.items()},
+            "atom_scores": None
+            if posterior is None
+            else {str(k): round(v, 4) for k, v in posterior.atom_scores.items()},
+            "groups": None if posterior is None else posterior.groups,
             "fit_s": round(fit_s, 1),
         }
         print("RESULT", json.dumps(row), flush=True)

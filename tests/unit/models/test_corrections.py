@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import math
 
 import numpy as np
 import pandas as pd
@@ -182,11 +183,16 @@ def atom_problem(seed: int = 0, pairs: int = 48, beams: int = 16, bins: int = 40
     return pair_data, render, columns, truth, a2, cells
 
 
-def fit_atoms(on: bool, seed: int = 0, visible: torch.Tensor | None = None) -> tuple[PairCorrections, float]:
-    """The corrections fitted with or without WNOMP's atoms (among the ``visible [2, 40]`` bins, default all), and
+def fit_atoms(
+    on: bool, seed: int = 0, visible: torch.Tensor | None = None, groups: int = 3, thin: int = 0
+) -> tuple[PairCorrections, float]:
+    """The corrections fitted with or without WNOMP's atoms (among the ``visible [2, 40]`` bins, default all;
+    ``groups``: ``lambda_groups``; ``thin``: the first 24 pairs report only this many beams, 0: every beam), and
     the MAE [dB] of the corrected field through the changed antennas (never fitted) on every beam of every pair."""
     pair_data, render, columns, truth, a2, cells = atom_problem(seed)
-    cfg = CorrectionsConfig(calibrate_levels=False, wnomp_atoms=on)
+    if thin:
+        pair_data.beam_mask[:24, thin:] = False
+    cfg = CorrectionsConfig(calibrate_levels=False, wnomp_atoms=on, lambda_groups=groups)
     visible = torch.ones(2, truth.shape[1], dtype=torch.bool) if visible is None else visible
     fitted = fit_corrections(cfg, pair_data, 8, np.array([7, 8]), render, columns, seed=0, visible=visible)
     field = torch.zeros_like(truth)
@@ -339,3 +345,48 @@ def test_damaged_wnomp_pairs_are_refused_in_one_line() -> None:
             PairFallback.from_state({**good, key: value}, 4)
     with pytest.raises(CheckpointError, match="expected"):
         PairFallback.from_state({"cell_id": 1}, 4)
+
+
+def test_pairs_with_few_and_many_reports_choose_their_posterior_apart() -> None:
+    grouped, _ = fit_atoms(True, groups=2, thin=3)
+    post = grouped.posterior
+    assert post is not None and post.base is not None
+    assert [g["min_reports"] for g in post.groups] == [3.0, 16.0] and sum(g["pairs"] for g in post.groups) == 48
+    few = torch.as_tensor(post.index.get_level_values("grid_id").to_numpy() < 24)
+    for group, rows in zip(post.groups, (few, ~few), strict=True):
+        atoms = (post.bins[rows] != post.bins[rows][:, :1]).sum(1).max()  # columns beyond the field's 6 bins
+        if math.isinf(group["lam"]):  # the field kept: no gain, no atom
+            assert float(post.gain_db[rows].abs().max()) == 0.0 and float(post.base[rows].max()) == 0.0
+        else:
+            assert int(atoms) <= 6 + group["atoms"]
+    # the many-report pairs follow their reports to the atom; one choice for all does not do better on them
+    assert post.groups[1]["atoms"] > 0 and math.isfinite(post.groups[1]["lam"])
+    pooled, _ = fit_atoms(True, groups=1, thin=3)
+    assert pooled.posterior is not None and len(pooled.posterior.groups) == 1
+    assert pooled.posterior.groups[0]["lam"] == pooled.posterior.lam
+
+
+def test_the_mixed_prior_lowers_the_field_through_the_anchor_and_adds_wnomps_atoms() -> None:
+    from rflscm.models.rflscm.corrections import _Fit, _Plan
+    from rflscm.models.rflscm.posterior import WNOMP_PRIORS
+
+    pair_data, render, columns, truth, _, _ = atom_problem(0)
+    mix = next(i for i, (_, field_db) in enumerate(WNOMP_PRIORS) if field_db > 0)
+    cfg = CorrectionsConfig(calibrate_levels=False)
+    fit = _Fit(cfg, pair_data, 8, 2, render, columns, torch.ones(2, truth.shape[1], dtype=torch.bool))
+    rendered = fit.render_pairs(torch.arange(16), top=True)
+    rows = torch.arange(16)
+    fit.plan = _Plan.uniform(0, 0, 0.3)
+    (field,) = fit.chunks(rendered, rows, None)
+    fit.plan = _Plan.uniform(2, mix, 0.3)
+    (mixed,) = fit.chunks(rendered, rows, None)
+    lower = WNOMP_PRIORS[mix][1]
+    torch.testing.assert_close(mixed.anchor, field.anchor - lower)  # every bin of the field, in every round
+    torch.testing.assert_close(mixed.top_x[:, :6], field.top_x * 10 ** (-lower / 10))
+    assert mixed.base is not None and float(mixed.base[:, 6].min()) > 0.0  # WNOMP's first atom, off the field's bins
+    # the prior's prediction: the field's share plus the atoms'; the residuals are against it
+    cols, centre, rest = mixed.fit_inputs()
+    prior = torch.einsum("bmn,bn->bm", cols, centre) + rest
+    share = (torch.einsum("bmn,bn->bm", field.cols, field.top_x) + field.rest) * 10 ** (-lower / 10)
+    assert bool((prior >= share * (1 - 1e-5)).all()) and bool((prior > share * 1.01).any())
+    torch.testing.assert_close(mixed.resid, field.resid + lower - 10 * torch.log10(prior / share), atol=1e-4, rtol=0)

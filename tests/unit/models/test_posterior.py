@@ -18,10 +18,13 @@ from rflscm.geometry import AngleGrid
 from rflscm.models import load_model
 from rflscm.models.rflscm import RFLSCM
 from rflscm.models.rflscm.posterior import (
-    LambdaChoice,
+    LAMBDAS,
     PairPosterior,
     fit_gains,
+    group_of,
+    held_errors,
     predicted_change_db,
+    report_groups,
     with_atoms,
     wnomp_atoms,
 )
@@ -62,23 +65,41 @@ def test_reports_outside_the_mask_carry_no_information() -> None:
     assert float(none.abs().max()) == 0.0
 
 
-def test_lambda_choice_prefers_a_fit_that_predicts_held_aside_reports_and_else_none() -> None:
+def test_held_aside_errors_prefer_a_fit_that_predicts_held_aside_reports_and_else_none() -> None:
     cols, x, rest, _, resid = problem(seed=3, pairs=40)
     mask = torch.ones_like(resid, dtype=torch.bool)
     held = torch.rand(resid.shape, generator=torch.Generator().manual_seed(4)) < 0.2
-    choice = LambdaChoice()
-    choice.add(cols, x, rest, resid, mask, held)
-    scores = choice.mae_db()
-    assert set(scores) == {math.inf, *choice.lambdas}
-    assert math.isfinite(choice.best()) and scores[choice.best()] < scores[math.inf]
-    # every beam sees its own bins only: fitted beams say nothing about held-aside ones, so no posterior
+    errors, count = held_errors(cols, x, rest, resid, mask, held)
+    assert errors.shape == (1 + len(LAMBDAS), 40) and torch.equal(count, held.sum(1))
+    torch.testing.assert_close(errors[0], torch.where(held, resid.abs(), 0.0).sum(1).double())  # row 0: the field
+    mae = errors.sum(1) / count.sum()
+    assert float(mae[1:].min()) < float(mae[0])
+    # every beam sees its own bins only: fitted beams say nothing about held-aside ones, so no λ beats the field
     beams = resid.shape[1]
     diagonal = torch.eye(beams).expand(40, beams, beams).contiguous()
     noise = torch.randn(40, beams, generator=torch.Generator().manual_seed(5))
-    alone = LambdaChoice()
-    alone.add(diagonal, torch.ones(40, beams), torch.zeros(40, beams), noise, mask, held)
-    assert alone.best() == math.inf
-    assert LambdaChoice().best() == math.inf  # nothing held aside: nothing chosen
+    alone, _ = held_errors(diagonal, torch.ones(40, beams), torch.zeros(40, beams), noise, mask, held)
+    assert int(alone.sum(1).argmin()) == 0
+
+
+def test_a_ridge_per_pair_is_each_pairs_own_fit() -> None:
+    cols, x, rest, _, resid = problem(seed=6)
+    mask = torch.ones_like(resid, dtype=torch.bool)
+    lam = torch.tensor([0.1, 0.3, 1.0, 3.0, 0.1, 10.0])
+    v = fit_gains(cols, x, rest, resid, mask, lam)
+    for i, each in enumerate(lam.tolist()):
+        one = slice(i, i + 1)
+        torch.testing.assert_close(v[one], fit_gains(cols[one], x[one], rest[one], resid[one], mask[one], each))
+
+
+def test_report_groups_split_pairs_by_report_count() -> None:
+    counts = torch.tensor([2, 3, 3, 5, 8, 9, 20, 30, 31])
+    edges = report_groups(counts, 3)
+    assert edges.tolist() == [5, 13]  # quantiles 4.3 and 12.7, rounded up
+    assert group_of(counts, edges).tolist() == [0, 0, 0, 1, 1, 1, 2, 2, 2]
+    assert report_groups(counts, 1).numel() == 0 and group_of(counts, report_groups(counts, 1)).eq(0).all()
+    same = torch.full((10,), 4)  # every pair reports as many beams: one group
+    assert report_groups(same, 3).numel() == 0
 
 
 def test_apply_moves_only_the_training_pairs_bins_and_survives_its_state() -> None:
@@ -130,6 +151,11 @@ def test_wnomp_atoms_find_the_bins_of_noiseless_reports_from_the_allowed_reports
     torch.testing.assert_close(gains[:3, 0], torch.tensor([1.0, 2.0, 0.5]), rtol=1e-4, atol=1e-6)
     garbled = torch.where(mask, rsrp, torch.full_like(rsrp, 1e6))  # what it may not read changes nothing
     assert torch.equal(wnomp_atoms(lambda c: a[c], cells, garbled, mask, k_max=2)[0], bins)
+    # atoms per pair: each pair's as if solved alone with its own k_max (0: none)
+    per_pair, _ = wnomp_atoms(lambda c: a[c], cells, rsrp, mask, k_max=torch.tensor([2, 0, 1, 2]))
+    assert per_pair.shape == (4, 2) and per_pair[1].tolist() == [-1, -1] and int(per_pair[2, 1]) == -1
+    alone, _ = wnomp_atoms(lambda c: a[c], cells[2:3], rsrp[2:3], mask[2:3], k_max=1)
+    assert torch.equal(per_pair[0], bins[0]) and int(per_pair[2, 0]) == int(alone[0, 0])
 
 
 @pytest.mark.parametrize(

@@ -153,7 +153,7 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
     """``finish_seconds`` times two chunks of the real pass on the clock it is given (1 s between reads here): the
     first pays the per-cell setup, the second gives the per-pair render, preparation and fit; the total adds the
     λ and atoms choice, and an evaluation's render per pair is the render alone."""
-    from rflscm.models.rflscm.corrections import LAMBDA_PAIRS, LAMBDAS, WNOMP_ATOMS, PassTimes
+    from rflscm.models.rflscm.corrections import LAMBDA_PAIRS, LAMBDAS, WNOMP_ATOMS, WNOMP_PRIORS, PassTimes
 
     model = RFLSCM.build(tiny_config(), GRID)
     model.prepare(scenario)
@@ -168,7 +168,8 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
     assert cfg.pair_posterior and cfg.wnomp_atoms
     each = 1 / n_second
     setup = max(0.0, 1 - n_first / n_second) * len(model.scene.cell_ids)  # every cell of the tiny scene is in it
-    expected = setup + pairs * 3 * each + (1 + len(WNOMP_ATOMS)) * min(pairs, LAMBDA_PAIRS) * (1 + len(LAMBDAS)) * each
+    options = 1 + len(WNOMP_ATOMS) * len(WNOMP_PRIORS)  # no atoms, or each atom count with each prior
+    expected = setup + pairs * 3 * each + options * min(pairs, LAMBDA_PAIRS) * (1 + len(LAMBDAS)) * each
     assert estimate.total_s == pytest.approx(expected)
     assert PassTimes(setup, each, each, each).total_s(cfg, pairs) == pytest.approx(expected)
 

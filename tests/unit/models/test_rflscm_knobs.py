@@ -64,6 +64,7 @@ CHANGES = [
     ("corrections", "pair_anchors", False),
     ("corrections", "pair_posterior", False),
     ("corrections", "wnomp_atoms", False),
+    ("corrections", "lambda_groups", 1),
 ]
 # options that bound memory or I/O only, or act only in a time-budget run (finish_share: its share of the budget, tested
 # in test_rflscm_budget.py; wnomp_fallback: the pairs a budget's pass cannot reach, test_corrections.py): the same
@@ -97,6 +98,7 @@ def run(scenario, section: str | None = None, key: str | None = None, value=None
     # the pair posterior's choice of λ on held-aside reports (it is applied only where it beats the field)
     fitted = model.corrections.posterior
     posterior = None if fitted is None else (sorted(fitted.scores.items()), sorted(fitted.atom_scores.items()))
+    posterior = None if fitted is None else (*posterior, [sorted(g.items()) for g in fitted.groups])
     return repr((tuple(history), summary["val_mae_db"], tuple(aps), posterior))  # repr: NaN compares equal
 
 

@@ -345,15 +345,23 @@ class CorrectionsConfig:
     without round-1 reports keep the field's APS."""
     wnomp_atoms: bool = True
     """Add WNOMP's support of each training pair's reports (its atoms through the model's own sensing columns) to
-    the posterior's candidate bins, each centred on the field's value there or, where the field has less, 10 dB
-    below WNOMP's (:func:`~rflscm.models.rflscm.posterior.with_atoms`): the field's strongest bins can miss the
-    direction that a grid's reports point at.  How many atoms (2, 4 or none) is chosen with λ on held-aside
-    reports.  Needs ``pair_posterior``."""
+    the posterior's candidate bins, each centred on the field's value there or, where the field has less, on
+    WNOMP's or 10 dB below it (:func:`~rflscm.models.rflscm.posterior.with_atoms`): the field's strongest bins can
+    miss the direction that a grid's reports point at.  How many atoms (2, 4 or none) and the centre are chosen
+    with λ on held-aside reports.  Needs ``pair_posterior``."""
     wnomp_fallback: bool = True
     """Within a time budget, the training pairs that the pass after training cannot reach get WNOMP's APS of their
     own round-1 reports (no render; :mod:`~rflscm.models.rflscm.fallback`) instead of the field with its level,
     when that predicts the held-aside reports of the rendered pairs better.  Without a budget every pair is reached
     and this does nothing."""
+    lambda_groups: int = 3
+    """The posterior's λ, WNOMP atoms and their prior centre are chosen on held-aside reports per group of pairs
+    with about as many reports (this many groups of about equal size among the pairs λ is chosen on, by report
+    count): a pair with many reports can follow them further than one with few.  1: one choice for all pairs."""
+
+    def __post_init__(self) -> None:
+        if self.lambda_groups < 1:
+            raise ConfigError(f"`model.corrections.lambda_groups` must be >= 1 (got {self.lambda_groups}).")
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,7 @@ where that predicts the held-aside reports better than the field with its level,
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -45,10 +46,12 @@ from rflscm.models.rflscm.posterior import (
     LAMBDAS,
     POSTERIOR_BINS,
     WNOMP_ATOMS,
-    WNOMP_PRIOR_DB,
-    LambdaChoice,
+    WNOMP_PRIORS,
     PairPosterior,
     fit_gains,
+    group_of,
+    held_errors,
+    report_groups,
     with_atoms,
     wnomp_atoms,
 )
@@ -190,12 +193,14 @@ def fit_corrections(
     else:
         first, rendered, render_s, subset = _first_pairs(fit, subset, time_left, clock, bar)
     levels = fit.levels(rendered) if cfg.calibrate_levels else None
-    lam, scores, atom_scores = math.inf, dict[float, float](), dict[int, float]()
+    plan = _Plan()
     if cfg.pair_posterior and pairs.numel():
-        # λ (and WNOMP's atoms) from held-aside reports of a spread subset of the pairs, then one fit per pair
+        # λ (and WNOMP's atoms) from held-aside reports of a spread subset of the pairs, per group of pairs with
+        # about as many reports, then one fit per pair
         held = torch.rand(data.rsrp.shape, generator=torch.Generator().manual_seed(seed)) < HOLDOUT
-        fit.atoms, lam, scores, atom_scores = _choose(fit, rendered, rendered.rows_of(subset.unique()), levels, held)
-    fitting = cfg.pair_posterior and math.isfinite(lam)
+        plan = _choose(fit, rendered, rendered.rows_of(subset.unique()), levels, held)
+    fit.plan = plan
+    fitting = cfg.pair_posterior and plan.fits()
     done, anchors, gains, bins_of, bases = [], [], [], [], []
     later = _later_pairs(pairs, first, seed)
     left_over = None
@@ -207,7 +212,10 @@ def fit_corrections(
         done.append(chunk.pairs)
         anchors.append(chunk.anchor)
         if chunk.top_bins is not None:
-            gains.append(fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, lam).cpu())
+            assert chunk.lam is not None
+            on = torch.isfinite(chunk.lam)  # a group that keeps the field: no reports fitted, gains 0
+            ridge = torch.where(on, chunk.lam, torch.ones_like(chunk.lam))
+            gains.append(fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask & on[:, None], ridge).cpu())
             bins_of.append(chunk.top_bins.cpu())
             if chunk.base is not None:
                 bases.append(chunk.stored_base().cpu())
@@ -225,12 +233,19 @@ def fit_corrections(
     if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
         empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
         posterior = PairPosterior(
-            empty, torch.zeros(0, 0, dtype=torch.long), torch.zeros(0, 0), lam, scores, None, atom_scores
+            empty,
+            torch.zeros(0, 0, dtype=torch.long),
+            torch.zeros(0, 0),
+            *plan.summary(),
+            None,
+            plan.atom_scores,
+            plan.groups,
         )
         return PairCorrections(levels, anchor_series, posterior, left_over)
     gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
     base = torch.cat(bases) if bases else None
-    posterior = PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores, base, atom_scores)
+    lam, scores = plan.summary()
+    posterior = PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores, base, plan.atom_scores, plan.groups)
     return PairCorrections(levels, anchor_series, posterior, left_over)
 
 
@@ -251,7 +266,7 @@ class PassTimes:
         each = pairs * (self.render_s + self.prep_s + self.fit_s)
         if not cfg.pair_posterior:
             return self.setup_s + each
-        options = 1 + (len(WNOMP_ATOMS) if cfg.wnomp_atoms else 0)
+        options = 1 + (len(WNOMP_ATOMS) * len(WNOMP_PRIORS) if cfg.wnomp_atoms else 0)
         choice = options * min(pairs, LAMBDA_PAIRS) * (self.prep_s + len(LAMBDAS) * self.fit_s)
         return self.setup_s + each + choice
 
@@ -277,7 +292,8 @@ def measure_pass(
     spread = torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), 2 * PAIR_CHUNK)).round().long().unique()
     first, second = pairs[spread[0::2]], pairs[spread[1::2]] if spread.numel() > 1 else pairs[spread]
     fit = _Fit(cfg, data, num_ssb, num_cells, render, columns, visible)
-    fit.atoms = max(WNOMP_ATOMS) if cfg.pair_posterior and cfg.wnomp_atoms and visible is not None else 0
+    atoms = max(WNOMP_ATOMS) if cfg.pair_posterior and cfg.wnomp_atoms and visible is not None else 0
+    fit.plan = _Plan.uniform(atoms, 0, LAMBDAS[0])
     t0 = clock()
     fit.render_pairs(first, top=cfg.pair_posterior)
     t1 = clock()
@@ -313,14 +329,16 @@ def _first_pairs(
     rendered = fit.render_pairs(one, top=top, bar=bar)
     render_s = (clock() - begun) / max(one.numel(), 1)
     # a chunk's preparation (residuals, columns, the most WNOMP atoms λ's choice may try), timed on the same pairs
-    fit.atoms = max(WNOMP_ATOMS) if top and cfg.wnomp_atoms and fit.visible is not None else 0
+    atoms = max(WNOMP_ATOMS) if top and cfg.wnomp_atoms and fit.visible is not None else 0
+    fit.plan = _Plan.uniform(atoms, 0, LAMBDAS[0])
     rows = torch.arange(min(one.numel(), PAIR_CHUNK), device=one.device)
     begun = clock()
     for _ in fit.chunks(rendered, rows, None, top):
         pass
     prep_s = (clock() - begun) / max(rows.numel(), 1)
-    fit.atoms = 0
-    options = 1 + (len(WNOMP_ATOMS) if top and cfg.wnomp_atoms else 0)
+    fit.plan = _Plan()
+    fit._atom_cache.clear()  # timed with held=None: the choice's held-aside atoms are other ones
+    options = 1 + (len(WNOMP_ATOMS) * len(WNOMP_PRIORS) if top and cfg.wnomp_atoms else 0)  # as PassTimes counts
     each = render_s + prep_s  # a pair rendered and corrected; λ's pairs are also prepared once per option
     room = FIRST_SHARE * time_left()
     cells = max(one.numel(), 1)
@@ -389,9 +407,9 @@ class _PairChunk:
     """A chunk of training pairs ``pairs [B]`` as the corrections see them: ``anchor [B]`` [dB], ``resid [B, M]``
     measured − predicted [dB] after the corrections, ``mask [B, M]`` the reported training beams; with columns,
     the strongest bins ``top_bins [B, n]``, the APS there ``top_x [B, n]``, their columns ``cols [B, M, n]`` and
-    the other bins' ``rest [B, M]`` (normalised); with WNOMP's atoms among them, ``base [B, n]`` the prior centre
-    added at each bin (``resid`` then against the prediction with it) and ``level [B]`` [dB] the corrections
-    applied before the posterior."""
+    the other bins' ``rest [B, M]`` (normalised) and each pair's ridge ``lam [B]`` (∞: no posterior); with WNOMP's
+    atoms among them, ``base [B, n]`` the prior centre added at each bin (``resid`` then against the prediction with
+    it) and ``level [B]`` [dB] the corrections applied before the posterior."""
 
     pairs: torch.Tensor
     anchor: torch.Tensor
@@ -403,6 +421,7 @@ class _PairChunk:
     rest: torch.Tensor | None = None
     base: torch.Tensor | None = None
     level: torch.Tensor | None = None
+    lam: torch.Tensor | None = None
 
     def fit_inputs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(cols, prior centre, rest)``, the posterior's view of the chunk (made ``with_columns``)."""
@@ -427,10 +446,12 @@ class _Fit:
     columns: ColumnsFn
     visible: torch.Tensor | None = None
     """bool ``[C, N]``: the bins of the angle grid each cell's APS may hold (WNOMP's atoms are searched there)."""
-    atoms: int = 0
-    """WNOMP's atoms per pair that :meth:`chunks` adds to the posterior's candidates (0: none)."""
     level_per_cell: int = LEVEL_PAIRS_PER_CELL
     """Pairs per cell the levels are measured on (fewer within a budget too short for them: :func:`_first_pairs`)."""
+    plan: _Plan = dataclasses.field(default_factory=lambda: _Plan())
+    """Each pair's WNOMP atoms (0: none), their prior (``WNOMP_PRIORS``) and λ, by the pair's number of reports."""
+    _atom_cache: dict[tuple[int, ...], tuple[torch.Tensor, torch.Tensor]] = dataclasses.field(default_factory=dict)
+    """WNOMP's atoms of a chunk, kept while the choice tries prior centres on the same atoms (see :func:`_choose`)."""
 
     def render_pairs(self, pairs: torch.Tensor, top: bool, bar: object = None) -> _Rendered:
         """Render ``pairs [P]`` (sorted) ``PAIR_CHUNK`` at a time: their predicted reports and, with ``top``, their
@@ -516,9 +537,10 @@ class _Fit:
                 chunk.top_bins, chunk.top_x = rendered.top_bins[at].long(), rendered.top_x[at]
                 chunk.cols = self.columns(cells, chunk.top_bins)
                 chunk.rest = (pred - torch.einsum("bmk,bk->bm", chunk.cols, chunk.top_x)).clamp_min(0.0)
-                if self.atoms:
+                atoms, prior, chunk.lam = self.plan.of(d.observed[batch].sum(1))
+                if int(atoms.max()) > 0:
                     level = levels[cells, 0] if levels is not None else torch.zeros_like(anchor)
-                    self._add_atoms(chunk, level + anchor if self.cfg.pair_anchors else level, held)
+                    self._add_atoms(chunk, level + anchor if self.cfg.pair_anchors else level, held, atoms, prior)
             yield chunk
 
     def corrected_chunks(
@@ -576,9 +598,17 @@ class _Fit:
         index = pd.MultiIndex.from_arrays([ids, d.grid_ids[kept]], names=["cell_id", "grid_id"])
         return PairFallback(index, bins.cpu(), gains.cpu(), scores)
 
-    def _add_atoms(self, chunk: _PairChunk, level: torch.Tensor, held: torch.Tensor | None) -> None:
-        """Add WNOMP's atoms of the chunk's reports (not ``held`` aside) to its candidate bins; ``level [B]`` [dB]:
-        the corrections before the posterior (the reports are that much above the field's own unit)."""
+    def _add_atoms(
+        self,
+        chunk: _PairChunk,
+        level: torch.Tensor,
+        held: torch.Tensor | None,
+        atoms: torch.Tensor,
+        prior: torch.Tensor,
+    ) -> None:
+        """Add WNOMP's ``atoms [B]`` of the chunk's reports (not ``held`` aside) to its candidate bins, with the prior
+        ``WNOMP_PRIORS[prior]`` (``[B]``); ``level [B]`` [dB]: the corrections before the posterior (the reports are
+        that much above the field's own unit).  Where the prior lowers the field, so does the pair's anchor."""
         assert chunk.top_bins is not None and chunk.top_x is not None and chunk.cols is not None
         assert chunk.rest is not None
         if self.visible is None:
@@ -586,14 +616,25 @@ class _Fit:
         d, cells, visible = self.data, self.data.cell_index[chunk.pairs], self.visible.to(chunk.mask.device)
         every = torch.arange(visible.shape[1], device=cells.device)[None]
         mask = chunk.mask if held is None else chunk.mask & ~held[chunk.pairs.cpu()].to(chunk.mask.device)
-        atom_bins, atom_x = wnomp_atoms(  # columns of the bins a cell cannot hold are zero: never an atom
-            lambda c: self.columns(torch.tensor([c], device=cells.device), every)[0] * visible[c],
-            cells,
-            d.rsrp[chunk.pairs],
-            mask,
-            self.atoms,
-        )
-        centre = atom_x * torch.pow(10.0, -(level[:, None] + WNOMP_PRIOR_DB) / 10.0)
+        key = (held is None, *chunk.pairs.tolist(), *atoms.tolist())
+        if key not in self._atom_cache:
+            self._atom_cache[key] = wnomp_atoms(  # columns of the bins a cell cannot hold are zero: never an atom
+                lambda c: self.columns(torch.tensor([c], device=cells.device), every)[0] * visible[c],
+                cells,
+                d.rsrp[chunk.pairs],
+                mask,
+                atoms,
+            )
+        atom_bins, atom_x = self._atom_cache[key]
+        table = torch.tensor(WNOMP_PRIORS, dtype=level.dtype, device=level.device)[prior.to(level.device)]
+        found = (atom_bins >= 0).any(1)
+        lower = torch.where(found, table[:, 1], 0.0) if self.cfg.pair_anchors else torch.zeros_like(level)
+        if bool((lower > 0).any()):  # the field's share: its APS (and the pair's anchor) ``lower`` dB down
+            scale = torch.pow(10.0, -lower / 10.0).to(chunk.top_x.dtype)
+            chunk.top_x, chunk.rest = chunk.top_x * scale[:, None], chunk.rest * scale[:, None]
+            chunk.resid = chunk.resid + lower[:, None].to(chunk.resid.dtype)
+            chunk.anchor = chunk.anchor - lower.to(chunk.anchor.dtype)
+        centre = atom_x * torch.pow(10.0, -(level[:, None] + table[:, :1]) / 10.0)
         bins, x, base = with_atoms(chunk.top_bins, chunk.top_x, atom_bins, centre.to(chunk.top_x.dtype))
         cols = torch.cat([chunk.cols, self.columns(cells, bins[:, chunk.top_bins.shape[1] :])], 2)
         field = torch.einsum("bmk,bk->bm", cols, x) + chunk.rest
@@ -602,34 +643,115 @@ class _Fit:
         chunk.top_bins, chunk.top_x, chunk.cols, chunk.base, chunk.level = bins, x, cols, base, level
 
 
+@dataclass
+class _Plan:
+    """The posterior's settings per group of pairs with about as many reports: ``edges`` (report counts, see
+    :func:`~.posterior.report_groups`) and per group its WNOMP atoms ``atoms`` (0: none), their prior ``prior`` (an
+    index of ``WNOMP_PRIORS``) and λ ``lam`` (∞: no posterior); ``groups`` records each group's choice and
+    ``pooled`` the held-aside MAE [dB] of each λ for one choice over all pairs (``atom_scores``: the least over λ per
+    number of atoms).  The default keeps the field everywhere."""
+
+    edges: torch.Tensor = dataclasses.field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
+    atoms: tuple[int, ...] = (0,)
+    prior: tuple[int, ...] = (0,)
+    lam: tuple[float, ...] = (math.inf,)
+    groups: list[dict[str, float]] = dataclasses.field(default_factory=list)
+    pooled: dict[float, float] = dataclasses.field(default_factory=dict)
+    pooled_lam: float = math.inf
+    atom_scores: dict[int, float] = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def uniform(cls, atoms: int, prior: int, lam: float) -> _Plan:
+        return cls(atoms=(atoms,), prior=(prior,), lam=(lam,))
+
+    def of(self, counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Atoms, prior (index of ``WNOMP_PRIORS``) and λ ``[B]`` of pairs with ``counts [B]`` reports."""
+        group = group_of(counts, self.edges).cpu()
+        pick = [torch.tensor(v)[group].to(counts.device) for v in (self.atoms, self.prior, self.lam)]
+        return pick[0].long(), pick[1].long(), pick[2].float()
+
+    def fits(self) -> bool:
+        """Whether some group applies a posterior."""
+        return any(math.isfinite(lam) for lam in self.lam)
+
+    def summary(self) -> tuple[float, dict[float, float]]:
+        """``(λ, held-aside MAE per λ)`` of the one choice over all pairs (what :class:`PairPosterior` records)."""
+        return self.pooled_lam, dict(self.pooled)
+
+
 def _choose(
     fit: _Fit, rendered: _Rendered, rows: torch.Tensor, levels: torch.Tensor | None, held: torch.Tensor
-) -> tuple[int, float, dict[float, float], dict[int, float]]:
-    """The posterior's WNOMP atoms per pair (0 or, with ``wnomp_atoms``, one of ``WNOMP_ATOMS``) and λ with the
-    least error on the ``held`` aside reports of ``rows``, the held-aside MAE [dB] of each λ with those atoms
-    (∞: no posterior, which is always a candidate) and, with ``wnomp_atoms``, the least over λ of each number of
-    atoms."""
-    choices: dict[int, LambdaChoice] = {}
-    for atoms in (0, *WNOMP_ATOMS) if fit.cfg.wnomp_atoms else (0,):
-        fit.atoms, choice = atoms, LambdaChoice()
+) -> _Plan:
+    """The posterior's plan: pairs of ``rows`` grouped by how many reports they have (``lambda_groups`` groups of
+    about equal size), and per group the WNOMP atoms (none or, with ``wnomp_atoms``, one of ``WNOMP_ATOMS`` with one
+    of the ``WNOMP_PRIORS``) and λ with the least error on the group's ``held`` aside reports (λ = ∞, no
+    posterior, is always a candidate).  The same held-aside errors also give one choice over all pairs, recorded
+    for comparison."""
+    options = [(0, 0)]
+    if fit.cfg.wnomp_atoms:
+        options += [(a, c) for a in WNOMP_ATOMS for c in range(len(WNOMP_PRIORS))]
+    lambdas = (math.inf, *LAMBDAS)
+    errors: dict[tuple[int, int], torch.Tensor] = {}
+    counts = fit.data.observed[rendered.pairs[rows]].sum(1).cpu()
+    held_n = torch.zeros(0)
+    for atoms, centre in options:
+        fit.plan = _Plan.uniform(atoms, centre, LAMBDAS[0])
+        parts, n_parts = [], []
         for chunk in fit.chunks(rendered, rows, levels, held=held):
-            choice.add(*chunk.fit_inputs(), chunk.resid, chunk.mask, held[chunk.pairs.cpu()].to(chunk.resid.device))
-        choices[atoms] = choice
-    fit.atoms = 0
-    # λ = ∞ is no posterior: the field without atoms (with atoms, the ∞ entry would be the atoms at their centres)
-    candidates = [
-        (mae, -lam, atoms, lam)
-        for atoms, choice in choices.items()
-        for lam, mae in choice.mae_db().items()
-        if atoms == 0 or math.isfinite(lam)
+            held_here = held[chunk.pairs.cpu()].to(chunk.resid.device)
+            err_sums, held_count = held_errors(*chunk.fit_inputs(), chunk.resid, chunk.mask, held_here, LAMBDAS)
+            parts.append(err_sums.cpu())
+            n_parts.append(held_count.cpu())
+        errors[(atoms, centre)] = torch.cat(parts, 1) if parts else torch.zeros(len(lambdas), 0, dtype=torch.float64)
+        held_n = torch.cat(n_parts) if n_parts else torch.zeros(0, dtype=torch.long)
+    fit.plan, fit._atom_cache = _Plan(), {}
+
+    def best(select: torch.Tensor) -> tuple[float, float, int, int, float] | None:
+        """(MAE, −λ, atoms, prior, λ) of the least held-aside error on the pairs ``select`` (None: none held)."""
+        n = int(held_n[select].sum())
+        if not n:
+            return None
+        candidates = [
+            (float(err[i, select].sum()) / n, -lam, atoms, centre, lam)
+            for (atoms, centre), err in errors.items()
+            for i, lam in enumerate(lambdas)
+            if atoms == 0 or math.isfinite(lam)  # with atoms, "∞" would be the atoms at their centres unfitted
+        ]
+        return min(candidates)
+
+    every = torch.ones(counts.numel(), dtype=torch.bool)
+    pooled = best(every)
+    plan = _Plan()
+    if pooled is None:
+        return plan
+    edges = report_groups(counts, fit.cfg.lambda_groups)
+    group = group_of(counts, edges)
+    picks = [best(group == g) or (math.nan, -math.inf, 0, 0, math.inf) for g in range(edges.numel() + 1)]
+    plan.edges = edges
+    plan.atoms, plan.prior, plan.lam = (tuple(p[k] for p in picks) for k in (2, 3, 4))  # type: ignore[assignment]
+    lower = [int(counts[group == g].min()) if bool((group == g).any()) else 0 for g in range(edges.numel() + 1)]
+    plan.groups = [
+        {
+            "min_reports": float(lo),
+            "pairs": float(int((group == g).sum())),
+            "atoms": float(p[2]),
+            "centre_db": WNOMP_PRIORS[p[3]][0] if p[2] else math.nan,
+            "field_db": WNOMP_PRIORS[p[3]][1] if p[2] else 0.0,
+            "lam": p[4],
+            "mae_db": p[0],
+        }
+        for g, (lo, p) in enumerate(zip(lower, picks, strict=True))
     ]
-    if not candidates:
-        return 0, math.inf, {}, {}
-    _, _, atoms, lam = min(candidates)
-    scores = choices[atoms].mae_db()
-    scores[math.inf] = choices[0].mae_db().get(math.inf, math.inf)
-    per_atoms = {a: min(c[0] for c in candidates if c[2] == a and math.isfinite(c[3])) for a in choices}
-    return atoms, lam, scores, per_atoms if fit.cfg.wnomp_atoms else {}
+    n = int(held_n.sum())
+    plan.pooled_lam = pooled[4]
+    plan.pooled = {lam: float(errors[(pooled[2], pooled[3])][i].sum()) / n for i, lam in enumerate(lambdas)}
+    plan.pooled[math.inf] = float(errors[(0, 0)][0].sum()) / n
+    if fit.cfg.wnomp_atoms:
+        plan.atom_scores = {
+            a: min(float(err[i].sum()) / n for (k, _), err in errors.items() if k == a for i in range(1, len(lambdas)))
+            for a in (0, *WNOMP_ATOMS)
+        }
+    return plan
 
 
 def _left_over(

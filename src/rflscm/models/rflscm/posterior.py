@@ -11,8 +11,9 @@ their prior weights, and a changed antenna (round 2) reads the refined APS throu
 
 The fit is Gauss–Newton in the dual: per pair and iteration one ``M × M`` solve over the pair's
 ``M`` beams (reports not used carry no row).  λ is chosen per fit by holding aside a share of the
-reported beams (:class:`LambdaChoice`); λ = ∞ (no posterior) is always a candidate, so a posterior
-that does not predict held-aside beams better than the field is not applied.  Pairs the training
+reported beams (:func:`held_errors`), per group of pairs with about as many reports; λ = ∞ (no
+posterior) is always a candidate, so a posterior that does not predict held-aside beams better than
+the field is not applied.  Pairs the training
 data never reported (unseen grids, other carriers) keep the field's APS.
 """
 
@@ -46,9 +47,12 @@ WNOMP_ATOMS = (2, 4)
 held-aside reports among these and none."""
 WNOMP_TOLERANCE = 0.01
 """WNOMP keeps an atom that lowers its weighted residual by this share (the WNOMP model's default)."""
-WNOMP_PRIOR_DB = 10.0
-"""Where the field has less there, a WNOMP atom's prior centre is WNOMP's power this far down: a pair needs the
-evidence of many reports (the ridge's λ v²) to raise it to WNOMP's fit, a pair with few keeps the field."""
+WNOMP_PRIORS = ((10.0, 0.0), (3.0, 3.0))
+"""The prior with WNOMP's atoms, one of these chosen with λ and the atoms on held-aside reports: (how far below
+WNOMP's power an atom is centred, how far below its own the field is) [dB].  (10, 0): the field, and WNOMP's atoms
+10 dB down where the field has less there (a pair needs the evidence of many reports, the ridge's λ v², to raise
+one to WNOMP's fit); (3, 3): about the average of the field's APS and WNOMP's (needs the pair anchors, which carry
+the field's share)."""
 _DB = 10.0 / math.log(10.0)
 
 
@@ -58,7 +62,7 @@ def fit_gains(
     rest: torch.Tensor,
     resid_db: torch.Tensor,
     mask: torch.Tensor,
-    lam: float,
+    lam: float | torch.Tensor,
     iterations: int = ITERATIONS,
 ) -> torch.Tensor:
     """Per-bin gains [dB] ``v [B, n]`` minimising Σ_m∈mask (e_m(v))² + λ ‖v‖² per pair.
@@ -69,13 +73,14 @@ def fit_gains(
         rest: ``A x`` over the pair's other bins ``[B, M]`` (kept as they are).
         resid_db: measured − predicted [dB] at v = 0 ``[B, M]`` (any value where not ``mask``).
         mask: ``[B, M]`` the reports to fit.
-        lam: ridge weight λ > 0.
+        lam: ridge weight λ > 0, one for all pairs or one per pair ``[B]``.
     """
     num_beams = cols.shape[1]
     mask_f = mask.to(cols.dtype)
     resid = torch.where(mask, resid_db, torch.zeros((), dtype=resid_db.dtype, device=resid_db.device))
     f0 = (torch.einsum("bmn,bn->bm", cols, x) + rest).clamp_min(1e-30)
-    eye = lam * torch.eye(num_beams, dtype=cols.dtype, device=cols.device)
+    eye = torch.eye(num_beams, dtype=cols.dtype, device=cols.device)
+    eye = lam.to(cols.dtype)[:, None, None] * eye if isinstance(lam, torch.Tensor) else lam * eye
     pair_mask = mask_f[:, :, None] * mask_f[:, None, :]
     v = torch.zeros_like(x)
     # the Jacobian d(dB_m)/d(v_n) is S = diag(1/f) cols diag(w), never formed: S Sᵀ, S v and Sᵀ z go through cols
@@ -103,26 +108,33 @@ def wnomp_atoms(
     cells: torch.Tensor,
     rsrp: torch.Tensor,
     mask: torch.Tensor,
-    k_max: int,
+    k_max: int | torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """WNOMP's support of each pair's reports: bins ``[B, k_max]`` (−1: none) and path gains ``[B, k_max]``.
+    """WNOMP's support of each pair's reports: bins ``[B, K]`` (−1: none) and path gains ``[B, K]``.
 
     Args:
         matrix: cell index → its sensing matrix ``[M, N]``, the columns the model predicts its reports with.
         cells: each pair's cell index ``[B]``.
         rsrp: the reports ``[B, M]`` in the unit of the matrix times the APS (linear).
         mask: ``[B, M]`` the reports WNOMP may read (the others are left out of its fit).
-        k_max: atoms per pair at most.
+        k_max: atoms per pair at most, one for all pairs or one per pair ``[B]`` (0: none); ``K`` is the largest.
     """
     from rflscm.models.wnomp_solver import wnomp_solve
 
-    bins = torch.full((rsrp.shape[0], k_max), -1, dtype=torch.long, device=rsrp.device)
-    gains = torch.zeros(rsrp.shape[0], k_max, dtype=rsrp.dtype, device=rsrp.device)
+    per_pair = torch.as_tensor(k_max, dtype=torch.long).expand(rsrp.shape[0]).to(rsrp.device)
+    width = int(per_pair.max()) if per_pair.numel() else 0
+    bins = torch.full((rsrp.shape[0], width), -1, dtype=torch.long, device=rsrp.device)
+    gains = torch.zeros(rsrp.shape[0], width, dtype=rsrp.dtype, device=rsrp.device)
     r = torch.where(mask, rsrp, torch.full_like(rsrp, math.nan))
-    for cell in cells.unique().tolist():  # one solve per cell: its pairs share the matrix
-        rows = torch.nonzero(cells == cell).squeeze(1)
-        idx, val = wnomp_solve(matrix(int(cell)), r[rows], k_max=k_max, tolerance=WNOMP_TOLERANCE)
-        bins[rows], gains[rows] = idx, val.to(rsrp.dtype)
+    for cell in cells.unique().tolist():  # one solve per cell and atom count: its pairs share the matrix
+        a = None
+        for k in per_pair[cells == cell].unique().tolist():
+            rows = torch.nonzero((cells == cell) & (per_pair == k)).squeeze(1)
+            if k <= 0:
+                continue
+            a = matrix(int(cell)) if a is None else a
+            idx, val = wnomp_solve(a, r[rows], k_max=int(k), tolerance=WNOMP_TOLERANCE)
+            bins[rows, :k], gains[rows, :k] = idx, val.to(rsrp.dtype)
     return bins, gains
 
 
@@ -146,42 +158,41 @@ def with_atoms(
     return out_bins, out_x, base
 
 
-@dataclass
-class LambdaChoice:
-    """Held-aside error sums per candidate λ (``inf``: no posterior), accumulated over chunks of pairs."""
+def held_errors(
+    cols: torch.Tensor,
+    x: torch.Tensor,
+    rest: torch.Tensor,
+    resid_db: torch.Tensor,
+    mask: torch.Tensor,
+    held: torch.Tensor,
+    lambdas: tuple[float, ...] = LAMBDAS,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per pair, the held-aside absolute errors ``[1 + L, B]`` [dB, summed over the pair's ``mask & held``
+    reports] of no posterior (row 0) and of the gains fitted on ``mask & ~held`` with each of ``lambdas``, and how
+    many reports each pair held aside ``[B]``."""
+    score = mask & held
+    rows = [torch.where(score, resid_db.abs(), 0.0).sum(1)]
+    for lam in lambdas:
+        v = fit_gains(cols, x, rest, resid_db, mask & ~held, lam)
+        err = resid_db - predicted_change_db(cols, x, rest, v)
+        rows.append(torch.where(score, err.abs(), 0.0).sum(1))
+    return torch.stack(rows).double(), score.sum(1)
 
-    lambdas: tuple[float, ...] = LAMBDAS
-    error_sum: dict[float, float] = field(default_factory=dict)
-    count: int = 0
 
-    def add(
-        self,
-        cols: torch.Tensor,
-        x: torch.Tensor,
-        rest: torch.Tensor,
-        resid_db: torch.Tensor,
-        mask: torch.Tensor,
-        held: torch.Tensor,
-    ) -> None:
-        """Fit every candidate on ``mask & ~held`` and score it on ``mask & held``."""
-        score = mask & held
-        n = int(score.sum())
-        if not n:
-            return
-        self.count += n
-        self.error_sum[math.inf] = self.error_sum.get(math.inf, 0.0) + float(resid_db[score].abs().sum())
-        for lam in self.lambdas:
-            v = fit_gains(cols, x, rest, resid_db, mask & ~held, lam)
-            err = resid_db - predicted_change_db(cols, x, rest, v)
-            self.error_sum[lam] = self.error_sum.get(lam, 0.0) + float(err[score].abs().sum())
+def report_groups(counts: torch.Tensor, groups: int) -> torch.Tensor:
+    """Edges ``[≤ groups − 1]`` (report counts, ascending) that split pairs with ``counts`` reports into up to
+    ``groups`` groups of about equal size (fewer where many pairs report the same number); a pair's group is the
+    number of edges at or below its count (:func:`group_of`)."""
+    if groups <= 1 or not counts.numel():
+        return torch.zeros(0, dtype=torch.long)
+    q = torch.quantile(counts.double().cpu(), torch.arange(1, groups, dtype=torch.float64) / groups)
+    edges = q.ceil().long().unique()
+    return edges[edges > int(counts.min())]
 
-    def mae_db(self) -> dict[float, float]:
-        return {k: v / self.count for k, v in self.error_sum.items()} if self.count else {}
 
-    def best(self) -> float:
-        """The λ with the least held-aside MAE (∞ when nothing was held aside or nothing beats the field)."""
-        scores = self.mae_db()
-        return min(scores, key=lambda k: (scores[k], -k)) if scores else math.inf
+def group_of(counts: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """Each pair's group ``[B]`` given its report ``counts [B]`` and the :func:`report_groups` ``edges``."""
+    return (counts.long()[:, None] >= edges.to(counts.device)[None, :]).sum(1)
 
 
 @dataclass
@@ -190,7 +201,10 @@ class PairPosterior:
     row ``i`` belonging to pair ``index[i]`` = (cell_id, grid_id); ``lam`` is the chosen λ and ``scores`` the
     held-aside MAE [dB] of every candidate; ``base [P, n]`` (with WNOMP's atoms, else None) is the APS (in the unit
     :meth:`apply` sees) added at each bin before its gain: an atom where the field has less; ``atom_scores`` the
-    least held-aside MAE [dB] over λ for each number of WNOMP atoms the choice considered (empty without them)."""
+    least held-aside MAE [dB] over λ for each number of WNOMP atoms the choice considered (empty without them).
+    ``lam`` and ``scores`` are those of one choice over all pairs; what each group of pairs with about as many
+    reports chose (and applies) is in ``groups`` (per group: its least report count, pairs, atoms, centre [dB], λ
+    and held-aside MAE [dB])."""
 
     index: pd.MultiIndex
     bins: torch.Tensor
@@ -199,6 +213,7 @@ class PairPosterior:
     scores: dict[float, float]
     base: torch.Tensor | None = None
     atom_scores: dict[int, float] = field(default_factory=dict)
+    groups: list[dict[str, float]] = field(default_factory=list)
 
     def apply(self, aps: torch.Tensor, cell_ids: np.ndarray, grid_ids: np.ndarray) -> torch.Tensor:
         """``aps [N, K]`` of pairs (``cell_ids``, ``grid_ids`` [N]) with each training pair's gains applied."""
@@ -234,6 +249,7 @@ class PairPosterior:
             "scores": {str(k): float(v) for k, v in self.scores.items()},
             "base": self.base.float().cpu().clone() if self.base is not None else None,
             "atom_scores": {str(k): float(v) for k, v in self.atom_scores.items()},
+            "groups": [{str(k): float(v) for k, v in g.items()} for g in self.groups],
         }
 
     @classmethod
@@ -270,4 +286,8 @@ class PairPosterior:
         index = pd.MultiIndex.from_arrays([cells.numpy(), grids.numpy()], names=["cell_id", "grid_id"])
         scores = {float(k): float(v) for k, v in dict(state.get("scores") or {}).items()}  # type: ignore[call-overload]
         atom_scores = {int(k): float(v) for k, v in dict(state.get("atom_scores") or {}).items()}  # type: ignore[call-overload]
-        return cls(index, bins, gain, lam, scores, base, atom_scores)
+        try:
+            groups = [{str(k): float(v) for k, v in dict(g).items()} for g in list(state.get("groups") or [])]  # type: ignore[call-overload]
+        except (TypeError, ValueError):
+            raise CheckpointError(f"{damaged} (its groups are not numeric); retrain the model.") from None
+        return cls(index, bins, gain, lam, scores, base, atom_scores, groups)
