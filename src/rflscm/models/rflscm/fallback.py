@@ -27,6 +27,7 @@ import pandas as pd
 import torch
 
 from rflscm.errors import CheckpointError
+from rflscm.models.rflscm.posterior import pair_rows
 from rflscm.models.wnomp import CellMatrices, WNOMPConfig, solve_jobs
 
 SOLVER = WNOMPConfig()
@@ -153,15 +154,7 @@ class PairFallback:
         keys = ("cell_id", "grid_id", "bins", "gains")
         if not isinstance(state, dict) or any(k not in state for k in keys):
             raise CheckpointError(f"{damaged} (expected {', '.join(keys)}); retrain the model.")
-        try:
-            cells = torch.as_tensor(state["cell_id"]).long().reshape(-1)
-            grids = torch.as_tensor(state["grid_id"]).long().reshape(-1)
-            bins = torch.as_tensor(state["bins"]).long()
-            gains = torch.as_tensor(state["gains"]).float()
-        except (TypeError, ValueError, RuntimeError):
-            raise CheckpointError(f"{damaged} (not numeric); retrain the model.") from None
-        if bins.dim() != 2 or bins.shape != gains.shape or not len(cells) == len(grids) == bins.shape[0]:
-            raise CheckpointError(f"{damaged} (columns of different shapes); retrain the model.")
+        cells, grids, bins, gains = pair_rows(state, "gains", damaged)
         if not bool(torch.isfinite(gains).all()) or bool((gains < 0).any()):
             raise CheckpointError(f"{damaged} (negative or non-finite gains); retrain the model.")
         if bins.numel() and (int(bins.min()) < -1 or int(bins.max()) >= num_bins):

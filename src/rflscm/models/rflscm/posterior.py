@@ -195,6 +195,22 @@ def group_of(counts: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     return (counts.long()[:, None] >= edges.to(counts.device)[None, :]).sum(1)
 
 
+def pair_rows(state: dict[str, object], values: str, damaged: str) -> tuple[torch.Tensor, ...]:
+    """``(cell ids [P], grid ids [P], bins [P, K], state[values] [P, K])`` of a checkpointed per-pair table (the
+    posterior's, the left-over pairs'); a table that is not numeric or whose columns' shapes differ is refused in
+    one line (:class:`CheckpointError`, ``damaged`` says whose)."""
+    try:
+        cells = torch.as_tensor(state["cell_id"]).long().reshape(-1)
+        grids = torch.as_tensor(state["grid_id"]).long().reshape(-1)
+        bins = torch.as_tensor(state["bins"]).long()
+        value = torch.as_tensor(state[values]).float()
+    except (TypeError, ValueError, RuntimeError):
+        raise CheckpointError(f"{damaged} (not numeric); retrain the model.") from None
+    if bins.dim() != 2 or bins.shape != value.shape or not len(cells) == len(grids) == bins.shape[0]:
+        raise CheckpointError(f"{damaged} (columns of different shapes); retrain the model.")
+    return cells, grids, bins, value
+
+
 @dataclass
 class PairPosterior:
     """Per-pair bin gains of the training pairs: ``bins [P, n]`` (fine bin ids) and ``gain_db [P, n]``,
@@ -261,16 +277,11 @@ class PairPosterior:
         keys = ("cell_id", "grid_id", "bins", "gain_db", "lam")
         if not isinstance(state, dict) or any(k not in state for k in keys):
             raise CheckpointError(f"{damaged} (expected {', '.join(keys)}); retrain the model.")
+        cells, grids, bins, gain = pair_rows(state, "gain_db", damaged)
         try:
-            cells = torch.as_tensor(state["cell_id"]).long().reshape(-1)
-            grids = torch.as_tensor(state["grid_id"]).long().reshape(-1)
-            bins = torch.as_tensor(state["bins"]).long()
-            gain = torch.as_tensor(state["gain_db"]).float()
             lam = float(state["lam"])  # type: ignore[arg-type]
-        except (TypeError, ValueError, RuntimeError):
+        except (TypeError, ValueError):
             raise CheckpointError(f"{damaged} (not numeric); retrain the model.") from None
-        if bins.dim() != 2 or bins.shape != gain.shape or not len(cells) == len(grids) == bins.shape[0]:
-            raise CheckpointError(f"{damaged} (columns of different shapes); retrain the model.")
         if not bool(torch.isfinite(gain).all()) or (
             bins.numel() and (int(bins.min()) < 0 or int(bins.max()) >= num_bins)
         ):
