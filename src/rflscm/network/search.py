@@ -165,12 +165,12 @@ class NetworkEvaluator:
         before, after = [], []
         for g in sorted({int(self.group_of[p]) for p in positions}):
             rows = self.groups[g][1]
-            known = self.known[torch.as_tensor(rows)][:, cols]  # [n_g, cols]
+            known = self.known[torch.as_tensor(rows)[:, None], cols]  # [n_g, cols], without the other grids
             moved = [p for p in positions if int(self.group_of[p]) == g]
             keep = known.any(dim=1)  # cells heard at none of these grids add nothing there
             keep[torch.as_tensor([int(np.flatnonzero(rows == p)[0]) for p in moved])] = True
             idx = torch.nonzero(keep).reshape(-1)
-            power = self.power[torch.as_tensor(rows)[idx]][:, cols]  # [k, cols]
+            power = self.power[torch.as_tensor(rows)[idx][:, None], cols]  # [k, cols]
             known = known[idx]
             local = power.unsqueeze(0).repeat(n, 1, 1)  # [C, k, cols]
             for p in moved:
