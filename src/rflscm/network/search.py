@@ -107,6 +107,10 @@ class NetworkEvaluator:
         self.config: Config = list(self.base)
         self.power = torch.stack([self._powers(i, [idx])[0] for i, idx in enumerate(self.base)])
         self._samples = [self._carrier(g, self.power[rows]) for g, (_, rows) in enumerate(self.groups)]
+        self._score: float | None = None
+        """The current objective, kept until a cell moves (:meth:`score_moves` adds each move's change to it)."""
+        self._count = float(sum(int(s["valid"].sum()) for s in self._samples))
+        """Valid (grid, carrier) samples: the objective's denominator, the same in every configuration."""
 
     # --- building blocks -----------------------------------------------------------------------------
     def _powers(self, pos: int, indices: Config) -> torch.Tensor:
@@ -178,9 +182,8 @@ class NetworkEvaluator:
             before.append(carrier_samples(power, self.noise_mw[g], known, self.kpi))
             after.append(carrier_samples(local, self.noise_mw[g], known, self.kpi))
         old, new = objective_sums(before, self.kpi), objective_sums(after, self.kpi)
-        count = float(sum(int(s["valid"].sum()) for s in self._samples))
         delta = objective_value(
-            {k: (new[k] - old[k]) / count for k in new} | {"num_samples": torch.full((n,), count)},
+            {k: (new[k] - old[k]) / self._count for k in new} | {"num_samples": torch.full((n,), self._count)},
             self.objective,
             self.sinr_weight,
         )
@@ -192,6 +195,7 @@ class NetworkEvaluator:
         self.power[pos] = self._powers(pos, [tuple(index)])[0] if power is None else power
         g = int(self.group_of[pos])
         self._samples[g] = self._carrier(g, self.power[torch.as_tensor(self.groups[g][1])])
+        self._score = None
 
     def set_config(self, config: Config) -> None:
         for pos, index in enumerate(config):
@@ -200,7 +204,9 @@ class NetworkEvaluator:
 
     def score(self) -> float:
         """Objective of the current configuration."""
-        return float(objective_value(area_kpis(self._samples, self.kpi), self.objective, self.sinr_weight))
+        if self._score is None:
+            self._score = float(objective_value(area_kpis(self._samples, self.kpi), self.objective, self.sinr_weight))
+        return self._score
 
     def kpis(self) -> dict[str, Any]:
         """Network KPIs (pooled and per carrier) of the current configuration."""
