@@ -98,16 +98,23 @@ class Tile:
     grids: tuple[int, ...]
     """Grids where the tile's cells have a reported round-1 RSRP (tiles overlap here: a grid heard by two tiles'
     cells is in both)."""
+    pairs: int = 0
+    """Training pairs of the tile: distinct (cell, grid) pairs of its cells with a reported round-1 RSRP (what a
+    tile's training and its pass after training cost grows with; a tiled run shares its budget by it)."""
 
 
 def plan_tiles(scenario: Scenario, tile_sites: int) -> list[Tile]:
     """Split ``scenario``'s sites into compact tiles of about ``tile_sites`` sites each (deterministic).
 
-    The split is a k-d bisection of the sites' positions: ⌈sites / ``tile_sites``⌉ tiles; a group of sites meant for
-    t tiles is sorted along its longer extent (x or y; ties by site id) and cut where ⌊t/2⌋ of the tiles' share of
-    sites ends, until a group is one tile, so the tiles differ in size by at most one site.  A tile whose cells have
-    no reported round-1 RSRP (nothing to learn from) joins the tile of the nearest site (its cells must still be
-    answered).  Grids: where a tile's cells have a round-1 report in ``scenario`` (give the training scenario).
+    The split is a k-d bisection of the sites' positions into ⌈sites / ``tile_sites``⌉ tiles, balanced by training
+    pairs rather than by sites: a group of sites meant for t tiles is sorted along its longer extent (x or y; ties
+    by site id) and cut where ⌊t/2⌋ of the tiles' share of its training pairs ends (each side keeping at least a
+    site per tile), until a group is one tile.  A dense downtown thus gets tiles of fewer sites than the suburbs,
+    and the tiles cost about the same to train (at 1 002 cells, cutting by sites gave tiles of 7 534 to 146 446
+    pairs).  Sites weigh their training pairs plus one, so where no site has pairs the cut is by sites.  A tile whose
+    cells have no reported round-1 RSRP (nothing to learn from) joins the tile of the nearest site (its cells must
+    still be answered).  Grids: where a tile's cells have a round-1 report in ``scenario`` (give the training
+    scenario).
     """
     if tile_sites < 1:
         raise ConfigError(f"a tile must hold at least one site (got tile_sites = {tile_sites}).")
@@ -115,10 +122,14 @@ def plan_tiles(scenario: Scenario, tile_sites: int) -> list[Tile]:
     sites_xy = cells1.groupby("site_id")[["x", "y"]].mean().sort_index()
     site_ids = sites_xy.index.to_numpy(np.int64)
     xy = sites_xy.to_numpy(np.float64)
-    groups = _bisect(np.arange(len(site_ids)), xy, site_ids, math.ceil(len(site_ids) / tile_sites))
     m = scenario.measurements
     reported = m[((m["round"] == 1) & m["rsrp_dbm"].notna()).to_numpy()]
     grids_of = reported.groupby("cell_id")["grid_id"].unique()
+    pairs_of = grids_of.map(len)
+    site_of = cells1.drop_duplicates("cell_id").set_index("cell_id")["site_id"]
+    site_pairs = pairs_of.groupby(site_of.reindex(pairs_of.index).to_numpy()).sum()
+    weight = site_pairs.reindex(site_ids, fill_value=0).to_numpy(np.float64) + 1.0
+    groups = _bisect(np.arange(len(site_ids)), xy, site_ids, weight, math.ceil(len(site_ids) / tile_sites))
     cells_of_site = cells1.groupby("site_id")["cell_id"].apply(lambda s: np.sort(s.to_numpy(np.int64)))
     members = [sorted(int(site_ids[i]) for i in g) for g in groups]
     heard = [any(c in grids_of.index for s in sites for c in cells_of_site[s]) for sites in members]
@@ -143,22 +154,28 @@ def plan_tiles(scenario: Scenario, tile_sites: int) -> list[Tile]:
         cells = np.concatenate([cells_of_site[s] for s in sites])
         have = [c for c in cells if c in grids_of.index]
         grids = np.unique(np.concatenate([grids_of[c] for c in have])) if have else np.empty(0, np.int64)
+        pairs = int(sum(len(grids_of[c]) for c in have))
         tiles.append(
-            Tile(len(tiles), tuple(sites), tuple(int(c) for c in np.sort(cells)), tuple(int(g) for g in grids))
+            Tile(len(tiles), tuple(sites), tuple(int(c) for c in np.sort(cells)), tuple(int(g) for g in grids), pairs)
         )
     return tiles
 
 
-def _bisect(rows: np.ndarray, xy: np.ndarray, ids: np.ndarray, tiles: int) -> list[np.ndarray]:
-    """``rows`` (indices into ``xy``) split into ``tiles`` spatially compact groups of near-equal size."""
+def _bisect(rows: np.ndarray, xy: np.ndarray, ids: np.ndarray, weight: np.ndarray, tiles: int) -> list[np.ndarray]:
+    """``rows`` (indices into ``xy``, ``weight``) split into ``tiles`` spatially compact groups of near-equal
+    weight, each of at least one row when there are enough."""
     if tiles <= 1 or len(rows) <= 1:
         return [rows]
     span = xy[rows].max(0) - xy[rows].min(0)
     axis = 0 if span[0] >= span[1] else 1
     order = rows[np.lexsort((ids[rows], xy[rows, axis]))]
     left = tiles // 2
-    cut = round(len(rows) * left / tiles)
-    return _bisect(order[:cut], xy, ids, left) + _bisect(order[cut:], xy, ids, tiles - left)
+    # the first k rows hold cum[k - 1] of the weight: cut nearest the left tiles' share, a row per tile each side
+    cum = np.cumsum(weight[order])
+    lo, hi = min(left, len(rows) - 1), max(len(rows) - (tiles - left), 1)
+    ks = np.arange(lo, max(hi, lo) + 1)
+    cut = int(ks[np.argmin(np.abs(cum[ks - 1] - cum[-1] * left / tiles))])
+    return _bisect(order[:cut], xy, ids, weight, left) + _bisect(order[cut:], xy, ids, weight, tiles - left)
 
 
 def tile_scenario(scenario: Scenario, tile: Tile, crop_margin_m: float | None) -> Scenario:

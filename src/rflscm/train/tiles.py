@@ -7,20 +7,22 @@ other cells' reported SSB there as interference; :func:`rflscm.data.parts.tile_s
 own cells, so the tiles together cost about what the whole would, but each tile's scene box, fields and data are
 small.
 
-A time budget is split so that the whole run keeps it: a tile starting gets the time left (less the share kept for
-writing the checkpoint) divided by the rounds of tiles still to run (serial: the tiles left; with ``slots`` tiles
-running at once: ⌈tiles left / slots⌉).  Where the tiles run is a *runner*: :func:`serial_runner` here (one after
-the other, in-process), or Ray tasks (:func:`rflscm.parallel.tiles.ray_runner`).  Every tile is seeded and built
+A time budget is split so that the whole run keeps it, by each tile's training pairs (what its training and its
+pass after training cost grows with): :func:`schedule` deals the tiles to the ``slots`` that run at once, largest
+first to the least-loaded slot, and a tile starting on a slot gets the time left (less the share kept for writing
+the checkpoint) times its pairs over the pairs of the tiles its slot has still to run, itself included
+(:func:`tile_budget`).  A tile that ends early leaves its time to the next ones of its slot; no tile waits for a
+slot that another queue's overrun holds.  Where the tiles run is a *runner*: :func:`serial_runner` here (one slot,
+in-process), or Ray tasks (:func:`rflscm.parallel.tiles.ray_runner`).  Every tile is seeded and built
 the same way wherever it runs, and comes back as its checkpoint payload, so serial and parallel runs give the
 same tiles (bit-identical in step mode with one thread per worker).
 """
 
 from __future__ import annotations
 
-import math
 import random
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -44,7 +46,9 @@ __all__ = [
     "TileResult",
     "TileRunner",
     "fit_tiled",
+    "queue_budgets",
     "run_tile",
+    "schedule",
     "serial_runner",
     "tile_budget",
 ]
@@ -87,26 +91,49 @@ class TileResult:
 
 
 class TileRunner(Protocol):
-    """Runs the jobs ``make_job(i)``, i < ``count``, each given :func:`tile_budget` when it starts, calling ``done``
-    as each ends; returns the results in tile order."""
+    """Runs the jobs ``make_job(i)`` for every tile i of ``weights`` (one per tile: its training pairs), each given
+    :func:`tile_budget` of its slot's queue (:func:`schedule`) when it starts, calling ``done`` as each ends;
+    returns the results in tile order."""
 
     def __call__(
         self,
-        count: int,
+        weights: Sequence[float],
         make_job: Callable[[int], TileJob],
         deadline: float | None,
         done: Callable[[TileResult], None],
     ) -> list[TileResult]: ...
 
 
-def tile_budget(deadline: float | None, waiting: int, slots: int, now: float | None = None) -> float | None:
-    """Seconds a tile starting now may take: the time to ``deadline`` (``time.time()`` clock) over the rounds of
-    ``waiting`` tiles (this one included) on ``slots`` concurrent runners; at least 1 s (every tile needs a model,
-    even when the time is gone); None without a deadline."""
+def schedule(weights: Sequence[float], slots: int) -> list[list[int]]:
+    """The tiles (indices of ``weights``) dealt to ``slots`` queues run side by side: heaviest first (ties by
+    index), each to the queue with the least weight so far (ties: the first queue); each queue in the order dealt.
+    Queues left empty are dropped."""
+    queues: list[list[int]] = [[] for _ in range(max(1, slots))]
+    load = [0.0] * len(queues)
+    for i in sorted(range(len(weights)), key=lambda i: (-float(weights[i]), i)):
+        q = min(range(len(queues)), key=lambda q: (load[q], q))
+        queues[q].append(i)
+        load[q] += max(float(weights[i]), 0.0)
+    return [q for q in queues if q]
+
+
+def tile_budget(deadline: float | None, weight: float, queue_weight: float, now: float | None = None) -> float | None:
+    """Seconds a tile of ``weight`` starting now may take when its queue has ``queue_weight`` still to run (this
+    tile included): the time to ``deadline`` (``time.time()`` clock) times ``weight / queue_weight``; at least 1 s
+    (every tile needs a model, even when the time is gone); None without a deadline."""
     if deadline is None:
         return None
     left = deadline - (time.time() if now is None else now)
-    return max(left / math.ceil(waiting / max(slots, 1)), 1.0)
+    share = weight / queue_weight if queue_weight > 0 else 1.0
+    return max(left * min(share, 1.0), 1.0)
+
+
+def queue_budgets(weights: Sequence[float], queue: Sequence[int]) -> list[tuple[float, float]]:
+    """For each tile of ``queue`` (in order): its weight and the weight of the queue from it on (the arguments of
+    :func:`tile_budget` when it starts)."""
+    w = [max(float(weights[i]), 0.0) for i in queue]
+    rest = np.cumsum(w[::-1])[::-1] if w else np.zeros(0)
+    return [(w[k], float(rest[k])) for k in range(len(queue))]
 
 
 def training_pairs(scenario: Scenario) -> int:
@@ -155,16 +182,21 @@ def run_tile(job: TileJob, budget_s: float | None, deadline: float | None = None
 
 
 def serial_runner(
-    count: int, make_job: Callable[[int], TileJob], deadline: float | None, done: Callable[[TileResult], None]
+    weights: Sequence[float],
+    make_job: Callable[[int], TileJob],
+    deadline: float | None,
+    done: Callable[[TileResult], None],
 ) -> list[TileResult]:
-    """The tiles one after the other, in this process; each gets the time left over the tiles left."""
-    results = []
-    for i in range(count):
+    """The tiles one after the other (heaviest first), in this process; each gets its weight's share of the time
+    left over the tiles left."""
+    (queue,) = schedule(weights, 1) or [[]]
+    results: dict[int, TileResult] = {}
+    for i, (weight, rest) in zip(queue, queue_budgets(weights, queue), strict=True):
         job = make_job(i)
-        result = run_tile(job, tile_budget(deadline, count - i, 1))
+        result = run_tile(job, tile_budget(deadline, weight, rest))
         done(result)
-        results.append(result)
-    return results
+        results[i] = result
+    return [results[i] for i in range(len(weights))]
 
 
 def tile_line(result: TileResult, count: int) -> str:
@@ -232,7 +264,8 @@ def fit_tiled(
         if report is not None:
             report(tile_line(result, len(plan)))
 
-    results = (runner or serial_runner)(len(plan), make_job, deadline, done)
+    weights = [float(max(t.pairs, 1)) for t in plan]
+    results = (runner or serial_runner)(weights, make_job, deadline, done)
     tiles = [model_from_payload(from_plain(r.payload), device) for r in sorted(results, key=lambda r: r.tile.index)]
     tiled = TiledModel.from_tiles(tiles, plan, scenario.grids, device)
     tiled.fingerprint = scenario.fingerprint()

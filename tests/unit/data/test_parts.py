@@ -91,3 +91,28 @@ def test_nothing_to_tile_and_a_tile_of_no_site_are_refused() -> None:
         plan_tiles(network(3), 0)
     with pytest.raises(DataError, match="no reported round-1 RSRP"):
         plan_tiles(network(2, silent=(1, 2)), 1)
+
+
+def test_tiles_are_cut_by_training_pairs_not_by_sites() -> None:
+    # a dense cluster (three sites, 20x the pairs of each other site) in a network of nine: cut by sites, one tile
+    # would hold the cluster and most of the pairs; cut by pairs, the cluster's tiles hold fewer sites
+    net = network(9, seed=4)
+    m, cells = net.measurements, net.cells[1]
+    dense = cells[cells["site_id"] <= 3]["cell_id"]
+    extra = []
+    for cell in dense:
+        extra += [(1, int(cell), 5000 + 10 * int(cell) + k, -85.0) for k in range(100)]
+    net.measurements = pd.concat([m, pd.DataFrame(extra, columns=m.columns)], ignore_index=True)
+    cells.loc[cells["site_id"] <= 3, ["x", "y"]] = cells.loc[cells["site_id"] <= 3, ["x", "y"]] * 0.01  # together
+    tiles = plan_tiles(net, 3)
+    assert len(tiles) == 3
+    pairs = [t.pairs for t in tiles]
+    reported = net.measurements
+    reported = reported[(reported["round"] == 1) & reported["rsrp_dbm"].notna()]
+    assert sum(pairs) == len(reported[["cell_id", "grid_id"]].drop_duplicates())
+    for t in tiles:  # a tile's pairs are its cells' distinct reported pairs
+        own = reported[reported["cell_id"].isin(t.cells)]
+        assert t.pairs == len(own[["cell_id", "grid_id"]].drop_duplicates())
+    by_sites = max(pairs) / min(pairs)
+    assert by_sites < 4.0, pairs  # 3 dense sites hold ~87 % of the pairs: cut by sites the ratio would be ~20
+    assert min(len(t.sites) for t in tiles) == 1 and max(len(t.sites) for t in tiles) >= 5
