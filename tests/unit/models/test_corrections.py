@@ -144,6 +144,44 @@ def test_within_a_deadline_the_pass_corrects_the_pairs_that_fit_and_the_rest_kee
     pd.testing.assert_series_equal(ample.anchors.sort_index(), full.anchors.sort_index(), atol=1e-5)
 
 
+def test_short_of_time_lambdas_pairs_shrink_before_the_levels_pairs(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The levels are measured on every cell's full share of pairs while λ's pairs shrink: a level measured on one
+    pair per cell was off by 15 dB on CSI-RS in a tile of the 37-site network (DECISIONS)."""
+    import rflscm.models.rflscm.corrections as module
+    from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL, PAIR_CHUNK
+
+    num = 1200
+    gen = torch.Generator().manual_seed(2)
+    aps = torch.rand(num, K, generator=gen) + 0.1
+    rsrp = (aps.sum(1, keepdim=True) * 10 ** (torch.randn(num, 2, generator=gen) / 10)).tolist()
+    cells = [i % 4 for i in range(num)]
+    now = [0.0]
+
+    def costly(pairs: torch.Tensor):
+        now[0] += 0.01 * pairs.numel()
+        return render(aps, [])(pairs)
+
+    seen: dict[str, int] = {}
+    first_pairs = module._first_pairs
+
+    def spy(fit, *args, **kwargs):  # type: ignore[no-untyped-def]
+        out = first_pairs(fit, *args, **kwargs)
+        seen.update(per_cell=fit.level_per_cell, lam_pairs=int(out[3].numel()))
+        return out
+
+    monkeypatch.setattr(module, "_first_pairs", spy)
+    cfg = CorrectionsConfig(wnomp_atoms=False, wnomp_fallback=False)
+    args = (cfg, data(rsrp, cells), 1, np.array([7, 8, 9, 10]), costly, columns)
+    # room for the levels' 4 x 16 pairs and ~100 of λ's, not for its 512: λ's shrink, the levels' do not
+    fit_corrections(*args, seed=0, time_left=lambda: 4.0 - now[0], clock=lambda: now[0])
+    assert seen["per_cell"] == LEVEL_PAIRS_PER_CELL
+    assert PAIR_CHUNK <= seen["lam_pairs"] < 200
+    # room for less than the levels' pairs: fewer per cell, λ's at their least
+    now[0] = 0.0
+    fit_corrections(*args, seed=0, time_left=lambda: 1.5 - now[0], clock=lambda: now[0])
+    assert 1 <= seen["per_cell"] < LEVEL_PAIRS_PER_CELL and PAIR_CHUNK <= seen["lam_pairs"] < 100
+
+
 def atom_problem(seed: int = 0, pairs: int = 48, beams: int = 16, bins: int = 40, field_bins: int = 6):
     """Pairs whose true APS is one strong atom the field's bins miss (the field spreads its power over other bins).
 

@@ -320,8 +320,10 @@ def _first_pairs(
 ) -> tuple[torch.Tensor, _Rendered, float, torch.Tensor]:
     """Within a budget, the pairs rendered before any other: the levels' and λ's, ``(pairs, rendered, seconds per
     pair, λ's pairs)``.  One pair per cell first (every cell needs its level), timed; then the levels' other pairs
-    (up to ``LEVEL_PAIRS_PER_CELL`` per cell) and λ's ``subset`` as far as ``FIRST_SHARE`` of the time left allows:
-    fewer per cell, then fewer of λ's pairs (at least ``PAIR_CHUNK``), when it does not."""
+    (up to ``LEVEL_PAIRS_PER_CELL`` per cell) and λ's ``subset`` as far as ``FIRST_SHARE`` of the time left allows.
+    When it does not, λ's pairs shrink first (to ``PAIR_CHUNK``), then the levels' pairs per cell: a CSI-RS level
+    measured on too few pairs is off by many dB on every pair of its cells, which no later correction undoes (a
+    tile measured on one pair per cell: +15 dB), while λ chosen on fewer pairs is only a coarser choice."""
     cfg = fit.cfg
     top = cfg.pair_posterior
     one = fit.level_picks(1)
@@ -346,13 +348,14 @@ def _first_pairs(
     def cost(per_cell: int, lam_pairs: int) -> float:
         return (per_cell * cells + lam_pairs) * each + lam_pairs * options * prep_s
 
+    least = min(PAIR_CHUNK, subset.numel())  # λ's pairs when short of time
     for per_cell in range(LEVEL_PAIRS_PER_CELL, 0, -1):
         fit.level_per_cell = per_cell
-        if cost(per_cell, subset.numel()) <= room:
+        if cost(per_cell, least) <= room:
             break
     if cost(fit.level_per_cell, subset.numel()) > room and subset.numel():
         fits = (room - cost(fit.level_per_cell, 0)) / max(each + options * prep_s, 1e-12)
-        subset = _spread(subset, max(PAIR_CHUNK, int(fits)))
+        subset = _spread(subset, max(least, int(fits)))
     first = torch.cat([fit.level_picks(), subset]).unique()
     more = first[~torch.isin(first, one)]
     begun = clock()
