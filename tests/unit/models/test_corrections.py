@@ -428,3 +428,40 @@ def test_the_mixed_prior_lowers_the_field_through_the_anchor_and_adds_wnomps_ato
     share = (torch.einsum("bmn,bn->bm", field.cols, field.top_x) + field.rest) * 10 ** (-lower / 10)
     assert bool((prior >= share * (1 - 1e-5)).all()) and bool((prior > share * 1.01).any())
     torch.testing.assert_close(mixed.resid, field.resid + lower - 10 * torch.log10(prior / share), atol=1e-4, rtol=0)
+
+
+def test_wnomps_aps_of_the_left_over_pairs_is_solved_only_while_it_fits(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Within a budget the left-over pairs' WNOMP solutions come a chunk at a time while one fits: a chunk that costs
+    more than the time left is not started, and those pairs keep the field's level (a tile of 53 k pairs spent 39 s
+    of its pass on them; a loaded machine would overrun)."""
+    import rflscm.models.rflscm.corrections as module
+
+    pair_data, costly, columns_, truth, _, cells, now = fallback_problem(pairs=400)
+    visible = torch.ones(2, truth.shape[1], dtype=torch.bool)
+    solve = module._Fit.solve
+
+    def slow_solve(self, pairs, mask, levels):  # type: ignore[no-untyped-def]
+        now[0] += 0.01 * pairs.numel()  # 10 ms a pair: a chunk of 32 costs 0.32 s
+        return solve(self, pairs, mask, levels)
+
+    monkeypatch.setattr(module._Fit, "solve", slow_solve)
+    monkeypatch.setattr(module, "FALLBACK_SOLVE", 32)
+
+    def run(seconds: float) -> PairCorrections:
+        now[0] = 0.0
+        cfg = CorrectionsConfig(pair_posterior=False)
+        return fit_corrections(
+            cfg, pair_data, 8, np.array([7, 8]), costly, columns_, 0, time_left=lambda: seconds - now[0],
+            clock=lambda: now[0], visible=visible,
+        )  # fmt: skip
+
+    short = run(2.5)
+    assert short.fallback is not None and short.anchors is not None
+    assert now[0] <= 2.5  # the pass ends by its deadline
+    assert len(short.fallback.index) > 0
+    assert len(short.fallback.index) + len(short.anchors) < len(cells)  # the rest keep the field's level
+    grids = [g for _, g in short.fallback.index]  # this problem's grid id is its pair's index
+    assert grids == sorted(grids)  # stored in pair order
+    monkeypatch.setattr(module, "FALLBACK_SOLVE", 10**6)  # every left-over pair in one solve: past the deadline
+    run(2.5)
+    assert now[0] > 2.5

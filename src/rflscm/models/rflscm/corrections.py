@@ -72,7 +72,10 @@ TimeLeftFn = Callable[[], float]
 FIRST_SHARE = 0.5
 """Within a budget, the levels' and λ's pairs may take this share of the pass's time (fewer of them when short)."""
 FALLBACK_CHUNK = 1024
-"""Pairs per WNOMP solve of the left-over pairs (:mod:`.fallback`)."""
+"""Pairs per WNOMP solve of the held-aside choice between the field and WNOMP's APS (:mod:`.fallback`)."""
+FALLBACK_SOLVE = 4096
+"""Within a budget, the left-over pairs' WNOMP solutions are found this many pairs at a time, each chunk started
+only while it fits (~1 ms a pair: a tile of 53 k pairs spent 39 s of its 87-s pass on them)."""
 CHUNK_MARGIN = 1.25
 """A further chunk is started only when the time left exceeds this many times the slowest chunk so far."""
 
@@ -207,7 +210,7 @@ def fit_corrections(
     if time_left is not None and cfg.wnomp_fallback and visible is not None and later.numel():
         # solved now for every later pair (no render: ~0.3 ms a pair), dropped below for the pairs the pass reaches
         on = subset if cfg.pair_posterior else first
-        left_over = _left_over(fit, rendered, on, later, cell_ids, levels, seed)
+        left_over = _left_over(fit, rendered, on, later, cell_ids, levels, seed, time_left, clock)
     for chunk in fit.corrected_chunks(rendered, later, levels, fitting, time_left, clock, bar, PAIR_CHUNK * render_s):
         done.append(chunk.pairs)
         anchors.append(chunk.anchor)
@@ -591,11 +594,34 @@ class _Fit:
         return solve_reports(self.matrix, d.cell_index[pairs], d.rsrp[pairs], mask)
 
     def fallback(
-        self, pairs: torch.Tensor, cell_ids: np.ndarray, levels: torch.Tensor | None, scores: dict[str, float]
+        self,
+        pairs: torch.Tensor,
+        cell_ids: np.ndarray,
+        levels: torch.Tensor | None,
+        scores: dict[str, float],
+        time_left: TimeLeftFn | None = None,
+        clock: Callable[[], float] = time.perf_counter,
     ) -> PairFallback:
-        """WNOMP's APS of ``pairs`` (``cell_ids`` of the cell indices) from all their training reports."""
+        """WNOMP's APS of ``pairs`` (``cell_ids`` of the cell indices) from all their training reports.  With
+        ``time_left``, ``FALLBACK_SOLVE`` pairs at a time, in ``pairs``' order, while the time left exceeds
+        ``CHUNK_MARGIN`` times the slowest chunk so far (the first always: pairs beyond keep the field's level)."""
         d = self.data
-        bins, gains = self.solve(pairs, d.observed[pairs], levels)
+        parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+        slowest = 0.0
+        for start in range(0, pairs.numel(), FALLBACK_SOLVE if time_left is not None else max(pairs.numel(), 1)):
+            if parts and time_left is not None and time_left() < CHUNK_MARGIN * slowest:
+                break
+            part = pairs[start : start + FALLBACK_SOLVE] if time_left is not None else pairs
+            begun = clock()
+            parts.append((part, *self.solve(part, d.observed[part], levels)))
+            slowest = max(slowest, clock() - begun)
+        if parts:  # in pair order, as without a budget
+            pairs = torch.cat([p for p, _, _ in parts])
+            order = torch.argsort(pairs)
+            pairs = pairs[order]
+            bins, gains = torch.cat([b for _, b, _ in parts])[order], torch.cat([g for _, _, g in parts])[order]
+        else:
+            bins, gains = self.solve(pairs, d.observed[pairs], levels)
         kept = pairs.cpu().numpy()
         ids = np.asarray(cell_ids, np.int64)[d.cell_index.cpu().numpy()[kept]]
         index = pd.MultiIndex.from_arrays([ids, d.grid_ids[kept]], names=["cell_id", "grid_id"])
@@ -765,10 +791,13 @@ def _left_over(
     cell_ids: np.ndarray,
     levels: torch.Tensor | None,
     seed: int,
+    time_left: TimeLeftFn | None = None,
+    clock: Callable[[], float] = time.perf_counter,
 ) -> PairFallback:
     """WNOMP's APS of the ``later`` pairs (:mod:`.fallback`) when it beats the field with its level on the reports of
     the rendered pairs ``on`` held aside as the posterior's λ holds them (``seed``), WNOMP fitted on their other
-    reports; else no pairs, with the scores (``"level"``, ``"wnomp"``: held-aside MAE [dB]) either way."""
+    reports; else no pairs, with the scores (``"level"``, ``"wnomp"``: held-aside MAE [dB]) either way.  With
+    ``time_left``: as many of ``later`` (in their order) as fit (:meth:`_Fit.fallback`)."""
     d = fit.data
     pairs = on.unique()
     held = torch.rand(d.rsrp.shape, generator=torch.Generator().manual_seed(seed)) < HOLDOUT
@@ -789,7 +818,7 @@ def _left_over(
         level_sum, wnomp_sum, count = level_sum + level_err, wnomp_sum + wnomp_err, count + n
     scores = {"level": level_sum / count, "wnomp": wnomp_sum / count} if count else {}
     use = bool(scores) and scores["wnomp"] < scores["level"]
-    return fit.fallback(later.sort().values if use else later[:0], cell_ids, levels, scores)
+    return fit.fallback(later if use else later[:0], cell_ids, levels, scores, time_left, clock)
 
 
 def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:
