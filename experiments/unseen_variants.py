@@ -24,6 +24,17 @@ distance to that grid (``DIST``).
 
 splits B1 quick's round-2 error of a model saved by ``posterior_variants.py train`` into pairs with a round-1
 anchor and pairs without (``SPLIT`` lines), the model's and the oracle's MAE on the same beams.
+
+    PYTHONPATH=src python experiments/unseen_variants.py train SCENARIO INNER.pt 0 0.35
+    PYTHONPATH=src python experiments/unseen_variants.py blend SCENARIO FULL.pt INNER.pt
+
+blends, at a pair without an anchor, the model's APS at its grid with its APS at the cell's nearest anchored grid
+(``mix``: (1 − w) × own + w × nearest, linear; ``level``: the own APS scaled by (nearest / own total power)^w), and
+chooses w on grids held out of training but not of the test: ``INNER.pt`` is trained with a larger hold-out
+(``FRACTION`` 0.35; ``split_grids`` draws a prefix of one seeded order, so its held-out grids are B6's test grids
+plus others), the weight is chosen on those others (``INNER`` lines, per w) and the chosen weight is scored on B6's
+test grids with both models (``CHOSEN`` lines; ``FULL.pt`` trained with B6's own hold-out).  The test grids' MAE
+for every w is printed too (``TEST`` lines), for reading only: choosing on them would tune to the test.
 """
 
 from __future__ import annotations
@@ -43,6 +54,7 @@ from rflscm.bench.b06_unseen import HOLDOUT
 from rflscm.bench.harness import load_bench_data, quick_size, train_and_evaluate
 from rflscm.eval import UnseenProtocol, run_evaluation
 from rflscm.eval.cache import APSCache
+from rflscm.eval.protocols import protocol_from_dict
 
 PROTOCOL = UnseenProtocol(fraction=HOLDOUT, seed=0)
 
@@ -162,6 +174,115 @@ def diagnose(scenario: str, path: str) -> None:
     )
 
 
+class _Blend(APSCache):
+    """At pairs without an anchor, ``base``'s APS at the pair's grid blended with its APS at the cell's nearest
+    anchored grid: ``mix`` (1 − w) × own + w × nearest (linear), ``level`` own × (nearest / own total)^w."""
+
+    def __init__(self, base: APSCache, nearest: _Nearest, kind: str, weight: float) -> None:
+        super().__init__(base)
+        self._base, self._nearest, self._kind, self._w = base, nearest, kind, weight
+
+    def aps(self, cell_ids, grid_ids, grid_xyz=None):
+        own = self._base.aps(cell_ids, grid_ids, grid_xyz)
+        if self._w == 0.0:
+            return own
+        near = self._nearest.aps(cell_ids, grid_ids, grid_xyz)
+        if self._kind == "mix":
+            return (1.0 - self._w) * own + self._w * near
+        ratio = near.sum(1, keepdim=True) / own.sum(1, keepdim=True).clamp_min(1e-30)
+        return own * torch.where(ratio > 0, ratio, torch.ones_like(ratio)) ** self._w
+
+
+WEIGHTS = [round(0.1 * i, 1) for i in range(11)]
+
+
+def _mae_rows(ev, grids: np.ndarray) -> dict:
+    """MAE [dB] of the unseen test pairs at ``grids``, SSB, CSI-RS and both pooled (beam-weighted), and the beams."""
+    out, errs = {}, []
+    for bt in ("ssb", "csi"):
+        res = ev.beams[bt]
+        rows = (~res.seen) & res.pairs["grid_id"].isin(grids).to_numpy()
+        err = (res.model - res.measured)[rows]
+        err = np.abs(err[np.isfinite(err)])
+        errs.append(err)
+        out[bt] = round(float(err.mean()), 3) if err.size else None
+        out[f"{bt}_beams"] = int(err.size)
+    pooled = np.concatenate(errs)
+    out["both"] = round(float(pooled.mean()), 4) if pooled.size else None
+    return out
+
+
+def _blend_scores(data, path: str, protocol: UnseenProtocol, grids: dict[str, np.ndarray]) -> dict:
+    """``{(kind, w): {name: MAE rows at grids[name]}}`` of the model at ``path`` evaluated under ``protocol``."""
+    model = torch.load(path, weights_only=False)["model"]
+    model.finish_training()
+    base = APSCache(model)
+    nearest = _Nearest(base, data.scenario.grids, model.corrections.anchors, model.run_info)
+    scores = {}
+    for kind in ("mix", "level"):
+        for w in WEIGHTS:
+            if w == 0.0 and kind == "level":
+                scores[(kind, w)] = scores[("mix", 0.0)]
+                continue
+            ev = run_evaluation(
+                _Blend(base, nearest, kind, w),
+                data.scenario,
+                protocol,
+                oracle=data.oracle,
+            )
+            scores[(kind, w)] = {name: _mae_rows(ev, g) for name, g in grids.items()}
+    return scores
+
+
+def blend(scenario: str, full: str, inner: str) -> None:
+    """Choose the blend's weight on the inner model's extra held-out grids, score it on B6's test grids."""
+    data = _data(scenario)
+    saved = torch.load(inner, weights_only=False)
+    inner_protocol = protocol_from_dict(saved["model"].run_info["protocol"])
+    test = PROTOCOL.held_out(data.scenario)
+    held = inner_protocol.held_out(data.scenario)
+    if not np.isin(test, held).all():
+        raise SystemExit("the inner model's hold-out does not contain B6's test grids (same seed, larger fraction)")
+    extra = np.setdiff1d(held, test)
+    print(
+        "GRIDS",
+        json.dumps(
+            {
+                "test": len(test),
+                "inner_extra": len(extra),
+                "inner_training": int(len(np.unique(data.scenario.measurements["grid_id"])) - len(held)),
+            }
+        ),
+        flush=True,
+    )
+    inner_scores = _blend_scores(data, inner, inner_protocol, {"extra": extra, "test": test})
+    full_scores = _blend_scores(data, full, PROTOCOL, {"test": test})
+    for (kind, w), row in inner_scores.items():
+        print("INNER", json.dumps({"kind": kind, "w": w, **row}), flush=True)
+    for (kind, w), row in full_scores.items():
+        print("TEST", json.dumps({"kind": kind, "w": w, "full": row["test"]}), flush=True)
+    for kind in ("mix", "level"):
+        best = min(WEIGHTS, key=lambda w: inner_scores[(kind, w)]["extra"]["both"])
+        print(
+            "CHOSEN",
+            json.dumps(
+                {
+                    "kind": kind,
+                    "w": best,
+                    "inner_test": {
+                        "w0": inner_scores[(kind, 0.0)]["test"],
+                        "chosen": inner_scores[(kind, best)]["test"],
+                    },
+                    "full_test": {
+                        "w0": full_scores[(kind, 0.0)]["test"],
+                        "chosen": full_scores[(kind, best)]["test"],
+                    },
+                }
+            ),
+            flush=True,
+        )
+
+
 def b1split(scenario: str, path: str) -> None:
     """B1 quick's round-2 error of a trained ``posterior_variants.py train`` model, split by pair: with a round-1 anchor
     (reports at that grid for that cell) or without; all and changed cells, model against oracle, and the beams."""
@@ -202,6 +323,8 @@ if __name__ == "__main__":
         )
     elif sys.argv[1] == "b1split":
         b1split(sys.argv[2], sys.argv[3])
+    elif sys.argv[1] == "blend":
+        blend(sys.argv[2], sys.argv[3], sys.argv[4])
     elif sys.argv[1] == "diagnose":
         diagnose(sys.argv[2], sys.argv[3])
     else:
