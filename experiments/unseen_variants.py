@@ -7,7 +7,7 @@ over the model's ``corrections`` config section and evaluate B6's unseen MAE (``
 
 Usage (from the repository root, one thread: deterministic and independent of the machine's load):
 
-    PYTHONPATH=src python experiments/unseen_variants.py train SCENARIO OUT.pt [SEED] [FRACTION]
+    PYTHONPATH=src python experiments/unseen_variants.py train SCENARIO OUT.pt [SEED] [FRACTION] [CONFIG_JSON]
     PYTHONPATH=src python experiments/unseen_variants.py refit SCENARIO OUT.pt '{}' '{"pair_posterior": false}' ...
 
 (At commit ``8b7acb5`` the model had a switch ``corrections.unseen_anchors``, measured with this script and dropped;
@@ -71,10 +71,15 @@ def _unseen(metrics: dict) -> dict:
     }
 
 
-def train(scenario: str, out: str, seed: int = 0, fraction: float = HOLDOUT) -> None:
+def train(scenario: str, out: str, seed: int = 0, fraction: float = HOLDOUT, extra: dict | None = None) -> None:
     data = _data(scenario)
-    run = train_and_evaluate(data, "rflscm", UnseenProtocol(fraction=fraction, seed=0), seed=seed)
-    saved = {"model": run.model, "unseen": _unseen(run.metrics), "train_time_s": run.train_time_s}
+    run = train_and_evaluate(data, "rflscm", UnseenProtocol(fraction=fraction, seed=0), extra, seed=seed)
+    saved = {
+        "model": run.model,
+        "unseen": _unseen(run.metrics),
+        "train_time_s": run.train_time_s,
+        "unseen_blend": run.model.run_info.get("unseen_blend"),
+    }
     torch.save(saved, out)
     print("TRAINED", json.dumps({k: v for k, v in saved.items() if k != "model"}), flush=True)
 
@@ -320,6 +325,7 @@ if __name__ == "__main__":
             sys.argv[3],
             int(sys.argv[4]) if len(sys.argv) > 4 else 0,
             float(sys.argv[5]) if len(sys.argv) > 5 else HOLDOUT,
+            json.loads(sys.argv[6]) if len(sys.argv) > 6 else None,
         )
     elif sys.argv[1] == "b1split":
         b1split(sys.argv[2], sys.argv[3])
