@@ -143,3 +143,22 @@ def test_the_weight_survives_a_save_and_a_damaged_one_is_refused() -> None:
     for bad in (torch.tensor(1.5), torch.tensor([0.1, 0.2]), "x"):
         with pytest.raises(CheckpointError, match="blend weight"):
             PairCorrections.from_state({**state, "unseen_weight": bad}, 4)
+
+
+def test_a_saved_model_predicts_the_same_blend(trained, tmp_path) -> None:
+    from rflscm.models import load_model
+
+    scenario, model, _ = trained
+    fitted = model.corrections
+    model.corrections = PairCorrections(fitted.levels, fitted.anchors, fitted.posterior, None, 0.4)
+    try:
+        path = model.save(tmp_path / "blend.ckpt")
+        cells = np.asarray(model.scene.cell_ids[:2], np.int64)
+        at = np.array([[3.0, 4.0, 1.5], [3.0, 4.0, 1.5]])
+        expected = model.aps(cells, np.array([10**6, 10**6]), at)
+    finally:
+        model.corrections = fitted
+    loaded = load_model(path, scenario)
+    assert loaded.corrections.unseen_weight == 0.4  # exactly: a loaded model predicts the same
+    assert loaded.run_info["unseen_blend"] == model.run_info["unseen_blend"]
+    torch.testing.assert_close(loaded.aps(cells, np.array([10**6, 10**6]), at), expected)

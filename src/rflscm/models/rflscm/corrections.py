@@ -138,7 +138,7 @@ class PairCorrections:
             "anchors": _anchors_state(self.anchors),
             "posterior": self.posterior.to_state() if self.posterior is not None else None,
             "fallback": self.fallback.to_state() if self.fallback is not None else None,
-            "unseen_weight": torch.tensor(float(self.unseen_weight)),
+            "unseen_weight": torch.tensor(float(self.unseen_weight), dtype=torch.float64),
         }
 
     @classmethod
