@@ -25,6 +25,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from rflscm.bench import BenchContext
@@ -63,6 +64,8 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
     data = _data(scenario)
     saved = torch.load(path, weights_only=False)
     model, wnomp = saved["model"], saved["wnomp"]
+    if not hasattr(model, "_blend_grids"):  # pickled before the unseen-grid blend existed: its hold-out is empty
+        model._blend_grids = np.zeros(0, np.int64)
     print("WNOMP", json.dumps(wnomp), "TRAINED-WITH", json.dumps(saved["rflscm"]), flush=True)
     base = model.config
     from rflscm.models.rflscm import corrections as module

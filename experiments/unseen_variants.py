@@ -71,6 +71,15 @@ def _unseen(metrics: dict) -> dict:
     }
 
 
+def _loaded(path: str):
+    """The trained model saved at ``path`` (pickled whole; one pickled before the unseen-grid blend existed gets its
+    empty hold-out, as ``prepare`` sets it with the blend off)."""
+    model = torch.load(path, weights_only=False)["model"]
+    if not hasattr(model, "_blend_grids"):
+        model._blend_grids = np.zeros(0, np.int64)
+    return model
+
+
 def train(scenario: str, out: str, seed: int = 0, fraction: float = HOLDOUT, extra: dict | None = None) -> None:
     data = _data(scenario)
     run = train_and_evaluate(data, "rflscm", UnseenProtocol(fraction=fraction, seed=0), extra, seed=seed)
@@ -87,7 +96,7 @@ def train(scenario: str, out: str, seed: int = 0, fraction: float = HOLDOUT, ext
 def refit(scenario: str, path: str, variants: list[dict]) -> None:
     data = _data(scenario)
     saved = torch.load(path, weights_only=False)
-    model = saved["model"]
+    model = _loaded(path)
     print("TRAINED-WITH", json.dumps(saved["unseen"]), flush=True)
     base = model.config
     for variant in variants:
@@ -154,7 +163,7 @@ def _split(res) -> dict:
 def diagnose(scenario: str, path: str) -> None:
     """Where the unseen-grid error lies: each pair's level against its shape, and the nearest seen grid's answer."""
     data = _data(scenario)
-    model = torch.load(path, weights_only=False)["model"]
+    model = _loaded(path)
     model.finish_training()
     anchors = model.corrections.anchors
     nearest = _Nearest(model, data.scenario.grids, anchors, model.run_info)
@@ -219,7 +228,7 @@ def _mae_rows(ev, grids: np.ndarray) -> dict:
 
 def _blend_scores(data, path: str, protocol: UnseenProtocol, grids: dict[str, np.ndarray]) -> dict:
     """``{(kind, w): {name: MAE rows at grids[name]}}`` of the model at ``path`` evaluated under ``protocol``."""
-    model = torch.load(path, weights_only=False)["model"]
+    model = _loaded(path)
     model.finish_training()
     base = APSCache(model)
     nearest = _Nearest(base, data.scenario.grids, model.corrections.anchors, model.run_info)
@@ -294,7 +303,7 @@ def b1split(scenario: str, path: str) -> None:
     from rflscm.eval import AdjustProtocol
 
     data = _data(scenario)
-    model = torch.load(path, weights_only=False)["model"]
+    model = _loaded(path)
     model.finish_training()
     ev = run_evaluation(APSCache(model), data.scenario, AdjustProtocol(), oracle=data.oracle)
     anchored = model.corrections.anchors.index
