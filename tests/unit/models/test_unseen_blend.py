@@ -17,7 +17,13 @@ from rflscm.geometry import AngleGrid
 from rflscm.models.pairs import PairData
 from rflscm.models.rflscm import RFLSCM
 from rflscm.models.rflscm.config import CorrectionsConfig
-from rflscm.models.rflscm.corrections import BLEND_WEIGHTS, PairCorrections, blend_grids, choose_blend
+from rflscm.models.rflscm.corrections import (
+    BLEND_WEIGHTS,
+    UNSEEN_WEIGHT,
+    PairCorrections,
+    blend_grids,
+    choose_blend,
+)
 from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)
@@ -76,6 +82,20 @@ def test_the_held_out_grids_are_a_seeded_share_of_the_reported_grids() -> None:
 def test_a_share_outside_zero_to_one_is_refused_in_one_line(share: float) -> None:
     with pytest.raises(ConfigError, match="unseen_blend_grids"):
         CorrectionsConfig(unseen_blend_grids=share)
+    assert CorrectionsConfig(unseen_blend_grids=None).unseen_blend_grids is None  # no blend
+
+
+@pytest.mark.parametrize(("share", "weight"), [(0.0, UNSEEN_WEIGHT), (None, 0.0)])
+def test_without_a_hold_out_the_weight_is_the_constant_or_none(tmp_path, share, weight) -> None:
+    scenario = load_scenario(tiny_scenario(tmp_path, seed=0))
+    config = tiny_config(corrections={"unseen_blend_grids": share})
+    plan = RFLSCM.build(config, GRID).prepare(scenario)
+    model = RFLSCM.build(config, GRID)
+    fit(model, scenario, progress=False)
+    d = model._training().data
+    assert model._blend_grids.size == 0 and len(plan.pairs) == int(d.beam_mask.any(1).sum())  # every grid trains
+    assert model.corrections.unseen_weight == weight
+    assert ("unseen_blend" in model.run_info) == (share is not None)
 
 
 @pytest.fixture(scope="module")

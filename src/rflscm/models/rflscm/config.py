@@ -359,18 +359,18 @@ class CorrectionsConfig:
     with about as many reports (this many groups of about equal size among the pairs λ is chosen on, by report
     count): a pair with many reports can follow them further than one with few.  1: one choice for all pairs."""
 
-    unseen_blend_grids: float = 0.0
-    """Share of the training grids (those with reported round-1 beams) held out of the field's training to choose
-    how a grid without any round-1 report (an unseen grid) is predicted: the model's APS there blended with its APS
-    at the cell's nearest anchored grid, (1 − w) × own + w × nearest (linear), w among 0, 0.1, …, 1 chosen on the
-    held-out grids' reports (0 keeps the field alone; :func:`~rflscm.models.rflscm.corrections.choose_blend`).
-    The held-out grids' pairs still get their anchors and posterior after training; the field trains on that
-    share of the grids less.  0: no hold-out and no blend."""
+    unseen_blend_grids: float | None = 0.0
+    """How a grid without any round-1 report (an unseen grid) is predicted: the model's APS there blended with its
+    APS at the cell's nearest anchored grid, (1 − w) × own + w × nearest (linear).  0: w is
+    :data:`~rflscm.models.rflscm.corrections.UNSEEN_WEIGHT`; a share in (0, 1): that share of the training grids
+    (those with reported round-1 beams) is held out of the field's training and w among 0, 0.1, …, 1 is chosen on
+    their reports (:func:`~rflscm.models.rflscm.corrections.choose_blend`; their pairs still get anchors and a
+    posterior after training, but the field trains on that share of the grids less); None: no blend."""
 
     def __post_init__(self) -> None:
         if self.lambda_groups < 1:
             raise ConfigError(f"`model.corrections.lambda_groups` must be >= 1 (got {self.lambda_groups}).")
-        if not 0.0 <= self.unseen_blend_grids < 1.0:
+        if self.unseen_blend_grids is not None and not 0.0 <= self.unseen_blend_grids < 1.0:
             raise ConfigError(
                 f"`model.corrections.unseen_blend_grids` must lie in [0, 1) (got {self.unseen_blend_grids})."
             )

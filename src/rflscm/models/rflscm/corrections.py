@@ -261,6 +261,11 @@ def fit_corrections(
     return PairCorrections(levels, anchor_series, posterior, left_over)
 
 
+UNSEEN_WEIGHT = 0.5
+"""The unseen-grid blend's weight without a hold-out (``corrections.unseen_blend_grids`` 0).  On the shipped scene,
+chosen on grids held out of training (never on B6's test grids): 0.7 (field regime, a B6 quick model trained
+without 22 more grids), 0.5 and 0.3 (field, the knob at 0.2 in B6 and B1 quick) and 0.5 (ideal); the median of
+those choices (docs/DECISIONS.md, "Unseen grids (issue 28)")."""
 BLEND_WEIGHTS = tuple(i / 10 for i in range(11))
 """The unseen-grid blend's candidate weights of the nearest anchored grid's APS (0: the grid's own alone)."""
 

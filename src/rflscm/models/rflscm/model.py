@@ -48,6 +48,7 @@ from rflscm.models.rflscm.config import (
 )
 from rflscm.models.rflscm.corrections import (
     PAIR_CHUNK,
+    UNSEEN_WEIGHT,
     PairCorrections,
     TimeLeftFn,
     blend_grids,
@@ -220,7 +221,7 @@ class RFLSCM(LSCMModel):
         d = self._training().data
         self.run_info["num_pairs"] = d.num_pairs
         trained = d.beam_mask.any(1)
-        self._blend_grids = blend_grids(d, self.config.corrections.unseen_blend_grids, self.config.train.seed)
+        self._blend_grids = blend_grids(d, self.config.corrections.unseen_blend_grids or 0.0, self.config.train.seed)
         if self._blend_grids.size:  # their reports choose the unseen-grid blend after training: not trained on
             trained = trained & torch.as_tensor(~np.isin(d.grid_ids, self._blend_grids), device=trained.device)
         pairs = torch.nonzero(trained).squeeze(1).cpu()
@@ -526,6 +527,9 @@ class RFLSCM(LSCMModel):
         cfg = self.config.corrections
         if self._blend_grids.size:
             self._choose_unseen_blend()
+        elif cfg.unseen_blend_grids is not None:
+            self.corrections.unseen_weight = UNSEEN_WEIGHT
+            self.run_info["unseen_blend"] = {"weight": UNSEEN_WEIGHT, "held_out_grids": 0.0, "held_out_pairs": 0.0}
         if cfg.pair_anchors or cfg.pair_posterior:  # per-pair corrections: how many pairs the pass reached
             fallback = self.corrections.fallback
             self.run_info["corrections"] = {
