@@ -123,6 +123,7 @@ def test_the_held_out_grids_are_not_trained_on_but_are_corrected(trained) -> Non
 
 
 def test_a_grid_without_reports_blends_its_aps_with_the_nearest_anchored_grids(trained) -> None:
+    # APS values are ~1e-8 path gains: every comparison is relative (atol 0)
     _, model, _ = trained
     fitted = model.corrections
     cells = np.asarray(model.scene.cell_ids[:2], np.int64)
@@ -140,13 +141,23 @@ def test_a_grid_without_reports_blends_its_aps_with_the_nearest_anchored_grids(t
     near = np.array([model._nearest_anchored(cells[i : i + 1], xyz)[0] for i in range(2)])
     assert near[0] == near_grid
     nearest = model.aps(cells, near)
-    assert not torch.allclose(own, nearest)  # the blend is no copy of either
-    torch.testing.assert_close(blended, 0.6 * own + 0.4 * nearest)
+    assert not torch.allclose(own, nearest, rtol=1e-3, atol=0.0)  # the blend is no copy of either
+    torch.testing.assert_close(blended, 0.6 * own + 0.4 * nearest, rtol=1e-5, atol=0.0)
+    # far from every anchored grid there is nothing near to borrow from: the grid's own APS
+    far = at + np.array([[200.0, 0.0, 0.0]])  # the tiny scene's anchored grids are ~50 m apart: 150 m reach
+    try:
+        model.corrections = PairCorrections(fitted.levels, fitted.anchors, fitted.posterior, None, 0.0)
+        far_own = model.aps(cells, unseen, far)
+        assert bool((far_own.sum(1) > 0).all())
+        model.corrections = PairCorrections(fitted.levels, fitted.anchors, fitted.posterior, None, 0.4)
+        torch.testing.assert_close(model.aps(cells, unseen, far), far_own, rtol=1e-5, atol=0.0)
+    finally:
+        model.corrections = fitted
     # a grid with anchors keeps its own corrected APS
     seen = model.aps(cells[:1], np.array([near_grid]))
     model.corrections = PairCorrections(fitted.levels, fitted.anchors, fitted.posterior, None, 0.4)
     try:
-        torch.testing.assert_close(model.aps(cells[:1], np.array([near_grid])), seen)
+        torch.testing.assert_close(model.aps(cells[:1], np.array([near_grid])), seen, rtol=1e-5, atol=0.0)
     finally:
         model.corrections = fitted
 
@@ -174,11 +185,16 @@ def test_a_saved_model_predicts_the_same_blend(trained, tmp_path) -> None:
     try:
         path = model.save(tmp_path / "blend.ckpt")
         cells = np.asarray(model.scene.cell_ids[:2], np.int64)
-        at = np.array([[3.0, 4.0, 1.5], [3.0, 4.0, 1.5]])
+        near_grid = int(model.corrections.anchors.xs(int(cells[0]), level="cell_id").index[0])
+        at = np.repeat(model.scene.grid_positions(np.array([near_grid])) + np.array([[20.0, 0.0, 0.0]]), 2, axis=0)
         expected = model.aps(cells, np.array([10**6, 10**6]), at)
     finally:
         model.corrections = fitted
     loaded = load_model(path, scenario)
     assert loaded.corrections.unseen_weight == 0.4  # exactly: a loaded model predicts the same
     assert loaded.run_info["unseen_blend"] == model.run_info["unseen_blend"]
-    torch.testing.assert_close(loaded.aps(cells, np.array([10**6, 10**6]), at), expected)
+    torch.testing.assert_close(loaded.aps(cells, np.array([10**6, 10**6]), at), expected, rtol=1e-5, atol=0.0)
+    loaded.corrections.unseen_weight = 0.0
+    assert not torch.allclose(
+        expected, loaded.aps(cells, np.array([10**6, 10**6]), at), rtol=1e-3, atol=0.0
+    )  # it did blend

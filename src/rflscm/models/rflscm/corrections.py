@@ -262,11 +262,15 @@ def fit_corrections(
 
 
 UNSEEN_WEIGHT = 0.5
-"""The unseen-grid blend's weight without a hold-out (``corrections.unseen_blend_grids`` 0).  On the shipped scene,
-chosen on grids held out of training (never on B6's test grids): 0.7 (field regime, a B6 quick model trained
-without 22 more grids), 0.5 and 0.3 (field, the knob at 0.2 in B6 and B1 quick) and 0.5 (ideal); the median of
-those choices (docs/DECISIONS.md, "Unseen grids (issue 28)")."""
+"""The unseen-grid blend's weight without a hold-out (``corrections.unseen_blend_grids`` 0): the median of the
+weights chosen on grids held out of training on the shipped scene, never on B6's test grids: field regime 0.7 (a B6
+quick model trained without 22 more grids), 0.5 and 0.3 (the knob at 0.2 in B6 and B1 quick); ideal regime 0.5
+and 0.9 (the same two B6 ways).  docs/DECISIONS.md, "Unseen grids (issue 28)"."""
 BLEND_WEIGHTS = tuple(i / 10 for i in range(11))
+BLEND_REACH = 3.0
+"""An unseen grid is blended only when the cell's nearest anchored grid lies within this many times the anchored
+grids' median spacing: B6's unseen grids are a median 10 m (one spacing) and a mean 11.5 m from theirs, and a
+grid far from every measured one has nothing near to borrow from."""
 """The unseen-grid blend's candidate weights of the nearest anchored grid's APS (0: the grid's own alone)."""
 
 

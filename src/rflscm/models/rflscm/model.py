@@ -47,6 +47,7 @@ from rflscm.models.rflscm.config import (
     load_rflscm_config,
 )
 from rflscm.models.rflscm.corrections import (
+    BLEND_REACH,
     PAIR_CHUNK,
     UNSEEN_WEIGHT,
     PairCorrections,
@@ -460,11 +461,29 @@ class RFLSCM(LSCMModel):
             unseen = ~np.isin(grid_ids, anchors.index.get_level_values("grid_id").to_numpy()) & ~skip
             blend = np.flatnonzero(unseen)
             near = self._nearest_anchored(cell_ids[blend], xyz[blend])
-            blend, near = blend[near >= 0], near[near >= 0]
+            close = self._within_reach(near, xyz[blend])
+            blend, near = blend[close], near[close]
             if blend.size:  # the cell's nearest anchored grid has an anchor: no further blend there
                 at = torch.as_tensor(blend, dtype=torch.long, device=self.device)
                 out[at] = (1.0 - w) * out[at] + w * self.aps(cell_ids[blend], near)
         return out
+
+    def _within_reach(self, near: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """bool ``[n]``: the rows whose nearest anchored grid ``near`` (−1: none) lies within ``BLEND_REACH`` times
+        the anchored grids' median spacing (each one's distance to the nearest other) of ``xyz [n, 3]``: the blend
+        was measured at unseen grids a grid spacing or two from a measured one, not far from every one."""
+        assert self.scene is not None and self.corrections.anchors is not None
+        ok = near >= 0
+        grids = np.unique(self.corrections.anchors.index.get_level_values("grid_id").to_numpy(np.int64))
+        if not ok.any() or grids.size < 2:
+            return ok
+        from scipy.spatial import cKDTree
+
+        spacing = cKDTree(self.scene.grid_positions(grids)).query(self.scene.grid_positions(grids), k=2)[0][:, 1]
+        reach = BLEND_REACH * float(np.median(spacing))
+        dist = np.full(len(near), np.inf)
+        dist[ok] = np.linalg.norm(self.scene.grid_positions(near[ok]) - xyz[ok], axis=1)
+        return ok & (dist <= reach)
 
     def _nearest_anchored(self, cell_ids: np.ndarray, xyz: np.ndarray, exclude: np.ndarray | None = None) -> np.ndarray:
         """Per row, the grid id of the anchored grid of that cell nearest to ``xyz [n, 3]`` (−1 where the cell has
@@ -550,7 +569,7 @@ class RFLSCM(LSCMModel):
         cell_ids = np.asarray(self.scene.cell_ids, np.int64)[cell_index]
         xyz = d.grid_xyz.cpu().double().numpy()[rows]
         near = self._nearest_anchored(cell_ids, xyz, exclude=self._blend_grids)
-        ok = near >= 0
+        ok = self._within_reach(near, xyz)
         rows, cell_index, cell_ids, near = rows[ok], cell_index[ok], cell_ids[ok], near[ok]
         weight, scores = 0.0, dict[float, float]()
         if rows.size:
