@@ -229,6 +229,8 @@ def _mae_rows(ev, grids: np.ndarray) -> dict:
 def _blend_scores(data, path: str, protocol: UnseenProtocol, grids: dict[str, np.ndarray]) -> dict:
     """``{(kind, w): {name: MAE rows at grids[name]}}`` of the model at ``path`` evaluated under ``protocol``."""
     model = _loaded(path)
+    corrections = dataclasses.replace(model.config.corrections, unseen_blend_grids=None)  # the model's own blend off
+    model.config = dataclasses.replace(model.config, corrections=corrections)
     model.finish_training()
     base = APSCache(model)
     nearest = _Nearest(base, data.scenario.grids, model.corrections.anchors, model.run_info)
