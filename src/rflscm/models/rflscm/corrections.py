@@ -263,9 +263,10 @@ def fit_corrections(
 
 UNSEEN_WEIGHT = 0.5
 """The unseen-grid blend's weight without a hold-out (``corrections.unseen_blend_grids`` 0): the median of the
-weights chosen on grids held out of training on the shipped scene, never on B6's test grids: field regime 0.7 (a B6
-quick model trained without 22 more grids), 0.5 and 0.3 (the knob at 0.2 in B6 and B1 quick); ideal regime 0.5
-and 0.9 (the same two B6 ways).  docs/DECISIONS.md, "Unseen grids (issue 28)"."""
+weights chosen on grids held out of training, never on B6's test grids.  Shipped scene, field regime: 0.7 (a B6
+quick model trained without 22 more grids), 0.5 and 0.3 (the knob at 0.2 in B6 and B1 quick); ideal regime: 0.5
+and 0.9 (the same two B6 ways); a procedural city, field regime: 0.3 (the first way), where 0.5 does worse than no
+blend.  docs/DECISIONS.md, "Unseen grids (issue 28)"."""
 BLEND_WEIGHTS = tuple(i / 10 for i in range(11))
 BLEND_REACH = 3.0
 """An unseen grid is blended only when the cell's nearest anchored grid lies within this many times the anchored
