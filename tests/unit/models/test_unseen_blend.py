@@ -198,3 +198,13 @@ def test_a_saved_model_predicts_the_same_blend(trained, tmp_path) -> None:
     assert not torch.allclose(
         expected, loaded.aps(cells, np.array([10**6, 10**6]), at), rtol=1e-3, atol=0.0
     )  # it did blend
+
+
+def test_without_anchors_there_is_nothing_to_blend_with(tmp_path) -> None:
+    scenario = load_scenario(tiny_scenario(tmp_path, seed=0))
+    model = RFLSCM.build(tiny_config(corrections={"unseen_blend_grids": 0.3, "pair_anchors": False}), GRID)
+    fit(model, scenario, progress=False)
+    assert model.corrections.anchors is None and model.corrections.unseen_weight == 0.0
+    assert model.run_info["unseen_blend"]["held_out_pairs"] == 0.0
+    cells = np.asarray(model.scene.cell_ids[:1], np.int64)
+    assert model.aps(cells, np.array([10**6]), np.array([[0.0, 0.0, 1.5]])).shape[0] == 1

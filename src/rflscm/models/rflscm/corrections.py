@@ -268,11 +268,11 @@ quick model trained without 22 more grids), 0.5 and 0.3 (the knob at 0.2 in B6 a
 and 0.9 (the same two B6 ways); a procedural city, field regime: 0.3 (the first way), where 0.5 does worse than no
 blend.  docs/DECISIONS.md, "Unseen grids (issue 28)"."""
 BLEND_WEIGHTS = tuple(i / 10 for i in range(11))
+"""The unseen-grid blend's candidate weights of the nearest anchored grid's APS (0: the grid's own alone)."""
 BLEND_REACH = 3.0
 """An unseen grid is blended only when the cell's nearest anchored grid lies within this many times the anchored
 grids' median spacing: B6's unseen grids are a median 10 m (one spacing) and a mean 11.5 m from theirs, and a
 grid far from every measured one has nothing near to borrow from."""
-"""The unseen-grid blend's candidate weights of the nearest anchored grid's APS (0: the grid's own alone)."""
 
 
 def blend_grids(data: PairData, share: float, seed: int) -> np.ndarray:

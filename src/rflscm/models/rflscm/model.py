@@ -472,10 +472,13 @@ class RFLSCM(LSCMModel):
         """bool ``[n]``: the rows whose nearest anchored grid ``near`` (−1: none) lies within ``BLEND_REACH`` times
         the anchored grids' median spacing (each one's distance to the nearest other) of ``xyz [n, 3]``: the blend
         was measured at unseen grids a grid spacing or two from a measured one, not far from every one."""
-        assert self.scene is not None and self.corrections.anchors is not None
+        assert self.scene is not None
         ok = near >= 0
-        grids = np.unique(self.corrections.anchors.index.get_level_values("grid_id").to_numpy(np.int64))
-        if not ok.any() or grids.size < 2:
+        anchors = self.corrections.anchors
+        if not ok.any() or anchors is None:
+            return ok
+        grids = np.unique(anchors.index.get_level_values("grid_id").to_numpy(np.int64))
+        if grids.size < 2:
             return ok
         from scipy.spatial import cKDTree
 
