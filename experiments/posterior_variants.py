@@ -7,7 +7,7 @@ WNOMP at its selected settings (as B1 and ``rflscm demo`` choose them) and the d
 
 Usage (from the repository root, one thread: deterministic and independent of the machine's load):
 
-    PYTHONPATH=src python experiments/posterior_variants.py train SCENARIO OUT.pt [SEED]
+    PYTHONPATH=src python experiments/posterior_variants.py train SCENARIO OUT.pt [SEED] [CONFIG_JSON]
     PYTHONPATH=src python experiments/posterior_variants.py refit SCENARIO OUT.pt '{}' '{"wnomp_atoms": true}' ...
 
 ``train`` runs B1 quick's RF-LSCM (training seed SEED, default 0; 1500 steps) and WNOMP on ``SCENARIO`` and saves the trained model with
@@ -25,6 +25,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from rflscm.bench import BenchContext
@@ -43,9 +44,9 @@ def _data(scenario: str):
     return load_bench_data(BenchContext("quick", 1, Path("/tmp/posterior_variants"), "cpu", scenario), quick_size())
 
 
-def train(scenario: str, out: str, seed: int = 0) -> None:
+def train(scenario: str, out: str, seed: int = 0, extra: dict | None = None) -> None:
     data = _data(scenario)
-    run = train_and_evaluate(data, "rflscm", AdjustProtocol(), seed=seed)
+    run = train_and_evaluate(data, "rflscm", AdjustProtocol(), extra, seed=seed)
     wnomp = train_and_evaluate(data, "wnomp", AdjustProtocol(), seed=0)
     saved = {
         "model": run.model,
@@ -53,6 +54,7 @@ def train(scenario: str, out: str, seed: int = 0) -> None:
         "wnomp": _table(wnomp.metrics["mae_db"]),
         "oracle": _table(run.metrics["oracle_mae_db"]),
         "train_time_s": run.train_time_s,
+        "unseen_blend": run.model.run_info.get("unseen_blend"),
     }
     torch.save(saved, out)
     print("TRAINED", json.dumps({k: v for k, v in saved.items() if k != "model"}), flush=True)
@@ -62,6 +64,8 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
     data = _data(scenario)
     saved = torch.load(path, weights_only=False)
     model, wnomp = saved["model"], saved["wnomp"]
+    if not hasattr(model, "_blend_grids"):  # pickled before the unseen-grid blend existed: its hold-out is empty
+        model._blend_grids = np.zeros(0, np.int64)
     print("WNOMP", json.dumps(wnomp), "TRAINED-WITH", json.dumps(saved["rflscm"]), flush=True)
     base = model.config
     from rflscm.models.rflscm import corrections as module
@@ -101,6 +105,11 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
 if __name__ == "__main__":
     torch.set_num_threads(1)
     if sys.argv[1] == "train":
-        train(sys.argv[2], sys.argv[3], int(sys.argv[4]) if len(sys.argv) > 4 else 0)
+        train(
+            sys.argv[2],
+            sys.argv[3],
+            int(sys.argv[4]) if len(sys.argv) > 4 else 0,
+            json.loads(sys.argv[5]) if len(sys.argv) > 5 else None,
+        )
     else:
         refit(sys.argv[2], sys.argv[3], [json.loads(v) for v in sys.argv[4:]])

@@ -7,7 +7,7 @@ over the model's ``corrections`` config section and evaluate B6's unseen MAE (``
 
 Usage (from the repository root, one thread: deterministic and independent of the machine's load):
 
-    PYTHONPATH=src python experiments/unseen_variants.py train SCENARIO OUT.pt [SEED]
+    PYTHONPATH=src python experiments/unseen_variants.py train SCENARIO OUT.pt [SEED] [FRACTION] [CONFIG_JSON]
     PYTHONPATH=src python experiments/unseen_variants.py refit SCENARIO OUT.pt '{}' '{"pair_posterior": false}' ...
 
 (At commit ``8b7acb5`` the model had a switch ``corrections.unseen_anchors``, measured with this script and dropped;
@@ -24,6 +24,17 @@ distance to that grid (``DIST``).
 
 splits B1 quick's round-2 error of a model saved by ``posterior_variants.py train`` into pairs with a round-1
 anchor and pairs without (``SPLIT`` lines), the model's and the oracle's MAE on the same beams.
+
+    PYTHONPATH=src python experiments/unseen_variants.py train SCENARIO INNER.pt 0 0.35
+    PYTHONPATH=src python experiments/unseen_variants.py blend SCENARIO FULL.pt INNER.pt
+
+blends, at a pair without an anchor, the model's APS at its grid with its APS at the cell's nearest anchored grid
+(``mix``: (1 − w) × own + w × nearest, linear; ``level``: the own APS scaled by (nearest / own total power)^w), and
+chooses w on grids held out of training but not of the test: ``INNER.pt`` is trained with a larger hold-out
+(``FRACTION`` 0.35; ``split_grids`` draws a prefix of one seeded order, so its held-out grids are B6's test grids
+plus others), the weight is chosen on those others (``INNER`` lines, per w) and the chosen weight is scored on B6's
+test grids with both models (``CHOSEN`` lines; ``FULL.pt`` trained with B6's own hold-out).  The test grids' MAE
+for every w is printed too (``TEST`` lines), for reading only: choosing on them would tune to the test.
 """
 
 from __future__ import annotations
@@ -43,6 +54,7 @@ from rflscm.bench.b06_unseen import HOLDOUT
 from rflscm.bench.harness import load_bench_data, quick_size, train_and_evaluate
 from rflscm.eval import UnseenProtocol, run_evaluation
 from rflscm.eval.cache import APSCache
+from rflscm.eval.protocols import protocol_from_dict
 
 PROTOCOL = UnseenProtocol(fraction=HOLDOUT, seed=0)
 
@@ -59,10 +71,24 @@ def _unseen(metrics: dict) -> dict:
     }
 
 
-def train(scenario: str, out: str, seed: int = 0) -> None:
+def _loaded(path: str):
+    """The trained model saved at ``path`` (pickled whole; one pickled before the unseen-grid blend existed gets its
+    empty hold-out, as ``prepare`` sets it with the blend off)."""
+    model = torch.load(path, weights_only=False)["model"]
+    if not hasattr(model, "_blend_grids"):
+        model._blend_grids = np.zeros(0, np.int64)
+    return model
+
+
+def train(scenario: str, out: str, seed: int = 0, fraction: float = HOLDOUT, extra: dict | None = None) -> None:
     data = _data(scenario)
-    run = train_and_evaluate(data, "rflscm", PROTOCOL, seed=seed)
-    saved = {"model": run.model, "unseen": _unseen(run.metrics), "train_time_s": run.train_time_s}
+    run = train_and_evaluate(data, "rflscm", UnseenProtocol(fraction=fraction, seed=0), extra, seed=seed)
+    saved = {
+        "model": run.model,
+        "unseen": _unseen(run.metrics),
+        "train_time_s": run.train_time_s,
+        "unseen_blend": run.model.run_info.get("unseen_blend"),
+    }
     torch.save(saved, out)
     print("TRAINED", json.dumps({k: v for k, v in saved.items() if k != "model"}), flush=True)
 
@@ -70,7 +96,7 @@ def train(scenario: str, out: str, seed: int = 0) -> None:
 def refit(scenario: str, path: str, variants: list[dict]) -> None:
     data = _data(scenario)
     saved = torch.load(path, weights_only=False)
-    model = saved["model"]
+    model = _loaded(path)
     print("TRAINED-WITH", json.dumps(saved["unseen"]), flush=True)
     base = model.config
     for variant in variants:
@@ -137,7 +163,7 @@ def _split(res) -> dict:
 def diagnose(scenario: str, path: str) -> None:
     """Where the unseen-grid error lies: each pair's level against its shape, and the nearest seen grid's answer."""
     data = _data(scenario)
-    model = torch.load(path, weights_only=False)["model"]
+    model = _loaded(path)
     model.finish_training()
     anchors = model.corrections.anchors
     nearest = _Nearest(model, data.scenario.grids, anchors, model.run_info)
@@ -162,13 +188,124 @@ def diagnose(scenario: str, path: str) -> None:
     )
 
 
+class _Blend(APSCache):
+    """At pairs without an anchor, ``base``'s APS at the pair's grid blended with its APS at the cell's nearest
+    anchored grid: ``mix`` (1 − w) × own + w × nearest (linear), ``level`` own × (nearest / own total)^w."""
+
+    def __init__(self, base: APSCache, nearest: _Nearest, kind: str, weight: float) -> None:
+        super().__init__(base)
+        self._base, self._nearest, self._kind, self._w = base, nearest, kind, weight
+
+    def aps(self, cell_ids, grid_ids, grid_xyz=None):
+        own = self._base.aps(cell_ids, grid_ids, grid_xyz)
+        if self._w == 0.0:
+            return own
+        near = self._nearest.aps(cell_ids, grid_ids, grid_xyz)
+        if self._kind == "mix":
+            return (1.0 - self._w) * own + self._w * near
+        ratio = near.sum(1, keepdim=True) / own.sum(1, keepdim=True).clamp_min(1e-30)
+        return own * torch.where(ratio > 0, ratio, torch.ones_like(ratio)) ** self._w
+
+
+WEIGHTS = [round(0.1 * i, 1) for i in range(11)]
+
+
+def _mae_rows(ev, grids: np.ndarray) -> dict:
+    """MAE [dB] of the unseen test pairs at ``grids``, SSB, CSI-RS and both pooled (beam-weighted), and the beams."""
+    out, errs = {}, []
+    for bt in ("ssb", "csi"):
+        res = ev.beams[bt]
+        rows = (~res.seen) & res.pairs["grid_id"].isin(grids).to_numpy()
+        err = (res.model - res.measured)[rows]
+        err = np.abs(err[np.isfinite(err)])
+        errs.append(err)
+        out[bt] = round(float(err.mean()), 3) if err.size else None
+        out[f"{bt}_beams"] = int(err.size)
+    pooled = np.concatenate(errs)
+    out["both"] = round(float(pooled.mean()), 4) if pooled.size else None
+    return out
+
+
+def _blend_scores(data, path: str, protocol: UnseenProtocol, grids: dict[str, np.ndarray]) -> dict:
+    """``{(kind, w): {name: MAE rows at grids[name]}}`` of the model at ``path`` evaluated under ``protocol``."""
+    model = _loaded(path)
+    corrections = dataclasses.replace(model.config.corrections, unseen_blend_grids=None)  # the model's own blend off
+    model.config = dataclasses.replace(model.config, corrections=corrections)
+    model.finish_training()
+    base = APSCache(model)
+    nearest = _Nearest(base, data.scenario.grids, model.corrections.anchors, model.run_info)
+    scores = {}
+    for kind in ("mix", "level"):
+        for w in WEIGHTS:
+            if w == 0.0 and kind == "level":
+                scores[(kind, w)] = scores[("mix", 0.0)]
+                continue
+            ev = run_evaluation(
+                _Blend(base, nearest, kind, w),
+                data.scenario,
+                protocol,
+                oracle=data.oracle,
+            )
+            scores[(kind, w)] = {name: _mae_rows(ev, g) for name, g in grids.items()}
+    return scores
+
+
+def blend(scenario: str, full: str, inner: str) -> None:
+    """Choose the blend's weight on the inner model's extra held-out grids, score it on B6's test grids."""
+    data = _data(scenario)
+    saved = torch.load(inner, weights_only=False)
+    inner_protocol = protocol_from_dict(saved["model"].run_info["protocol"])
+    test = PROTOCOL.held_out(data.scenario)
+    held = inner_protocol.held_out(data.scenario)
+    if not np.isin(test, held).all():
+        raise SystemExit("the inner model's hold-out does not contain B6's test grids (same seed, larger fraction)")
+    extra = np.setdiff1d(held, test)
+    print(
+        "GRIDS",
+        json.dumps(
+            {
+                "test": len(test),
+                "inner_extra": len(extra),
+                "inner_training": int(len(np.unique(data.scenario.measurements["grid_id"])) - len(held)),
+            }
+        ),
+        flush=True,
+    )
+    inner_scores = _blend_scores(data, inner, inner_protocol, {"extra": extra, "test": test})
+    full_scores = _blend_scores(data, full, PROTOCOL, {"test": test})
+    for (kind, w), row in inner_scores.items():
+        print("INNER", json.dumps({"kind": kind, "w": w, **row}), flush=True)
+    for (kind, w), row in full_scores.items():
+        print("TEST", json.dumps({"kind": kind, "w": w, "full": row["test"]}), flush=True)
+    for kind in ("mix", "level"):
+        best = min(WEIGHTS, key=lambda w: inner_scores[(kind, w)]["extra"]["both"])
+        print(
+            "CHOSEN",
+            json.dumps(
+                {
+                    "kind": kind,
+                    "w": best,
+                    "inner_test": {
+                        "w0": inner_scores[(kind, 0.0)]["test"],
+                        "chosen": inner_scores[(kind, best)]["test"],
+                    },
+                    "full_test": {
+                        "w0": full_scores[(kind, 0.0)]["test"],
+                        "chosen": full_scores[(kind, best)]["test"],
+                    },
+                }
+            ),
+            flush=True,
+        )
+
+
 def b1split(scenario: str, path: str) -> None:
     """B1 quick's round-2 error of a trained ``posterior_variants.py train`` model, split by pair: with a round-1 anchor
     (reports at that grid for that cell) or without; all and changed cells, model against oracle, and the beams."""
     from rflscm.eval import AdjustProtocol
 
     data = _data(scenario)
-    model = torch.load(path, weights_only=False)["model"]
+    model = _loaded(path)
     model.finish_training()
     ev = run_evaluation(APSCache(model), data.scenario, AdjustProtocol(), oracle=data.oracle)
     anchored = model.corrections.anchors.index
@@ -194,9 +331,17 @@ def b1split(scenario: str, path: str) -> None:
 if __name__ == "__main__":
     torch.set_num_threads(1)
     if sys.argv[1] == "train":
-        train(sys.argv[2], sys.argv[3], int(sys.argv[4]) if len(sys.argv) > 4 else 0)
+        train(
+            sys.argv[2],
+            sys.argv[3],
+            int(sys.argv[4]) if len(sys.argv) > 4 else 0,
+            float(sys.argv[5]) if len(sys.argv) > 5 else HOLDOUT,
+            json.loads(sys.argv[6]) if len(sys.argv) > 6 else None,
+        )
     elif sys.argv[1] == "b1split":
         b1split(sys.argv[2], sys.argv[3])
+    elif sys.argv[1] == "blend":
+        blend(sys.argv[2], sys.argv[3], sys.argv[4])
     elif sys.argv[1] == "diagnose":
         diagnose(sys.argv[2], sys.argv[3])
     else:

@@ -359,9 +359,21 @@ class CorrectionsConfig:
     with about as many reports (this many groups of about equal size among the pairs λ is chosen on, by report
     count): a pair with many reports can follow them further than one with few.  1: one choice for all pairs."""
 
+    unseen_blend_grids: float | None = 0.0
+    """How a grid without any round-1 report (an unseen grid) is predicted: the model's APS there blended with its
+    APS at the cell's nearest anchored grid, (1 − w) × own + w × nearest (linear).  0: w is
+    :data:`~rflscm.models.rflscm.corrections.UNSEEN_WEIGHT`; a share in (0, 1): that share of the training grids
+    (those with reported round-1 beams) is held out of the field's training and w among 0, 0.1, …, 1 is chosen on
+    their reports (:func:`~rflscm.models.rflscm.corrections.choose_blend`; their pairs still get anchors and a
+    posterior after training, but the field trains on that share of the grids less); None: no blend."""
+
     def __post_init__(self) -> None:
         if self.lambda_groups < 1:
             raise ConfigError(f"`model.corrections.lambda_groups` must be >= 1 (got {self.lambda_groups}).")
+        if self.unseen_blend_grids is not None and not 0.0 <= self.unseen_blend_grids < 1.0:
+            raise ConfigError(
+                f"`model.corrections.unseen_blend_grids` must lie in [0, 1) (got {self.unseen_blend_grids})."
+            )
 
 
 @dataclass(frozen=True)

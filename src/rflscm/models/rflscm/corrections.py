@@ -90,6 +90,9 @@ class PairCorrections:
     posterior: PairPosterior | None = None
     fallback: PairFallback | None = None
     """WNOMP's APS of the training pairs a budget's pass did not reach (:mod:`.fallback`), or None."""
+    unseen_weight: float = 0.0
+    """At a grid without an anchor, the weight of the model's APS at the cell's nearest anchored grid in the
+    prediction (``corrections.unseen_blend_grids``, :func:`choose_blend`); 0: the grid's own APS alone."""
 
     def apply(
         self, aps: torch.Tensor, cell_index: np.ndarray, cell_ids: np.ndarray, grid_ids: np.ndarray
@@ -138,6 +141,7 @@ class PairCorrections:
             "anchors": _anchors_state(self.anchors),
             "posterior": self.posterior.to_state() if self.posterior is not None else None,
             "fallback": self.fallback.to_state() if self.fallback is not None else None,
+            "unseen_weight": torch.tensor(float(self.unseen_weight), dtype=torch.float64),
         }
 
     @classmethod
@@ -150,11 +154,19 @@ class PairCorrections:
         if not isinstance(state, dict):
             raise CheckpointError("the checkpoint's pair corrections are damaged (not a mapping).")
         levels = state.get("levels")
+        weight = state.get("unseen_weight")  # absent in checkpoints written before the blend: no blend
+        try:
+            unseen_weight = 0.0 if weight is None else float(torch.as_tensor(weight).reshape(()))
+        except (RuntimeError, TypeError, ValueError):
+            unseen_weight = float("nan")
+        if not 0.0 <= unseen_weight <= 1.0:
+            raise CheckpointError("the checkpoint's pair corrections are damaged (the unseen-grid blend weight).")
         return cls(
             torch.as_tensor(levels, dtype=torch.float32, device=device) if levels is not None else None,
             _anchors_from_state(state.get("anchors")),
             PairPosterior.from_state(state.get("posterior"), num_bins),  # type: ignore[arg-type]
             PairFallback.from_state(state.get("fallback"), num_bins),
+            unseen_weight,
         )
 
 
@@ -250,6 +262,46 @@ def fit_corrections(
     lam, scores = plan.summary()
     posterior = PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores, base, plan.atom_scores, plan.groups)
     return PairCorrections(levels, anchor_series, posterior, left_over)
+
+
+UNSEEN_WEIGHT = 0.5
+"""The unseen-grid blend's weight without a hold-out (``corrections.unseen_blend_grids`` 0): the median of the
+weights chosen on grids held out of training, never on B6's test grids.  Shipped scene, field regime: 0.7 (a B6
+quick model trained without 22 more grids), 0.5 and 0.3 (the knob at 0.2 in B6 and B1 quick); ideal regime: 0.5
+and 0.9 (the same two B6 ways); a procedural city, field regime: 0.3 (the first way), where 0.5 does worse than no
+blend.  docs/DECISIONS.md, "Unseen grids (issue 28)"."""
+BLEND_WEIGHTS = tuple(i / 10 for i in range(11))
+"""The unseen-grid blend's candidate weights of the nearest anchored grid's APS (0: the grid's own alone)."""
+BLEND_REACH = 3.0
+"""An unseen grid is blended only when the cell's nearest anchored grid lies within this many times the anchored
+grids' median spacing: B6's unseen grids are a median 10 m (one spacing) and a mean 11.5 m from theirs, and a
+grid far from every measured one has nothing near to borrow from."""
+
+
+def blend_grids(data: PairData, share: float, seed: int) -> np.ndarray:
+    """The training grids held out of the field's training for the unseen-grid blend: a seeded ``share`` of the
+    grids with reported training beams, sorted (empty for share 0, and at least one grid is always trained on)."""
+    grids = np.unique(np.asarray(data.grid_ids)[data.observed.any(1).cpu().numpy()])
+    num = min(int(round(share * len(grids))), len(grids) - 1)
+    if share <= 0.0 or num < 1:
+        return np.zeros(0, np.int64)
+    return np.sort(np.random.default_rng(seed).permutation(grids)[:num]).astype(np.int64)
+
+
+def choose_blend(
+    own: torch.Tensor, nearest: torch.Tensor, measured: torch.Tensor, mask: torch.Tensor
+) -> tuple[float, dict[float, float]]:
+    """The weight ``w`` of :data:`BLEND_WEIGHTS` whose prediction (1 − w) × ``own`` + w × ``nearest`` (reports
+    ``[B, M]``, linear, in ``measured``'s unit) has the least MAE [dB] on the ``mask``-ed ``measured`` reports, and
+    every weight's MAE; the smaller weight on a tie, 0 when nothing is masked."""
+    scores: dict[float, float] = {}
+    if not bool(mask.any()):
+        return 0.0, scores
+    for w in BLEND_WEIGHTS:
+        pred = ((1.0 - w) * own + w * nearest)[mask].double().clamp_min(1e-30)
+        scores[w] = float((10.0 * torch.log10(measured[mask].double() / pred)).abs().mean())
+    best = min(BLEND_WEIGHTS, key=lambda w: (scores[w], w))
+    return best, scores
 
 
 @dataclass(frozen=True)

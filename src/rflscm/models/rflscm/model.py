@@ -47,9 +47,13 @@ from rflscm.models.rflscm.config import (
     load_rflscm_config,
 )
 from rflscm.models.rflscm.corrections import (
+    BLEND_REACH,
     PAIR_CHUNK,
+    UNSEEN_WEIGHT,
     PairCorrections,
     TimeLeftFn,
+    blend_grids,
+    choose_blend,
     fit_corrections,
     measure_pass,
 )
@@ -117,6 +121,8 @@ class RFLSCM(LSCMModel):
         self.corrections = PairCorrections()
         """The post-training pair corrections (fitted in :meth:`finish_training`, applied in :meth:`aps`)."""
         self._train: TrainContext | None = None
+        self._blend_grids = np.zeros(0, np.int64)
+        """Training grids held out of the field's training to choose the unseen-grid blend (``unseen_blend_grids``)."""
 
     @classmethod
     def build(
@@ -215,7 +221,11 @@ class RFLSCM(LSCMModel):
         self._prepare(scenario)
         d = self._training().data
         self.run_info["num_pairs"] = d.num_pairs
-        pairs = torch.nonzero(d.beam_mask.any(1)).squeeze(1).cpu()
+        trained = d.beam_mask.any(1)
+        self._blend_grids = blend_grids(d, self.config.corrections.unseen_blend_grids or 0.0, self.config.train.seed)
+        if self._blend_grids.size:  # their reports choose the unseen-grid blend after training: not trained on
+            trained = trained & torch.as_tensor(~np.isin(d.grid_ids, self._blend_grids), device=trained.device)
+        pairs = torch.nonzero(trained).squeeze(1).cpu()
         return TrainingPlan(pairs, d.cell_index.cpu()[pairs])
 
     def resume_from(self, payload: dict[str, Any], path: str | Path) -> None:
@@ -442,8 +452,63 @@ class RFLSCM(LSCMModel):
             answered = np.flatnonzero(~skip)
             at = torch.as_tensor([slot[keys[i]] for i in answered], dtype=torch.long, device=self.device)
             out[torch.as_tensor(answered, dtype=torch.long, device=self.device)] = rendered[at]
-        out = self.corrections.apply(out, cells, cell_ids, grid_ids)
-        return out * self.scene.x_ref
+        out = self.corrections.apply(out, cells, cell_ids, grid_ids) * self.scene.x_ref
+        w = self.corrections.unseen_weight
+        anchors = self.corrections.anchors
+        if w > 0.0 and anchors is not None and len(anchors):
+            grid_ids = np.asarray(grid_ids, np.int64).reshape(-1)
+            cell_ids = np.asarray(cell_ids, np.int64).reshape(-1)
+            unseen = ~np.isin(grid_ids, anchors.index.get_level_values("grid_id").to_numpy()) & ~skip
+            blend = np.flatnonzero(unseen)
+            near = self._nearest_anchored(cell_ids[blend], xyz[blend])
+            close = self._within_reach(near, xyz[blend])
+            blend, near = blend[close], near[close]
+            if blend.size:  # the cell's nearest anchored grid has an anchor: no further blend there
+                at = torch.as_tensor(blend, dtype=torch.long, device=self.device)
+                out[at] = (1.0 - w) * out[at] + w * self.aps(cell_ids[blend], near)
+        return out
+
+    def _within_reach(self, near: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """bool ``[n]``: the rows whose nearest anchored grid ``near`` (−1: none) lies within ``BLEND_REACH`` times
+        the anchored grids' median spacing (each one's distance to the nearest other) of ``xyz [n, 3]``: the blend
+        was measured at unseen grids a grid spacing or two from a measured one, not far from every one."""
+        assert self.scene is not None
+        ok = near >= 0
+        anchors = self.corrections.anchors
+        if not ok.any() or anchors is None:
+            return ok
+        grids = np.unique(anchors.index.get_level_values("grid_id").to_numpy(np.int64))
+        if grids.size < 2:
+            return ok
+        from scipy.spatial import cKDTree
+
+        spacing = cKDTree(self.scene.grid_positions(grids)).query(self.scene.grid_positions(grids), k=2)[0][:, 1]
+        reach = BLEND_REACH * float(np.median(spacing))
+        dist = np.full(len(near), np.inf)
+        dist[ok] = np.linalg.norm(self.scene.grid_positions(near[ok]) - xyz[ok], axis=1)
+        return ok & (dist <= reach)
+
+    def _nearest_anchored(self, cell_ids: np.ndarray, xyz: np.ndarray, exclude: np.ndarray | None = None) -> np.ndarray:
+        """Per row, the grid id of the anchored grid of that cell nearest to ``xyz [n, 3]`` (−1 where the cell has
+        none), among the anchored grids not in ``exclude``."""
+        assert self.scene is not None
+        out = np.full(len(cell_ids), -1, np.int64)
+        anchors = self.corrections.anchors
+        if anchors is None or not len(anchors):
+            return out
+        cells = anchors.index.get_level_values("cell_id").to_numpy(np.int64)
+        grids = anchors.index.get_level_values("grid_id").to_numpy(np.int64)
+        if exclude is not None and len(exclude):
+            keep = ~np.isin(grids, exclude)
+            cells, grids = cells[keep], grids[keep]
+        for cell in np.unique(cell_ids):
+            mine = grids[cells == cell]
+            if not mine.size:
+                continue
+            rows = np.flatnonzero(cell_ids == cell)
+            d = np.linalg.norm(xyz[rows][:, None, :] - self.scene.grid_positions(mine)[None, :, :], axis=2)
+            out[rows] = mine[np.argmin(d, axis=1)]
+        return out
 
     def level_offset_db(
         self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
@@ -482,6 +547,11 @@ class RFLSCM(LSCMModel):
             visible=torch.as_tensor(self.scene.visible, device=self.device),
         )
         cfg = self.config.corrections
+        if self._blend_grids.size:
+            self._choose_unseen_blend()
+        elif cfg.unseen_blend_grids is not None:
+            self.corrections.unseen_weight = UNSEEN_WEIGHT
+            self.run_info["unseen_blend"] = {"weight": UNSEEN_WEIGHT, "held_out_grids": 0.0, "held_out_pairs": 0.0}
         if cfg.pair_anchors or cfg.pair_posterior:  # per-pair corrections: how many pairs the pass reached
             fallback = self.corrections.fallback
             self.run_info["corrections"] = {
@@ -489,6 +559,51 @@ class RFLSCM(LSCMModel):
                 "corrected_pairs": self.corrections.corrected_pairs(),
                 "wnomp_pairs": float(len(fallback.index)) if fallback is not None else 0.0,
             }
+
+    @torch.no_grad()
+    def _choose_unseen_blend(self) -> None:
+        """The unseen-grid blend's weight, chosen on the reports of the grids held out of the field's training: each
+        held-out pair predicted by the field with the cell's level (as an unseen grid is), blended with the model at
+        the cell's nearest anchored grid that was trained on (:func:`choose_blend`)."""
+        d, train = self._training().data, self._training()
+        assert self.scene is not None
+        rows = np.flatnonzero(np.isin(d.grid_ids, self._blend_grids) & d.observed.any(1).cpu().numpy())
+        cell_index = d.cell_index.cpu().numpy()[rows]
+        cell_ids = np.asarray(self.scene.cell_ids, np.int64)[cell_index]
+        xyz = d.grid_xyz.cpu().double().numpy()[rows]
+        near = self._nearest_anchored(cell_ids, xyz, exclude=self._blend_grids)
+        ok = self._within_reach(near, xyz)
+        rows, cell_index, cell_ids, near = rows[ok], cell_index[ok], cell_ids[ok], near[ok]
+        weight, scores = 0.0, dict[float, float]()
+        if rows.size:
+            fitted = self.corrections
+            offset = fitted.level_offset_db(cell_index, "csi")  # CSI-RS reports carry the cell's CSI-RS level
+            own, nearest = [], []
+            for start in range(0, rows.size, PAIR_CHUNK):
+                part = slice(start, start + PAIR_CHUNK)
+                self.corrections = PairCorrections(levels=fitted.levels)  # the held-out grids as unseen: level only
+                try:
+                    own_aps = self.aps(cell_ids[part], d.grid_ids[rows[part]])
+                finally:
+                    self.corrections = fitted
+                near_aps = self.aps(cell_ids[part], near[part])
+                a = train.a_norm[torch.as_tensor(cell_index[part], device=self.device)]
+                gain = torch.ones(a.shape[0], a.shape[1], device=self.device)
+                if offset is not None:
+                    csi = torch.as_tensor(10.0 ** (offset[part] / 10.0), dtype=gain.dtype, device=self.device)
+                    gain[:, train.num_ssb :] = csi[:, None]
+                x_ref = self.scene.x_ref
+                own.append(torch.einsum("bmn,bn->bm", a, own_aps / x_ref) * gain)
+                nearest.append(torch.einsum("bmn,bn->bm", a, near_aps / x_ref) * gain)
+            at = torch.as_tensor(rows, device=self.device)
+            weight, scores = choose_blend(torch.cat(own), torch.cat(nearest), d.rsrp[at], d.observed[at])
+        self.corrections.unseen_weight = weight
+        self.run_info["unseen_blend"] = {
+            "weight": weight,
+            "held_out_grids": float(self._blend_grids.size),
+            "held_out_pairs": float(rows.size),
+            "mae_db": {str(w): round(v, 4) for w, v in scores.items()},
+        }
 
     def finish_seconds(self, clock: Callable[[], float] = time.perf_counter) -> PassCost:
         """What :meth:`finish_training` would cost for every training pair, in seconds of ``clock``, measured now on
