@@ -501,13 +501,14 @@ class RFLSCM(LSCMModel):
         if exclude is not None and len(exclude):
             keep = ~np.isin(grids, exclude)
             cells, grids = cells[keep], grids[keep]
+        from scipy.spatial import cKDTree
+
         for cell in np.unique(cell_ids):
             mine = grids[cells == cell]
             if not mine.size:
                 continue
-            rows = np.flatnonzero(cell_ids == cell)
-            d = np.linalg.norm(xyz[rows][:, None, :] - self.scene.grid_positions(mine)[None, :, :], axis=2)
-            out[rows] = mine[np.argmin(d, axis=1)]
+            rows = np.flatnonzero(cell_ids == cell)  # a k-d tree: no [rows, grids] distance matrix at scale
+            out[rows] = mine[cKDTree(self.scene.grid_positions(mine)).query(xyz[rows], k=1)[1]]
         return out
 
     def level_offset_db(
