@@ -105,6 +105,21 @@ def test_a_round_trip_through_torch_save_with_weights_only_keeps_every_part() ->
         PairCorrections.from_state([1, 2], K)  # type: ignore[arg-type]
 
 
+def timed_problem(num: int, num_cells: int, seed: int):
+    """``num`` pairs over ``num_cells`` cells measured near their APS sum (±1 dB noise), and a render that charges
+    10 ms of a fake clock (``now``) per pair: ``(rsrp, cells, render, now)``."""
+    gen = torch.Generator().manual_seed(seed)
+    aps = torch.rand(num, K, generator=gen) + 0.1
+    rsrp = (aps.sum(1, keepdim=True) * 10 ** (torch.randn(num, 2, generator=gen) / 10)).tolist()
+    now = [0.0]
+
+    def costly(pairs: torch.Tensor):
+        now[0] += 0.01 * pairs.numel()
+        return render(aps, [])(pairs)
+
+    return rsrp, [i % num_cells for i in range(num)], costly, now
+
+
 def test_within_a_deadline_the_pass_corrects_the_pairs_that_fit_and_the_rest_keep_the_level() -> None:
     """Every rendered pair costs 10 ms of a fake clock. The level's pairs come first, then chunks of the others while the
     slowest chunk so far (× CHUNK_MARGIN) still fits; pairs left over have no anchor; with time enough, every pair
@@ -112,15 +127,7 @@ def test_within_a_deadline_the_pass_corrects_the_pairs_that_fit_and_the_rest_kee
     from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL, PAIR_CHUNK
 
     num = 200
-    gen = torch.Generator().manual_seed(1)
-    aps = torch.rand(num, K, generator=gen) + 0.1
-    rsrp = (aps.sum(1, keepdim=True) * 10 ** (torch.randn(num, 2, generator=gen) / 10)).tolist()
-    cells = [i % 2 for i in range(num)]
-    now = [0.0]
-
-    def costly(pairs: torch.Tensor):
-        now[0] += 0.01 * pairs.numel()
-        return render(aps, [])(pairs)
+    rsrp, cells, costly, now = timed_problem(num, 2, seed=1)
 
     cfg = CorrectionsConfig(pair_posterior=False)
     args = (cfg, data(rsrp, cells), 1, np.array([7, 8]), costly, columns)
@@ -150,16 +157,7 @@ def test_short_of_time_lambdas_pairs_shrink_before_the_levels_pairs(monkeypatch:
     import rflscm.models.rflscm.corrections as module
     from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL, PAIR_CHUNK
 
-    num = 1200
-    gen = torch.Generator().manual_seed(2)
-    aps = torch.rand(num, K, generator=gen) + 0.1
-    rsrp = (aps.sum(1, keepdim=True) * 10 ** (torch.randn(num, 2, generator=gen) / 10)).tolist()
-    cells = [i % 4 for i in range(num)]
-    now = [0.0]
-
-    def costly(pairs: torch.Tensor):
-        now[0] += 0.01 * pairs.numel()
-        return render(aps, [])(pairs)
+    rsrp, cells, costly, now = timed_problem(1200, 4, seed=2)
 
     seen: dict[str, int] = {}
     first_pairs = module._first_pairs
@@ -290,17 +288,12 @@ def test_a_short_deadline_measures_the_levels_on_fewer_pairs_per_cell() -> None:
     (at least one per cell), and the pass still ends by the deadline."""
     from rflscm.models.rflscm.corrections import FIRST_SHARE
 
-    num = 400
-    gen = torch.Generator().manual_seed(2)
-    aps = torch.rand(num, K, generator=gen) + 0.1
-    rsrp = (aps.sum(1, keepdim=True) * 10 ** (torch.randn(num, 2, generator=gen) / 10)).tolist()
-    cells = [i % 4 for i in range(num)]
-    now, rendered = [0.0], []
+    rsrp, cells, timed, now = timed_problem(400, 4, seed=2)
+    rendered: list[int] = []
 
     def costly(pairs: torch.Tensor):
-        now[0] += 0.01 * pairs.numel()
         rendered.append(pairs.numel())
-        return render(aps, [])(pairs)
+        return timed(pairs)
 
     cfg = CorrectionsConfig(pair_posterior=False)
     args = (cfg, data(rsrp, cells), 1, np.array([7, 8, 9, 10]), costly, columns)
