@@ -465,7 +465,10 @@ class RFLSCM(LSCMModel):
             blend, near = blend[close], near[close]
             if blend.size:  # the cell's nearest anchored grid has an anchor: no further blend there
                 at = torch.as_tensor(blend, dtype=torch.long, device=self.device)
-                out[at] = (1.0 - w) * out[at] + w * self.aps(cell_ids[blend], near)
+                # each (cell, nearest anchored grid) once: many unseen grids share one (10 to 1 in the field regime)
+                pairs, back = np.unique(np.stack([cell_ids[blend], near], 1), axis=0, return_inverse=True)
+                nearest = self.aps(pairs[:, 0], pairs[:, 1])[torch.as_tensor(back.reshape(-1), device=self.device)]
+                out[at] = (1.0 - w) * out[at] + w * nearest
         return out
 
     def _within_reach(self, near: np.ndarray, xyz: np.ndarray) -> np.ndarray:
