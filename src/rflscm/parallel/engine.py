@@ -85,6 +85,14 @@ def ray_session(engine: Engine) -> Iterator[ModuleType]:
         started = True
     try:
         yield ray
+    except SystemError as exc:
+        # a signal handler's exception (the CLI's interruption on Ctrl-C) raised while Ray waited in its C code
+        # comes out as "SystemError: ... returned a result with an exception set", the real one as its cause:
+        # raise the real one, so that an interruption is reported as one (exit 130), not as a traceback
+        inner = exc.__cause__ or exc.__context__
+        if inner is None or isinstance(inner, SystemError):
+            raise
+        raise inner from None
     finally:
         if started:
             ray.shutdown()
