@@ -660,10 +660,11 @@ class _Fit:
         d = self.data
         parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
         slowest = 0.0
-        for start in range(0, pairs.numel(), FALLBACK_SOLVE if time_left is not None else max(pairs.numel(), 1)):
+        size = FALLBACK_SOLVE if time_left is not None else max(pairs.numel(), 1)  # no budget: one solve
+        for start in range(0, pairs.numel(), size):
             if parts and time_left is not None and time_left() < CHUNK_MARGIN * slowest:
                 break
-            part = pairs[start : start + FALLBACK_SOLVE] if time_left is not None else pairs
+            part = pairs[start : start + size]
             begun = clock()
             parts.append((part, *self.solve(part, d.observed[part], levels)))
             slowest = max(slowest, clock() - begun)
