@@ -18,6 +18,7 @@ import contextlib
 import os
 import stat
 import tempfile
+import zipfile
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 
@@ -57,6 +58,16 @@ def discard_stale_temps(path: str | Path | None) -> list[Path]:
                 tmp.unlink()
                 removed.append(tmp)
     return removed
+
+
+def is_zip_archive(path: str | Path) -> bool:
+    """Whether ``path`` looks like a zip archive (a PyTorch file); False for a damaged one whose end record
+    ``zipfile.is_zipfile`` itself chokes on (``BadZipFile``: a flipped byte can make it claim several disks).
+    Raises ``OSError`` when the file cannot be read."""
+    try:
+        return zipfile.is_zipfile(path)
+    except zipfile.BadZipFile:
+        return False
 
 
 def glob_escape(name: str) -> str:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import os
 import pickle
 import time
-import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from rflscm.data.safe_io import is_zip_archive
 from rflscm.errors import RflscmError
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import content_hash
@@ -404,7 +404,7 @@ def _read(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise APSCacheError(f"{path}: APS cache not found (or not a regular file).")
     try:
-        is_zip = zipfile.is_zipfile(path)
+        is_zip = is_zip_archive(path)
     except OSError as exc:
         raise APSCacheError(f"{path}: cannot read the APS cache ({exc.strerror or type(exc).__name__}).") from None
     if not is_zip:

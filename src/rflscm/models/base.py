@@ -25,7 +25,6 @@ import abc
 import hashlib
 import json
 import pickle
-import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +34,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from rflscm.data.safe_io import atomic_write, discard_stale_temps
+from rflscm.data.safe_io import atomic_write, discard_stale_temps, is_zip_archive
 from rflscm.errors import CheckpointError, DataError, RflscmError, UnsupportedError
 from rflscm.geometry import AngleGrid
 
@@ -351,7 +350,7 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
             f.read(4)
     except OSError as exc:
         raise CheckpointError(f"{path}: cannot read the checkpoint ({exc.strerror or type(exc).__name__}).") from None
-    if not zipfile.is_zipfile(path):
+    if not is_zip_archive(path):
         raise CheckpointError(
             f"{path}: not an rflscm checkpoint (not a PyTorch archive; damaged, truncated or another kind of file)."
         )
