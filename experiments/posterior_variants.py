@@ -14,7 +14,8 @@ Usage (from the repository root, one thread: deterministic and independent of th
 both MAE tables to ``OUT.pt``; ``refit`` lays each JSON object over the model's ``corrections`` config section,
 refits the corrections and prints one ``RESULT {json}`` line per variant.  Keys that start with ``_`` set the
 posterior's constants for that variant instead: ``_priors`` (``WNOMP_PRIORS``, a list of [centre, field] pairs),
-``_atoms`` (``WNOMP_ATOMS``, a list), ``_lambdas`` (the candidate λ list).
+``_atoms`` (``WNOMP_ATOMS``, a list), ``_lambdas`` (the candidate λ list), ``_mix_weights`` (``MIX_WEIGHTS``, the candidate
+weights of WNOMP's APS in the dB mix of the posterior pairs; ``[0]``: no mix).
 """
 
 from __future__ import annotations
@@ -71,11 +72,14 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
     from rflscm.models.rflscm import corrections as module
     from rflscm.models.rflscm import posterior as post_mod
 
+    mix_default = module.MIX_WEIGHTS
+
     for variant in variants:
         consts = {k: v for k, v in variant.items() if k.startswith("_")}
         module.WNOMP_PRIORS = tuple(tuple(map(float, c)) for c in consts.get("_priors", post_mod.WNOMP_PRIORS))
         module.WNOMP_ATOMS = tuple(consts.get("_atoms", post_mod.WNOMP_ATOMS))
         module.LAMBDAS = tuple(consts.get("_lambdas", post_mod.LAMBDAS))
+        module.MIX_WEIGHTS = tuple(map(float, consts.get("_mix_weights", mix_default)))
         knobs = {k: v for k, v in variant.items() if not k.startswith("_")}
         corrections = dataclasses.replace(base.corrections, **knobs)
         model.config = dataclasses.replace(base, corrections=corrections)
@@ -98,6 +102,9 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
             else {str(k): round(v, 4) for k, v in posterior.atom_scores.items()},
             "groups": None if posterior is None else posterior.groups,
             "fit_s": round(fit_s, 1),
+            "mix": None
+            if model.corrections.mix is None
+            else {"pairs": len(model.corrections.mix.index), **model.corrections.mix.scores},
         }
         print("RESULT", json.dumps(row), flush=True)
 

@@ -34,7 +34,7 @@ from rflscm.data.safe_io import is_zip_archive
 from rflscm.errors import RflscmError
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import content_hash
-from rflscm.models.source import APSSource, Predicts, checked_aps, source_sha256
+from rflscm.models.source import APSSource, Predicts, RsrpMix, checked_aps, rsrp_mix_of, source_sha256
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
@@ -125,6 +125,9 @@ class APSCache(Predicts):
         self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
     ) -> np.ndarray | None:
         return self.inner.level_offset_db(cell_ids, beam_type, grid_ids)
+
+    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
+        return rsrp_mix_of(self.inner, cell_ids, grid_ids)  # no render: the wrapped source's stored table
 
 
 def _later_duplicates(keys: list[tuple[int, int]]) -> set[int]:
@@ -234,6 +237,17 @@ class ScenarioAPS:
     fingerprint: str | None = None
     pairs: str = ""
     """Which pairs :attr:`known` holds, in words (for reports)."""
+    mix_aps: list[torch.Tensor] | None = None
+    """Per cell, the source's second APS (:meth:`~rflscm.models.source.APSSource.rsrp_mix`) on the kept bins
+    ``[num_known, num_kept]``, or ``[0, num_kept]`` where none of the cell's pairs has one; None: no cell has one."""
+    mix_weight: list[torch.Tensor] | None = None
+    """Per cell, each known pair's weight of :attr:`mix_aps` ``[num_known]`` (``[0]`` where the cell has none)."""
+
+    def mix_of(self, pos: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``(mix_aps, mix_weight)`` of the cell at position ``pos``, or None where it has none."""
+        if self.mix_aps is None or self.mix_weight is None or not len(self.mix_weight[pos]):
+            return None
+        return self.mix_aps[pos], self.mix_weight[pos]
 
     # --- building ------------------------------------------------------------------------------------
     @classmethod
@@ -255,22 +269,33 @@ class ScenarioAPS:
         cell_ids, grid_ids = scenario.cell_ids(), scenario.grid_ids()
         xyz_all = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
         known = np.zeros((len(cell_ids), len(grid_ids)), dtype=bool)
-        bins, aps = [], []
+        bins, aps, mix_aps, mix_weight = [], [], [], []
         for i, (cell, rows) in enumerate(
             zip(cell_ids, render_rows(source, scenario, free_cells, measured), strict=True)
         ):
             known[i, rows] = True
             dense = torch.zeros(len(rows), source.angle_grid.num_bins)
+            other, weight = torch.zeros(0, source.angle_grid.num_bins), torch.zeros(0)
             for start in range(0, len(rows), chunk):
                 sel = rows[start : start + chunk]
                 with torch.no_grad():
                     x = checked_aps(source, np.full(len(sel), cell), grid_ids[sel], xyz_all[sel])
+                    mix = rsrp_mix_of(source, np.full(len(sel), cell), grid_ids[sel])
                 dense[start : start + len(sel)] = x.detach().float().cpu()
-            keep = torch.nonzero(dense.amax(dim=0) > 0).reshape(-1) if len(rows) else torch.zeros(0, dtype=torch.long)
+                if mix is not None:
+                    if not len(weight):
+                        other, weight = torch.zeros_like(dense), torch.zeros(len(rows))
+                    other[start : start + len(sel)] = mix.aps.detach().float().cpu()
+                    weight[start : start + len(sel)] = mix.weight.detach().float().cpu()
+            used = torch.maximum(dense.amax(dim=0), other.amax(dim=0)) if len(weight) else dense.amax(dim=0)
+            keep = torch.nonzero(used > 0).reshape(-1) if len(rows) else torch.zeros(0, dtype=torch.long)
             bins.append(keep.numpy())
             aps.append(dense[:, keep].contiguous())
+            mix_aps.append(other[:, keep].contiguous())
+            mix_weight.append(weight)
             if on_cell is not None:
                 on_cell(i + 1, len(cell_ids))
+        mixed = any(len(w) for w in mix_weight)
         key = source_sha256(source)
         if measured or not source.supports_unseen_grids:
             pairs = "measured round-1 pairs only"
@@ -278,7 +303,20 @@ class ScenarioAPS:
             pairs = "every (cell, grid) pair" if known.all() else "the (cell, grid) pairs within the model's reach"
         if free_cells is not None and len(np.unique(free_cells)) < len(cell_ids):
             pairs += ", at the grids the cells free to change reach"
-        return cls(cell_ids, grid_ids, bins, aps, known, source.angle_grid, source.name, key, source.fingerprint, pairs)
+        return cls(
+            cell_ids,
+            grid_ids,
+            bins,
+            aps,
+            known,
+            source.angle_grid,
+            source.name,
+            key,
+            source.fingerprint,
+            pairs,
+            mix_aps if mixed else None,
+            mix_weight if mixed else None,
+        )
 
     # --- the file --------------------------------------------------------------------------------------
     def _payload(self) -> dict[str, Any]:
@@ -293,6 +331,14 @@ class ScenarioAPS:
             "known": torch.as_tensor(np.asarray(self.known, dtype=bool)),
             "bins": [torch.as_tensor(np.asarray(b, dtype=np.int64)) for b in self.bins],
             "aps": [a.detach().cpu().float().contiguous() for a in self.aps],
+            **(
+                {}
+                if self.mix_aps is None or self.mix_weight is None
+                else {
+                    "mix_aps": [a.detach().cpu().float().contiguous() for a in self.mix_aps],
+                    "mix_weight": [w.detach().cpu().float().contiguous() for w in self.mix_weight],
+                }
+            ),
         }
 
     def save(self, path: str | Path) -> Path:
@@ -373,6 +419,8 @@ class ScenarioAPS:
             source_sha256=str(p["source_sha256"]),
             fingerprint=None if fingerprint is None else str(fingerprint),
             pairs=str(p.get("pairs", "")),
+            mix_aps=None if p.get("mix_aps") is None else tensors(p["mix_aps"], "mix_aps"),
+            mix_weight=None if p.get("mix_weight") is None else tensors(p["mix_weight"], "mix_weight"),
         )
 
     def _check(self, path: Path) -> None:
@@ -388,12 +436,34 @@ class ScenarioAPS:
             )
         ):
             raise APSCacheError(f"{path}: not a consistent APS cache (its shapes do not fit together); delete it.")
+        if (self.mix_aps is None) != (self.mix_weight is None) or (
+            self.mix_aps is not None
+            and self.mix_weight is not None
+            and (
+                len(self.mix_aps) != n_cells
+                or len(self.mix_weight) != n_cells
+                or any(
+                    w.shape not in ((0,), (a.shape[0],))
+                    or m.shape != (len(w), a.shape[1])
+                    or not m.is_floating_point()
+                    or not w.is_floating_point()
+                    for a, m, w in zip(self.aps, self.mix_aps, self.mix_weight)
+                )
+            )
+        ):
+            raise APSCacheError(f"{path}: not a consistent APS cache (its mixed APS do not fit its APS); delete it.")
         for cell, a in zip(self.cell_ids, self.aps, strict=True):
             bad = ~torch.isfinite(a) | (a < 0)
             if bool(bad.any()):
                 raise APSCacheError(
                     f"{path}: the APS cache holds non-finite or negative APS (cell {int(cell)}, {int(bad.sum())} "
                     "values); it is damaged: delete it and render the APS again."
+                )
+        for cell, m, w in zip(self.cell_ids, self.mix_aps or [], self.mix_weight or [], strict=False):
+            if bool((~torch.isfinite(m) | (m < 0)).any()) or bool((~torch.isfinite(w) | (w < 0) | (w > 1)).any()):
+                raise APSCacheError(
+                    f"{path}: the APS cache holds a damaged mixed APS or weight (cell {int(cell)}); delete it and "
+                    "render the APS again."
                 )
 
 

@@ -40,6 +40,7 @@ from rflscm.geometry import AngleGrid
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
+    from rflscm.models.source import RsrpMix
 
 MIN_POWER_MW = 1e-30  # floor before taking dB of a predicted RSRP
 CHECKPOINT_FORMAT = "rflscm-checkpoint/2"
@@ -161,6 +162,11 @@ class LSCMModel(abc.ABC):
         """dB added to every ``beam_type`` prediction of each pair (cell ``cell_ids [P]``, grid ``grid_ids [P]``,
         None: every pair of those cells) on top of A x (a level the APS cannot carry because it differs between beam
         types), or None (the default: nothing)."""
+        return None
+
+    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
+        """A second APS averaged in dB into the pairs' predictions (:class:`~rflscm.models.source.RsrpMix`), or
+        None (the default: the model's own APS alone)."""
         return None
 
     # --- persistence --------------------------------------------------------------------------

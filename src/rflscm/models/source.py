@@ -10,7 +10,7 @@ answers, the key of the persisted APS caches.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Protocol, cast, runtime_checkable
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, cast, runtime_checkable
 
 import numpy as np
 import pandas as pd
@@ -24,11 +24,41 @@ if TYPE_CHECKING:
     from rflscm.geometry import AngleGrid
 
 
+class RsrpMix(NamedTuple):
+    """A second APS whose predictions a source averages with its own in dB (:func:`mixed_db`).
+
+    A pair's prediction of a beam is ``(1 − w) r₁ + w r₂`` [dB]: ``r₁`` from the source's APS (with its
+    :meth:`APSSource.level_offset_db`), ``r₂`` = 10 log₁₀(A x₂) from :attr:`aps` (no offset).  RF-LSCM gives its
+    posterior's training pairs WNOMP's APS of their reports here: the two err differently, and their average in dB
+    beats each (docs/DECISIONS.md, "The posterior and WNOMP averaged in dB").
+    """
+
+    aps: torch.Tensor
+    """``[num_pairs, num_bins]`` the second APS (zero rows where :attr:`weight` is 0)."""
+    weight: torch.Tensor
+    """``[num_pairs]`` w in [0, 1]; 0: the source's own prediction alone."""
+
+
+def mixed_db(own_db: torch.Tensor, other_mw: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """``(1 − w) own_db + w 10 log₁₀(other_mw)`` per row ``[N, ...]`` (``weight [N]``; rows with w = 0 unchanged)."""
+    w = weight.to(own_db.dtype).reshape(-1, *([1] * (own_db.dim() - 1)))
+    other_db = 10.0 * torch.log10(other_mw.to(own_db.dtype).clamp_min(MIN_POWER_MW))
+    return torch.where(w > 0, (1.0 - w) * own_db + w * other_db, own_db)
+
+
+def rsrp_mix_of(source: object, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
+    """``source.rsrp_mix(cell_ids, grid_ids)`` (:class:`RsrpMix`) where the source has that optional member, else None."""
+    mix = getattr(source, "rsrp_mix", None)
+    return None if mix is None else cast("RsrpMix | None", mix(cell_ids, grid_ids))
+
+
 @runtime_checkable
 class APSSource(Protocol):
     """Anything that answers the APS of (cell, grid) pairs (a fitted model, the oracle, an APS cache).
 
-    Read-only members, so a model's class attributes (``name``, ``supports_unseen_grids``) satisfy them.
+    Read-only members, so a model's class attributes (``name``, ``supports_unseen_grids``) satisfy them.  One
+    optional member: ``rsrp_mix(cell_ids, grid_ids) -> RsrpMix | None``, a second APS averaged in dB into the
+    pairs' predictions (:func:`rsrp_mix_of`; models have it, returning None unless they mix).
     """
 
     @property
@@ -109,6 +139,9 @@ def predict_rsrp(
         leave=False,
         disable=None if len(pairs) >= PROGRESS_PAIRS else True,  # None: on a terminal only
     )
+    offset = source.level_offset_db(cell_ids, beam_type, grid_ids)
+    if offset is not None:
+        offset = np.asarray(offset, np.float64).reshape(-1)
     for cell in np.unique(cell_ids):
         rows = np.flatnonzero(cell_ids == cell)
         a = scenario.sensing(cell, beam_type, source.angle_grid, round=round, device=source.device)  # [beams, bins]
@@ -116,12 +149,16 @@ def predict_rsrp(
             sel = rows[start : start + chunk]
             with torch.no_grad():
                 x = checked_aps(source, cell_ids[sel], grid_ids[sel], grid_xyz[sel])  # [pairs, bins]
-                power_mw = (x.to(a.dtype) @ a.T).clamp_min(MIN_POWER_MW)
-            out[sel, : a.shape[0]] = 10.0 * np.log10(power_mw.cpu().double().numpy())
+                own = 10.0 * torch.log10((x.to(a.dtype) @ a.T).clamp_min(MIN_POWER_MW)).double()
+                if offset is not None:  # the offset belongs to the source's own APS, not to a mixed-in one
+                    own = own + torch.as_tensor(offset[sel], dtype=own.dtype, device=own.device)[:, None]
+                mix = rsrp_mix_of(source, cell_ids[sel], grid_ids[sel])
+                if mix is not None:
+                    own = mixed_db(own, mix.aps.to(a.device, a.dtype) @ a.T, mix.weight.to(a.device))
+            out[sel, : a.shape[0]] = own.cpu().numpy()
             bar.update(len(sel))
     bar.close()
-    offset = source.level_offset_db(cell_ids, beam_type, grid_ids)
-    return out if offset is None else out + offset[:, None]
+    return out
 
 
 class Predicts:
@@ -161,4 +198,4 @@ def source_sha256(source: APSSource) -> str:
     return content_hash(to_plain(payload))
 
 
-__all__ = ["APSSource", "Predicts", "checked_aps", "predict_rsrp", "source_sha256"]
+__all__ = ["APSSource", "Predicts", "RsrpMix", "checked_aps", "mixed_db", "predict_rsrp", "rsrp_mix_of", "source_sha256"]

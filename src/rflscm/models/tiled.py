@@ -27,6 +27,7 @@ from rflscm.models.base import LSCMModel, model_from_payload, register_model
 
 if TYPE_CHECKING:
     from rflscm.data.parts import Tile
+    from rflscm.models.source import RsrpMix
 
 MANIFEST_FORMAT = "rflscm-tiles/1"
 
@@ -152,6 +153,26 @@ class TiledModel(LSCMModel):
             if offset is not None:
                 out[rows], any_offset = np.asarray(offset, np.float64), True
         return out if any_offset else None
+
+    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
+        """Each pair's mix from its cell's tile (weight 0 where a tile has none); None when no tile has one."""
+        from rflscm.models.source import RsrpMix, rsrp_mix_of
+
+        cell_ids = np.asarray(cell_ids, dtype=np.int64).reshape(-1)
+        grid_ids = np.asarray(grid_ids, dtype=np.int64).reshape(-1)
+        owner = self.tile_of(cell_ids)
+        aps = torch.zeros(len(cell_ids), self.angle_grid.num_bins, dtype=torch.float32, device=self.device)
+        weight = torch.zeros(len(cell_ids), dtype=torch.float32, device=self.device)
+        found = False
+        for t in np.unique(owner):
+            rows = np.flatnonzero(owner == t)
+            mix = rsrp_mix_of(self.tiles[int(t)], cell_ids[rows], grid_ids[rows])
+            if mix is not None:
+                at = torch.as_tensor(rows, device=self.device)
+                aps[at] = mix.aps.to(self.device, torch.float32)
+                weight[at] = mix.weight.to(self.device, torch.float32)
+                found = True
+        return RsrpMix(aps, weight) if found else None
 
     # --- persistence --------------------------------------------------------------------------
     def manifest(self) -> dict[str, Any]:

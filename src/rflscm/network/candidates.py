@@ -20,6 +20,7 @@ from rflscm.antenna.array import steering_vectors
 from rflscm.antenna.codebook import PatternCodebook
 from rflscm.antenna.sensing import beam_weights, sensing_matrix
 from rflscm.eval.cache import ScenarioAPS
+from rflscm.models.base import MIN_POWER_MW
 from rflscm.network.space import CellOptions
 
 if TYPE_CHECKING:
@@ -100,9 +101,21 @@ class CellSensing:
         return out
 
 
-def best_beam_power(aps: torch.Tensor, matrices: torch.Tensor) -> torch.Tensor:
+def best_beam_power(
+    aps: torch.Tensor, matrices: torch.Tensor, mix: tuple[torch.Tensor, torch.Tensor] | None = None
+) -> torch.Tensor:
     """Best-beam RSRP ``[num_candidates, num_grids]`` [mW]: max over beams of A x for APS
-    ``[num_grids, num_kept]`` and candidate matrices ``[num_candidates, num_beams, num_kept]``."""
+    ``[num_grids, num_kept]`` and candidate matrices ``[num_candidates, num_beams, num_kept]``.  With ``mix``
+    (a second APS ``[num_grids, num_kept]`` and its weight w ``[num_grids]``, :class:`~rflscm.models.source.RsrpMix`),
+    each beam's power is (A x)^(1 − w) (A x₂)^w, its dB average, before the max, as ``rflscm predict`` has it."""
     c, b, n = matrices.shape
-    power = aps @ matrices.reshape(c * b, n).T  # [num_grids, num_candidates * num_beams]
+    flat = matrices.reshape(c * b, n).T
+    power = aps @ flat  # [num_grids, num_candidates * num_beams]
+    if mix is not None:
+        other, weight = mix
+        on = torch.nonzero(weight > 0).squeeze(1)
+        if on.numel():
+            w = weight[on].to(power.dtype)[:, None]
+            own = power[on].clamp_min(MIN_POWER_MW).log()
+            power[on] = torch.exp((1.0 - w) * own + w * (other[on].to(flat.dtype) @ flat).clamp_min(MIN_POWER_MW).log())
     return power.reshape(-1, c, b).amax(dim=-1).T.contiguous()

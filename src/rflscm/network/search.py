@@ -117,7 +117,7 @@ class NetworkEvaluator:
         """Best-beam power ``[num_candidates, num_grids]`` [mW] of cell ``pos`` under candidate indices (zero at
         the grids out of the cell's reach, which its cached APS has no row for)."""
         self.evaluations += len(indices)
-        power = best_beam_power(self.cache.aps[pos], self.sensing[pos].matrices(indices))
+        power = best_beam_power(self.cache.aps[pos], self.sensing[pos].matrices(indices), self.cache.mix_of(pos))
         rows = self._rows[pos]
         if rows is None:
             return power

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
@@ -30,7 +31,7 @@ from rflscm.eval.cache import (
 from rflscm.geometry import AngleGrid
 from rflscm.models import MODEL_REGISTRY, LSCMModel, load_model
 from rflscm.models.base import content_hash
-from rflscm.models.source import APSSource, predict_rsrp, source_sha256
+from rflscm.models.source import APSSource, RsrpMix, predict_rsrp, source_sha256
 
 GRID = AngleGrid(num_el=31, num_az=36, el_min_deg=-90.0, el_step_deg=6.0)
 SRC = Path(__file__).resolve().parents[3] / "src"
@@ -274,3 +275,72 @@ def test_a_cache_of_an_older_format_is_refused_with_what_to_do(fitted, tmp_path:
     with pytest.raises(APSCacheError, match=r"another format .*delete it") as exc:
         ScenarioAPS.load(tmp_path / "o.pt", model)
     _one_line(exc)
+
+
+class _Mixed(APSCache):
+    """A source whose odd grids mix in a second APS (its own, shifted by 5 bins, 4× as strong) with weight 0.3 and
+    whose CSI-RS predictions carry a +2 dB offset: what RF-LSCM's posterior pairs do (:class:`RsrpMix`)."""
+
+    def other(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> torch.Tensor:
+        return 4.0 * torch.roll(self.aps(cell_ids, grid_ids), 5, dims=1)
+
+    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
+        weight = torch.as_tensor(np.asarray(grid_ids) % 2 == 1, dtype=torch.float32) * 0.3
+        return RsrpMix(self.other(cell_ids, grid_ids), weight)
+
+    def level_offset_db(self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None) -> np.ndarray:
+        return np.full(len(np.asarray(cell_ids).reshape(-1)), 2.0 if beam_type == "csi" else 0.0)
+
+
+class _Other(APSCache):
+    """The second APS of :class:`_Mixed` as a source of its own (no offset, no mix)."""
+
+    def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
+        return 4.0 * torch.roll(super().aps(cell_ids, grid_ids, grid_xyz), 5, dims=1)
+
+
+@pytest.mark.parametrize("beam_type", ["ssb", "csi"])
+def test_a_mixed_source_predicts_the_db_average_and_its_offset_only_on_its_own_share(fitted, beam_type: str) -> None:
+    scenario, model, _, _ = fitted
+    pairs = scenario.measurements[scenario.measurements["round"] == 1][["cell_id", "grid_id"]].drop_duplicates()
+    pairs = pairs.reset_index(drop=True)
+    mixed = predict_rsrp(_Mixed(model), scenario, 2, beam_type, pairs)
+    own = predict_rsrp(model, scenario, 2, beam_type, pairs) + (2.0 if beam_type == "csi" else 0.0)
+    other = predict_rsrp(_Other(model), scenario, 2, beam_type, pairs)
+    w = np.where(pairs["grid_id"].to_numpy() % 2 == 1, 0.3, 0.0)[:, None]
+    assert 0 < w.mean() < 0.3 and np.nanmax(np.abs(other - own)) > 1.0  # both kinds of pairs, and a real difference
+    np.testing.assert_allclose(mixed, (1 - w) * own + w * other, atol=1e-4)
+
+
+def test_the_optimisers_cache_keeps_the_mix_and_its_best_beam_power_is_predicts(fitted, tmp_path: Path) -> None:
+    """ScenarioAPS renders the mix with the APS, saves and loads it, and the optimiser's best-beam power of the
+    present antennas is the best beam of `predict`'s SSB RSRP (the same dB average); a damaged weight is refused."""
+    from rflscm.network.candidates import CellSensing, best_beam_power
+    from rflscm.network.space import build_space
+
+    scenario, model, _, _ = fitted
+    source = _Mixed(model)
+    cache = ScenarioAPS.render(source, scenario)
+    assert cache.mix_aps is not None and cache.mix_weight is not None
+    assert any(len(w) and float(w.max()) == pytest.approx(0.3) for w in cache.mix_weight)
+    path = cache.save(tmp_path / "mixed.pt")
+    loaded = ScenarioAPS.load(path, source, scenario)
+    assert loaded.mix_aps is not None and loaded.mix_weight is not None
+    for a, b in zip(cache.mix_aps, loaded.mix_aps, strict=True):
+        torch.testing.assert_close(a, b)
+    space = build_space({}, scenario.cells[1], scenario.meta.codebooks)
+    dirs = cache.angle_grid.directions(dtype=torch.float32)
+    pos = 0
+    cell = int(cache.cell_ids[pos])
+    sensing = CellSensing(scenario, cell, 1, dirs[torch.as_tensor(cache.bins[pos])], space.cells[pos])
+    power = best_beam_power(cache.aps[pos], sensing.matrices([space.cells[pos].current]), cache.mix_of(pos))[0]
+    grids = cache.grid_ids[cache.known[pos]]
+    rsrp = predict_rsrp(source, scenario, 1, "ssb", pd.DataFrame({"cell_id": cell, "grid_id": grids}))
+    np.testing.assert_allclose(10 * np.log10(power.double().numpy()), np.nanmax(rsrp, axis=1), atol=1e-3)
+    plain = best_beam_power(cache.aps[pos], sensing.matrices([space.cells[pos].current]))[0]
+    assert float((10 * torch.log10(power / plain)).abs().max()) > 0.5  # the mix moved the optimiser's powers too
+    payload = torch.load(path, weights_only=True)["payload"]
+    payload["mix_weight"][pos] = payload["mix_weight"][pos] * 0 + 1.5
+    cache_bad = ScenarioAPS._from_payload(payload)
+    with pytest.raises(APSCacheError, match="damaged mixed APS or weight"):
+        cache_bad._check(path)

@@ -433,9 +433,9 @@ def test_wnomps_aps_of_the_left_over_pairs_is_solved_only_while_it_fits(monkeypa
     visible = torch.ones(2, truth.shape[1], dtype=torch.bool)
     solve = module._Fit.solve
 
-    def slow_solve(self, pairs, mask, levels):  # type: ignore[no-untyped-def]
+    def slow_solve(self, pairs, mask, levels, solver=module.SOLVER):  # type: ignore[no-untyped-def]
         now[0] += 0.01 * pairs.numel()  # 10 ms a pair: a chunk of 32 costs 0.32 s
-        return solve(self, pairs, mask, levels)
+        return solve(self, pairs, mask, levels, solver)
 
     monkeypatch.setattr(module._Fit, "solve", slow_solve)
     monkeypatch.setattr(module, "FALLBACK_SOLVE", 32)
@@ -458,3 +458,63 @@ def test_wnomps_aps_of_the_left_over_pairs_is_solved_only_while_it_fits(monkeypa
     monkeypatch.setattr(module, "FALLBACK_SOLVE", 10**6)  # every left-over pair in one solve: past the deadline
     run(2.5)
     assert now[0] > 2.5
+
+
+def test_posterior_pairs_get_wnomps_aps_of_their_reports_for_the_db_mix(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where a group chose a posterior (finite λ) and its held-aside reports chose a weight > 0, each of its pairs
+    gets WNOMP's APS of all its reports (atoms chosen on held-aside reports among ``MIX_ATOMS``) with its group's
+    weight; a pair of a group that kept the field gets none; no mix when 0 is the only weight or without WNOMP's
+    atoms; deterministic; it survives a save, and damaged weights are refused in one line."""
+    from rflscm.models.rflscm import corrections as module
+
+    fitted, _ = fit_atoms(True)
+    post, mix = fitted.posterior, fitted.mix
+    assert post is not None and mix is not None and mix.weight is not None
+    assert {f"k{k}" for k in module.MIX_ATOMS} <= set(mix.scores)
+    chosen = min(module.MIX_ATOMS, key=lambda k: (mix.scores[f"k{k}"], k))
+    assert int((mix.bins >= 0).sum(1).max()) <= chosen  # at most the chosen count of atoms per pair
+    weights = {mix.scores[k] for k in mix.scores if k.startswith("w")}
+    assert set(mix.weight.tolist()) <= weights - {0.0} and set(mix.weight.tolist()) <= set(module.MIX_WEIGHTS)
+    assert set(mix.index) <= set(post.index) and len(mix.index) > 0
+    again, _ = fit_atoms(True)
+    assert again.mix is not None and torch.equal(again.mix.bins, mix.bins) and torch.equal(again.mix.gains, mix.gains)
+    buffer = io.BytesIO()
+    torch.save(fitted.to_state(), buffer)
+    buffer.seek(0)
+    loaded = PairCorrections.from_state(torch.load(buffer, weights_only=True), num_bins=40)
+    assert loaded.mix is not None and loaded.mix.weight is not None and torch.equal(loaded.mix.weight, mix.weight)
+    assert list(loaded.mix.index) == list(mix.index) and torch.equal(loaded.mix.bins.long(), mix.bins.long())
+    for bad in (mix.weight * 0 + 1.5, mix.weight[:-1], None):
+        state = fitted.to_state()
+        if bad is None:
+            del state["mix"]["weight"]
+        else:
+            state["mix"]["weight"] = bad
+        with pytest.raises(CheckpointError, match=r"^the checkpoint's (pair corrections are|dB mix of WNOMP's APS is) dam"):
+            PairCorrections.from_state(state, num_bins=40)
+    without_atoms, _ = fit_atoms(False)
+    assert without_atoms.mix is None
+    monkeypatch.setattr(module, "MIX_WEIGHTS", (0.0,))
+    off, _ = fit_atoms(True)
+    assert off.mix is None and off.posterior is not None
+
+
+def test_the_mix_weight_follows_which_of_the_two_predicts_held_aside_reports_better() -> None:
+    """A dB average's error is the same average of the two errors: with WNOMP's held-aside errors zero the largest
+    weight wins, with them far larger than the posterior's none does (the choice reads the errors, nothing else)."""
+    from rflscm.models.rflscm import corrections as module
+
+    e_post = torch.tensor([2.0, -3.0, 1.0, 4.0], dtype=torch.float64)
+    for e_wnomp, expected in ((torch.zeros(4, dtype=torch.float64), 0.75), (e_post * 0 + 15.0, 0.0)):
+        err = {
+            w: float(((1 - w) * e_post + w * e_wnomp).abs().clamp_max(module.CLIP_DB).mean()) for w in module.MIX_WEIGHTS
+        }
+        assert min(module.MIX_WEIGHTS, key=lambda w: (err[w], w)) == expected
+
+
+def test_a_checkpoint_written_before_the_mix_loads_without_one() -> None:
+    fitted, _ = fit_atoms(True)
+    state = fitted.to_state()
+    del state["mix"]
+    loaded = PairCorrections.from_state(state, num_bins=40)
+    assert loaded.mix is None

@@ -11,6 +11,7 @@ import torch
 from rflscm.errors import CheckpointError, UnsupportedError
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import LSCMModel
+from rflscm.models.source import RsrpMix
 from rflscm.models.tiled import MANIFEST_FORMAT, TiledModel
 
 GRID = AngleGrid(num_el=4, num_az=6, el_min_deg=-90.0, el_step_deg=60.0)
@@ -91,6 +92,23 @@ def test_level_offsets_come_from_each_tile_and_none_when_no_tile_has_one() -> No
     assert tiled(Fake(1.0), Fake(2.0)).level_offset_db(np.array([5, 6]), "csi") is None
     offsets = tiled(Fake(1.0, offset=3.0), Fake(2.0)).level_offset_db(np.array([6, 5, 7]), "csi")
     assert offsets.tolist() == [0.0, 3.0, 3.0]
+
+
+class Mixing(Fake):
+    """A tile that mixes a second APS (its own, doubled) into its even grids' predictions with weight 0.25."""
+
+    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
+        weight = torch.as_tensor(np.asarray(grid_ids) % 20 == 0, dtype=torch.float32) * 0.25
+        return RsrpMix(2.0 * self.aps(cell_ids, grid_ids), weight)
+
+
+def test_the_db_mix_comes_from_each_tile_and_none_when_no_tile_has_one() -> None:
+    assert tiled(Fake(1.0), Fake(2.0)).rsrp_mix(np.array([5, 6]), np.array([10, 20])) is None
+    cells, grids = np.array([6, 5, 7, 5]), np.array([20, 20, 30, 10])
+    mix = tiled(Mixing(1.0), Fake(2.0)).rsrp_mix(cells, grids)
+    assert mix is not None
+    assert mix.weight.tolist() == [0.0, 0.25, 0.0, 0.0]  # cell 6 is tile b's (no mix); grid 20 of tile a mixes
+    assert mix.aps[1, 0] == 2.0 and mix.aps[1, 1] == 10.0 and float(mix.aps[0].abs().sum()) == 0.0
 
 
 def test_a_cell_no_tile_owns_is_unsupported() -> None:

@@ -348,7 +348,9 @@ class CorrectionsConfig:
     the posterior's candidate bins, each centred on the field's value there or, where the field has less, on
     WNOMP's or 10 dB below it (:func:`~rflscm.models.rflscm.posterior.with_atoms`): the field's strongest bins can
     miss the direction that a grid's reports point at.  How many atoms (2, 4 or none) and the centre are chosen
-    with λ on held-aside reports.  Needs ``pair_posterior``."""
+    with λ on held-aside reports.  Where a posterior is chosen, its predictions are also averaged in dB with WNOMP's
+    APS of the pair's reports, with a weight chosen per group on held-aside reports
+    (:data:`~rflscm.models.rflscm.corrections.MIX_WEIGHTS`).  Needs ``pair_posterior``."""
     wnomp_fallback: bool = True
     """Within a time budget, the training pairs that the pass after training cannot reach get WNOMP's APS of their
     own round-1 reports (no render; :mod:`~rflscm.models.rflscm.fallback`) instead of the field with its level,

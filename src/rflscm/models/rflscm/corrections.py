@@ -39,7 +39,15 @@ import torch
 from rflscm.errors import CheckpointError
 from rflscm.models.pairs import PairData
 from rflscm.models.rflscm.config import CorrectionsConfig
-from rflscm.models.rflscm.fallback import PairFallback, held_mae_db, predicted_reports, solve_reports
+from rflscm.models.rflscm.fallback import (
+    CLIP_DB,
+    SOLVER,
+    PairFallback,
+    held_mae_db,
+    predicted_reports,
+    solve_reports,
+)
+from rflscm.models.wnomp import WNOMPConfig
 from rflscm.models.rflscm.posterior import (
     HOLDOUT,
     LAMBDA_PAIRS,
@@ -51,6 +59,7 @@ from rflscm.models.rflscm.posterior import (
     fit_gains,
     group_of,
     held_errors,
+    predicted_change_db,
     report_groups,
     with_atoms,
     wnomp_atoms,
@@ -93,6 +102,9 @@ class PairCorrections:
     unseen_weight: float = 0.0
     """At a grid without an anchor, the weight of the model's APS at the cell's nearest anchored grid in the
     prediction (``corrections.unseen_blend_grids``, :func:`choose_blend`); 0: the grid's own APS alone."""
+    mix: PairFallback | None = None
+    """WNOMP's APS of posterior pairs' reports, averaged in dB into their predictions with each row's weight (its
+    group's, chosen on held-aside reports: :func:`_mix_plan`; the model's ``rsrp_mix``), or None."""
 
     def apply(
         self, aps: torch.Tensor, cell_index: np.ndarray, cell_ids: np.ndarray, grid_ids: np.ndarray
@@ -142,6 +154,7 @@ class PairCorrections:
             "posterior": self.posterior.to_state() if self.posterior is not None else None,
             "fallback": self.fallback.to_state() if self.fallback is not None else None,
             "unseen_weight": torch.tensor(float(self.unseen_weight), dtype=torch.float64),
+            "mix": self.mix.to_state() if self.mix is not None else None,
         }
 
     @classmethod
@@ -161,12 +174,16 @@ class PairCorrections:
             unseen_weight = float("nan")
         if not 0.0 <= unseen_weight <= 1.0:
             raise CheckpointError("the checkpoint's pair corrections are damaged (the unseen-grid blend weight).")
+        mix = PairFallback.from_state(state.get("mix"), num_bins, "dB mix of WNOMP's APS")  # absent before it: none
+        if mix is not None and mix.weight is None:
+            raise CheckpointError("the checkpoint's pair corrections are damaged (the dB mix has no weights).")
         return cls(
             torch.as_tensor(levels, dtype=torch.float32, device=device) if levels is not None else None,
             _anchors_from_state(state.get("anchors")),
             PairPosterior.from_state(state.get("posterior"), num_bins),  # type: ignore[arg-type]
             PairFallback.from_state(state.get("fallback"), num_bins),
             unseen_weight,
+            mix,
         )
 
 
@@ -216,7 +233,7 @@ def fit_corrections(
         plan = _choose(fit, rendered, rendered.rows_of(subset.unique()), levels, held)
     fit.plan = plan
     fitting = cfg.pair_posterior and plan.fits()
-    done, anchors, gains, bins_of, bases = [], [], [], [], []
+    done, anchors, gains, bins_of, bases, mixed = [], [], [], [], [], []
     later = _later_pairs(pairs, first, seed)
     left_over = None
     if time_left is not None and cfg.wnomp_fallback and visible is not None and later.numel():
@@ -229,6 +246,7 @@ def fit_corrections(
         if chunk.top_bins is not None:
             assert chunk.lam is not None
             on = torch.isfinite(chunk.lam)  # a group that keeps the field: no reports fitted, gains 0
+            mixed.append(chunk.pairs[on.to(chunk.pairs.device)])
             ridge = torch.where(on, chunk.lam, torch.ones_like(chunk.lam))
             gains.append(fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask & on[:, None], ridge).cpu())
             bins_of.append(chunk.top_bins.cpu())
@@ -261,7 +279,22 @@ def fit_corrections(
     base = torch.cat(bases) if bases else None
     lam, scores = plan.summary()
     posterior = PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores, base, plan.atom_scores, plan.groups)
-    return PairCorrections(levels, anchor_series, posterior, left_over)
+    mix = None
+    with_mix = torch.cat(mixed).sort().values if mixed else torch.zeros(0, dtype=torch.long)
+    if cfg.wnomp_atoms and visible is not None and with_mix.numel():
+        # no render: WNOMP's solve of the posterior pairs' own reports (~0.3 ms a pair), sized to the time left; its
+        # atoms and each group's weight in the dB mix chosen on the λ pairs' held-aside reports
+        solver, weights, mix_scores = _mix_plan(fit, rendered, rendered.rows_of(subset.unique()), levels, held, plan)
+        fit.plan = plan
+        weight = torch.tensor(weights, dtype=torch.float32)[group_of(data.observed[with_mix].sum(1), plan.edges).cpu()]
+        with_mix = with_mix[(weight > 0).to(with_mix.device)]
+        if with_mix.numel():
+            mix = fit.fallback(with_mix, cell_ids, levels, mix_scores, time_left, clock, solver)
+            mixed_index = pd.MultiIndex.from_arrays(
+                [np.asarray(cell_ids, np.int64)[data.cell_index[with_mix].cpu().numpy()], data.grid_ids[with_mix.cpu()]]
+            )
+            mix.weight = weight[weight > 0][torch.as_tensor(mixed_index.get_indexer(mix.index), dtype=torch.long)]
+    return PairCorrections(levels, anchor_series, posterior, left_over, mix=mix)
 
 
 UNSEEN_WEIGHT = 0.5
@@ -639,11 +672,11 @@ class _Fit:
         return self.columns(torch.tensor([cell], device=every.device), every)[0]
 
     def solve(
-        self, pairs: torch.Tensor, mask: torch.Tensor, levels: torch.Tensor | None
+        self, pairs: torch.Tensor, mask: torch.Tensor, levels: torch.Tensor | None, solver: WNOMPConfig = SOLVER
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """WNOMP's APS ``(bins, gains) [B, k]`` of ``pairs [B]`` from their ``mask``-ed reports (:mod:`.fallback`)."""
         d = self.data
-        return solve_reports(self.matrix, d.cell_index[pairs], d.rsrp[pairs], mask)
+        return solve_reports(self.matrix, d.cell_index[pairs], d.rsrp[pairs], mask, solver)
 
     def fallback(
         self,
@@ -653,8 +686,10 @@ class _Fit:
         scores: dict[str, float],
         time_left: TimeLeftFn | None = None,
         clock: Callable[[], float] = time.perf_counter,
+        solver: WNOMPConfig = SOLVER,
     ) -> PairFallback:
-        """WNOMP's APS of ``pairs`` (``cell_ids`` of the cell indices) from all their training reports.  With
+        """WNOMP's APS of ``pairs`` (``cell_ids`` of the cell indices) from all their training reports (WNOMP's
+        ``solver`` settings).  With
         ``time_left``, ``FALLBACK_SOLVE`` pairs at a time, in ``pairs``' order, while the time left exceeds
         ``CHUNK_MARGIN`` times the slowest chunk so far (the first always: pairs beyond keep the field's level)."""
         d = self.data
@@ -666,7 +701,7 @@ class _Fit:
                 break
             part = pairs[start : start + size]
             begun = clock()
-            parts.append((part, *self.solve(part, d.observed[part], levels)))
+            parts.append((part, *self.solve(part, d.observed[part], levels, solver)))
             slowest = max(slowest, clock() - begun)
         if parts:  # in pair order, as without a budget
             pairs = torch.cat([p for p, _, _ in parts])
@@ -674,7 +709,7 @@ class _Fit:
             pairs = pairs[order]
             bins, gains = torch.cat([b for _, b, _ in parts])[order], torch.cat([g for _, _, g in parts])[order]
         else:
-            bins, gains = self.solve(pairs, d.observed[pairs], levels)
+            bins, gains = self.solve(pairs, d.observed[pairs], levels, solver)
         kept = pairs.cpu().numpy()
         ids = np.asarray(cell_ids, np.int64)[d.cell_index.cpu().numpy()[kept]]
         index = pd.MultiIndex.from_arrays([ids, d.grid_ids[kept]], names=["cell_id", "grid_id"])
@@ -872,6 +907,68 @@ def _left_over(
     scores = {"level": level_sum / count, "wnomp": wnomp_sum / count} if count else {}
     use = bool(scores) and scores["wnomp"] < scores["level"]
     return fit.fallback(later if use else later[:0], cell_ids, levels, scores, time_left, clock)
+
+
+MIX_ATOMS = (2, 4, 8)
+"""WNOMP's atom counts (``k_max``) for the dB mix of the posterior pairs, one chosen on held-aside reports as the WNOMP
+baseline's selection chooses among them (:data:`~rflscm.models.wnomp_select.CANDIDATES`)."""
+MIX_WEIGHTS = (0.0, 0.25, 0.5, 0.75)
+"""Candidate weights of WNOMP's APS in a posterior pair's prediction, averaged in dB: (1 − w) × the posterior's +
+w × WNOMP's fit of the pair's own reports (:class:`~rflscm.models.source.RsrpMix`).  0: the posterior alone; 1 is
+not a candidate (it would drop the field wherever a group chose a posterior)."""
+
+
+def _mix_plan(
+    fit: _Fit, rendered: _Rendered, rows: torch.Tensor, levels: torch.Tensor | None, held: torch.Tensor, plan: _Plan
+) -> tuple[WNOMPConfig, tuple[float, ...], dict[str, float]]:
+    """The dB mix of the posterior pairs, chosen on the ``held``-aside reports of the λ pairs ``rows`` of ``rendered``
+    under the posterior's ``plan``: WNOMP's atoms (the :data:`MIX_ATOMS` count whose fit without the held-aside
+    reports predicts them best) and, per group of ``plan``, the :data:`MIX_WEIGHTS` weight whose dB average of the
+    posterior's and WNOMP's held-aside predictions errs least (a dB average's error is the same average of the two
+    errors; each report's error counts at most ``CLIP_DB``; the smaller on a tie; 0 in a group that keeps the
+    field).  Returns the settings, the weight per group and the scores (``k2``…: WNOMP alone; ``w0``…: each
+    group's weight)."""
+    d = fit.data
+    fit.plan = plan
+    post, group_of_report = [], []
+    wnomp: dict[int, list[torch.Tensor]] = {k: [] for k in MIX_ATOMS}
+    for chunk in fit.chunks(rendered, rows, levels, held=held):
+        assert chunk.lam is not None
+        held_here = held[chunk.pairs.cpu()].to(chunk.resid.device)
+        on = torch.isfinite(chunk.lam)
+        score = chunk.mask & held_here & on[:, None]
+        if not bool(score.any()):
+            continue
+        ridge = torch.where(on, chunk.lam, torch.ones_like(chunk.lam))
+        v = fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask & ~held_here & on[:, None], ridge)
+        post.append((chunk.resid - predicted_change_db(*chunk.fit_inputs(), v))[score].cpu())
+        group = group_of(d.observed[chunk.pairs].sum(1), plan.edges)
+        group_of_report.append(group[:, None].expand_as(score)[score].cpu())
+        cells = d.cell_index[chunk.pairs]
+        for k in MIX_ATOMS:
+            bins, gains = fit.solve(chunk.pairs, chunk.mask & ~held_here, None, dataclasses.replace(SOLVER, k_max=k))
+            pred = predicted_reports(fit.columns, cells, bins, gains).clamp_min(1e-30)
+            wnomp[k].append((10.0 * torch.log10(d.rsrp[chunk.pairs] / pred))[score].cpu())
+    num_groups = len(plan.lam)
+    if not post:
+        return SOLVER, (0.0,) * num_groups, {}
+    e_post, groups = torch.cat(post).double(), torch.cat(group_of_report)
+    alone = {k: float(torch.cat(v).double().abs().clamp_max(CLIP_DB).mean()) for k, v in wnomp.items()}
+    k_best = min(MIX_ATOMS, key=lambda k: (alone[k], k))
+    e_wnomp = torch.cat(wnomp[k_best]).double()
+    scores = {f"k{k}": alone[k] for k in MIX_ATOMS}
+    weights = []
+    for g in range(num_groups):
+        mine = groups == g
+        if not bool(mine.any()):
+            weights.append(0.0)
+            continue
+        mix_err = {
+            w: float(((1 - w) * e_post[mine] + w * e_wnomp[mine]).abs().clamp_max(CLIP_DB).mean()) for w in MIX_WEIGHTS
+        }
+        weights.append(min(MIX_WEIGHTS, key=lambda w: (mix_err[w], w)))
+        scores[f"w{g}"] = weights[-1]
+    return dataclasses.replace(SOLVER, k_max=k_best), tuple(weights), scores
 
 
 def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:

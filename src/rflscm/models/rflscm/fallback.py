@@ -39,6 +39,7 @@ def solve_reports(
     cells: torch.Tensor,
     rsrp: torch.Tensor,
     mask: torch.Tensor,
+    solver: WNOMPConfig = SOLVER,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """WNOMP's solution of each pair's ``mask``-ed reports: bins ``[B, k]`` (−1: none) and gains ``[B, k]``.
 
@@ -47,20 +48,21 @@ def solve_reports(
         cells: each pair's cell index ``[B]``.
         rsrp: the reports ``[B, M]`` (normalised linear; the gains come out in the unit ``rsrp / a_norm``).
         mask: ``[B, M]`` the reports to fit.
+        solver: WNOMP's settings (``k = solver.k_max``).
     """
     r = torch.where(mask, rsrp, torch.full_like(rsrp, math.nan)).double()
-    bins = torch.full((rsrp.shape[0], SOLVER.k_max), -1, dtype=torch.long)
-    gains = torch.zeros(rsrp.shape[0], SOLVER.k_max, dtype=torch.float32)
+    bins = torch.full((rsrp.shape[0], solver.k_max), -1, dtype=torch.long)
+    gains = torch.zeros(rsrp.shape[0], solver.k_max, dtype=torch.float32)
     # the WNOMP baseline's own jobs (a cell's pairs in chunks) over its worker threads
     of_cell, r_np = cells.cpu().numpy(), r.cpu().numpy()
     matrices = CellMatrices(lambda cell: matrix(cell).double())
     jobs = []
     for cell in np.unique(of_cell):
         rows = np.flatnonzero(of_cell == cell)
-        for s in range(0, len(rows), SOLVER.chunk_size):
-            jobs.append((int(cell), rows[s : s + SOLVER.chunk_size], r_np[rows[s : s + SOLVER.chunk_size]]))
+        for s in range(0, len(rows), solver.chunk_size):
+            jobs.append((int(cell), rows[s : s + solver.chunk_size], r_np[rows[s : s + solver.chunk_size]]))
             matrices.expect(int(cell))
-    for rows, idx, val in solve_jobs(jobs, matrices, SOLVER, None, torch.device("cpu")):
+    for rows, idx, val in solve_jobs(jobs, matrices, solver, None, torch.device("cpu")):
         at = torch.as_tensor(rows, dtype=torch.long)
         bins[at], gains[at] = torch.as_tensor(idx), torch.as_tensor(val).clamp_min(0.0).float()
     return bins.to(rsrp.device), gains.to(rsrp.device)
@@ -104,6 +106,8 @@ class PairFallback:
     bins: torch.Tensor
     gains: torch.Tensor
     scores: dict[str, float] = field(default_factory=dict)
+    weight: torch.Tensor | None = None
+    """``[P]`` in (0, 1]: as the posterior pairs' dB mix (:mod:`.corrections`), each row's weight; None otherwise."""
 
     def rows(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray:
         """Row of each pair (``cell_ids``, ``grid_ids`` [N]) in :attr:`index`, −1 where it has none."""
@@ -134,7 +138,8 @@ class PairFallback:
         if bool(keep.all()):
             return self
         rows = torch.as_tensor(np.flatnonzero(keep), dtype=torch.long)
-        return PairFallback(self.index[keep], self.bins[rows], self.gains[rows], self.scores)
+        weight = None if self.weight is None else self.weight[rows]
+        return PairFallback(self.index[keep], self.bins[rows], self.gains[rows], self.scores, weight)
 
     def to_state(self) -> dict[str, object]:
         return {
@@ -143,14 +148,15 @@ class PairFallback:
             "bins": self.bins.to(torch.int32).cpu().clone(),
             "gains": self.gains.float().cpu().clone(),
             "scores": {k: float(v) for k, v in self.scores.items()},
+            **({} if self.weight is None else {"weight": self.weight.float().cpu().clone()}),
         }
 
     @classmethod
-    def from_state(cls, state: object, num_bins: int) -> PairFallback | None:
-        """Inverse of :meth:`to_state`; refuses damaged data in one line (:class:`CheckpointError`)."""
+    def from_state(cls, state: object, num_bins: int, what: str = "left-over pairs' APS") -> PairFallback | None:
+        """Inverse of :meth:`to_state`; refuses damaged data in one line (:class:`CheckpointError`) naming ``what``."""
         if state is None:
             return None
-        damaged = "the checkpoint's left-over pairs' APS is damaged"
+        damaged = f"the checkpoint's {what} is damaged"
         keys = ("cell_id", "grid_id", "bins", "gains")
         if not isinstance(state, dict) or any(k not in state for k in keys):
             raise CheckpointError(f"{damaged} (expected {', '.join(keys)}); retrain the model.")
@@ -161,4 +167,9 @@ class PairFallback:
             raise CheckpointError(f"{damaged} (bins off the angle grid); retrain the model.")
         index = pd.MultiIndex.from_arrays([cells.numpy(), grids.numpy()], names=["cell_id", "grid_id"])
         scores = {str(k): float(v) for k, v in dict(state.get("scores") or {}).items()}
-        return cls(index, bins, gains, scores)
+        weight = state.get("weight")
+        if weight is not None:
+            weight = torch.as_tensor(weight).float() if isinstance(weight, torch.Tensor) else None
+            if weight is None or weight.shape != (len(index),) or not bool(((weight > 0) & (weight <= 1)).all()):
+                raise CheckpointError(f"{damaged} (its weights are not one in (0, 1] per pair); retrain the model.")
+        return cls(index, bins, gains, scores, weight)

@@ -35,6 +35,7 @@ from rflscm.fields.surfaces import SurfaceOrientation
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import LSCMModel, PassCost, TrainingPlan, register_model
 from rflscm.models.pairs import build_pair_data, reference_power, stacked_sensing
+from rflscm.models.source import RsrpMix
 from rflscm.models.rflscm import checkpoint
 from rflscm.models.rflscm.config import (
     FLOOR_DB,
@@ -514,6 +515,23 @@ class RFLSCM(LSCMModel):
             out[rows] = mine[cKDTree(self.scene.grid_positions(mine)).query(xyz[rows], k=1)[1]]
         return out
 
+    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
+        """WNOMP's APS of the posterior pairs' own reports, averaged in dB into their predictions with each pair's
+        weight (its group's, chosen on held-aside reports; :class:`~rflscm.models.source.RsrpMix`); None where no
+        pair asked has one."""
+        mix = self.corrections.mix
+        if mix is None or mix.weight is None or self.scene is None:
+            return None
+        rows = mix.rows(cell_ids, grid_ids)
+        if not (rows >= 0).any():
+            return None
+        zeros = torch.zeros(len(rows), self.angle_grid.num_bins, device=self.device)
+        aps = mix.apply(zeros, np.asarray(cell_ids).reshape(-1), np.asarray(grid_ids).reshape(-1)) * self.scene.x_ref
+        weight = torch.zeros(len(rows), device=self.device)
+        found = torch.as_tensor(np.flatnonzero(rows >= 0), dtype=torch.long, device=self.device)
+        weight[found] = mix.weight.to(self.device)[torch.as_tensor(rows[rows >= 0], dtype=torch.long, device=self.device)]
+        return RsrpMix(aps, weight)
+
     def level_offset_db(
         self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
     ) -> np.ndarray | None:
@@ -557,11 +575,12 @@ class RFLSCM(LSCMModel):
             self.corrections.unseen_weight = UNSEEN_WEIGHT
             self.run_info["unseen_blend"] = {"weight": UNSEEN_WEIGHT, "held_out_grids": 0.0, "held_out_pairs": 0.0}
         if cfg.pair_anchors or cfg.pair_posterior:  # per-pair corrections: how many pairs the pass reached
-            fallback = self.corrections.fallback
+            fallback, mix = self.corrections.fallback, self.corrections.mix
             self.run_info["corrections"] = {
                 "training_pairs": float(int(train.data.observed.any(1).sum())),
                 "corrected_pairs": self.corrections.corrected_pairs(),
                 "wnomp_pairs": float(len(fallback.index)) if fallback is not None else 0.0,
+                "mixed_pairs": float(len(mix.index)) if mix is not None else 0.0,
             }
 
     @torch.no_grad()
