@@ -15,7 +15,8 @@ both MAE tables to ``OUT.pt``; ``refit`` lays each JSON object over the model's 
 refits the corrections and prints one ``RESULT {json}`` line per variant.  Keys that start with ``_`` set the
 posterior's constants for that variant instead: ``_priors`` (``WNOMP_PRIORS``, a list of [centre, field] pairs),
 ``_atoms`` (``WNOMP_ATOMS``, a list), ``_lambdas`` (the candidate λ list), ``_mix_weights`` (``MIX_WEIGHTS``, the candidate
-weights of WNOMP's APS in the dB mix of the posterior pairs; ``[0]``: no mix).
+weights of WNOMP's APS in the dB mix of the posterior pairs; ``[0]``: no mix), ``_silence`` (false: no cap from round
+1's silence, ``RoundOneCensor``).
 """
 
 from __future__ import annotations
@@ -67,6 +68,12 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
     model, wnomp = saved["model"], saved["wnomp"]
     if not hasattr(model, "_blend_grids"):  # pickled before the unseen-grid blend existed: its hold-out is empty
         model._blend_grids = np.zeros(0, np.int64)
+    if not hasattr(model, "_silence_dbm"):  # pickled before round 1's silence table: what _prepare now sets
+        from rflscm.data.reporting import rule_of
+
+        sinr = rule_of(data.scenario, "ssb").rule == "sinr"
+        model._silence_dbm = None if sinr else float(data.scenario.meta.rsrp_threshold_dbm)
+    silence = model._silence_dbm
     print("WNOMP", json.dumps(wnomp), "TRAINED-WITH", json.dumps(saved["rflscm"]), flush=True)
     base = model.config
     from rflscm.models.rflscm import corrections as module
@@ -80,6 +87,7 @@ def refit(scenario: str, path: str, variants: list[dict]) -> None:
         module.WNOMP_ATOMS = tuple(consts.get("_atoms", post_mod.WNOMP_ATOMS))
         module.LAMBDAS = tuple(consts.get("_lambdas", post_mod.LAMBDAS))
         module.MIX_WEIGHTS = tuple(map(float, consts.get("_mix_weights", mix_default)))
+        model._silence_dbm = silence if consts.get("_silence", True) else None
         knobs = {k: v for k, v in variant.items() if not k.startswith("_")}
         corrections = dataclasses.replace(base.corrections, **knobs)
         model.config = dataclasses.replace(base, corrections=corrections)

@@ -294,6 +294,7 @@ def test_cells_frees_a_cluster_renders_where_it_reaches_and_a_cache_of_another_c
     area = set(r1.loc[r1["cell_id"] == cell, "grid_id"])
     in_area = r1[r1["grid_id"].isin(area)].drop_duplicates(["cell_id", "grid_id"])
     assert summary["kpi_pair_count"] == len(in_area) < len(r1.drop_duplicates(["cell_id", "grid_id"]))
+    assert f"rendering the APS of {len(in_area):,} (cell, grid) pairs" in " ".join(run.stderr.split())  # said first
     run = rflscm("optimize", str(ckpt), str(scenario.root), "--out", str(tmp_path / "o2"), *small)
     assert run.returncode == 2 and "rendered for other grids" in run.stderr, run.stderr
     assert len(run.stderr.strip().splitlines()) == 1

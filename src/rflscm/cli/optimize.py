@@ -266,6 +266,8 @@ def optimize(
     if aps_cache is None or not aps_cache.exists():
         from rflscm.parallel.aps import checkpoint_loader, render_cache
 
+        console.print(_render_note(model, scen, free_cells, pairs == Pairs.measured))
+
         load = checkpoint_loader(checkpoint, scenario, model.device)
         source = render_cache(model, scen, Engine(workers, ray_address), load, free_cells, pairs == Pairs.measured)
     columns = (
@@ -311,6 +313,20 @@ def optimize(
         with console.status("writing map layers before/after…"):
             layers = write_layers(model, load_scenario(folder), out / "maps", base_round, rnd, kpi)
         console.print(f"wrote {len(layers.files)} map files to {out / 'maps'} (docs/maps.md)")
+
+
+def _render_note(model, scen, free_cells, measured: bool) -> str:
+    """What the APS cache will render, in one line: its (cell, grid) pairs, and the measured ones among them when
+    ``--pairs reach`` asks for more (a large network's cluster can reach most of its grids)."""
+    from rflscm.eval.cache import render_rows
+
+    count = sum(len(r) for r in render_rows(model, scen, free_cells, measured))
+    note = f"rendering the APS of {count:,} (cell, grid) pairs"
+    if not measured and model.supports_unseen_grids:
+        fewer = sum(len(r) for r in render_rows(model, scen, free_cells, True))
+        if fewer < count:
+            note += f" ({fewer:,} with --pairs measured)"
+    return note
 
 
 def _print(console: Console, result, folder: Path, rnd: int, report: Path) -> None:

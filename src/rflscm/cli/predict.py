@@ -94,7 +94,7 @@ def _export_aps(model: LSCMModel, scenario: Scenario, cells: np.ndarray, grids: 
     _check_aps_ids(scenario, cells, grids)
     cell_ids, grid_ids = (a.ravel() for a in np.meshgrid(cells, grids, indexing="ij"))
     xyz = scenario.grids.set_index("grid_id").loc[grid_ids, ["x", "y", "z"]].to_numpy()
-    aps = model.checked_aps(cell_ids, grid_ids, xyz).detach().cpu().double().numpy()
+    aps = model.checked_aps(cell_ids, grid_ids, xyz, scenario).detach().cpu().double().numpy()
     pair, bins = np.nonzero(aps > 0)
     el, az = model.angle_grid.bin_angles()
     azimuth_deg, _ = internal_to_engineering(el, az)

@@ -129,6 +129,10 @@ class APSCache(Predicts):
     def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
         return rsrp_mix_of(self.inner, cell_ids, grid_ids)  # no render: the wrapped source's stored table
 
+    def round1_caps(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray | None:
+        caps = getattr(self.inner, "round1_caps", None)
+        return None if caps is None else caps(cell_ids, grid_ids)
+
 
 def _later_duplicates(keys: list[tuple[int, int]]) -> set[int]:
     """Positions of keys that occur earlier in ``keys`` (computed once, by their first position)."""
@@ -279,7 +283,7 @@ class ScenarioAPS:
             for start in range(0, len(rows), chunk):
                 sel = rows[start : start + chunk]
                 with torch.no_grad():
-                    x = checked_aps(source, np.full(len(sel), cell), grid_ids[sel], xyz_all[sel])
+                    x = checked_aps(source, np.full(len(sel), cell), grid_ids[sel], xyz_all[sel], scenario)
                     mix = rsrp_mix_of(source, np.full(len(sel), cell), grid_ids[sel])
                 dense[start : start + len(sel)] = x.detach().float().cpu()
                 if mix is not None:

@@ -140,12 +140,17 @@ class LSCMModel(abc.ABC):
 
     # --- prediction, shared (one implementation for models, the oracle and caches: rflscm.models.source) ---
     def checked_aps(
-        self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None
+        self,
+        cell_ids: np.ndarray,
+        grid_ids: np.ndarray,
+        grid_xyz: np.ndarray | None = None,
+        scenario: Scenario | None = None,
     ) -> torch.Tensor:
-        """:meth:`aps`, refusing an answer that is not finite and ≥ 0 (never write NaN or drop beams silently)."""
+        """:meth:`aps`, refusing an answer that is not finite and ≥ 0 (never write NaN or drop beams silently); with
+        ``scenario``, capped where round 1 could not have reported a pair (:func:`~rflscm.models.source.capped_aps`)."""
         from rflscm.models.source import checked_aps
 
-        return checked_aps(self, cell_ids, grid_ids, grid_xyz)
+        return checked_aps(self, cell_ids, grid_ids, grid_xyz, scenario)
 
     def predict_rsrp(
         self, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, chunk: int = 4096
@@ -167,6 +172,11 @@ class LSCMModel(abc.ABC):
     def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
         """A second APS averaged in dB into the pairs' predictions (:class:`~rflscm.models.source.RsrpMix`), or
         None (the default: the model's own APS alone)."""
+        return None
+
+    def round1_caps(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray | None:
+        """Per pair the most [mW] its strongest round-1 SSB beam may be predicted at (NaN: no cap), or None (the
+        default: no caps; :func:`~rflscm.models.source.capped_aps`)."""
         return None
 
     # --- persistence --------------------------------------------------------------------------

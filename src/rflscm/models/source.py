@@ -101,10 +101,39 @@ class APSSource(Protocol):
         ...
 
 
-def checked_aps(
-    source: APSSource, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None
+def capped_aps(
+    source: object, scenario: Scenario, cell_ids: np.ndarray, grid_ids: np.ndarray, x: torch.Tensor
 ) -> torch.Tensor:
-    """``source.aps``, refusing an answer that is not finite and ≥ 0 (never write NaN or drop beams silently)."""
+    """``x [N, bins]`` with each row the source caps (``source.round1_caps(cell_ids, grid_ids)`` → ``[N]`` mW, NaN:
+    none; an optional member) scaled down so that its strongest SSB beam under ``scenario``'s round-1 antennas is
+    at most the cap: RF-LSCM's pairs that round 1 did not report at a grid it visited were below the reporting
+    threshold there (docs/DECISIONS.md, "Pairs round 1 did not report")."""
+    caps_of = getattr(source, "round1_caps", None)
+    caps = None if caps_of is None else caps_of(cell_ids, grid_ids)
+    if caps is None or not np.isfinite(caps).any():
+        return x
+    cell_ids = np.asarray(cell_ids).reshape(-1)
+    scale = torch.ones(len(cell_ids), dtype=torch.float64, device=x.device)
+    angle_grid = cast("APSSource", source).angle_grid
+    for cell in np.unique(cell_ids[np.isfinite(caps)]):
+        rows = np.flatnonzero((cell_ids == cell) & np.isfinite(caps))
+        a = scenario.sensing(int(cell), "ssb", angle_grid, round=1, device=x.device)  # [beams, bins]
+        at = torch.as_tensor(rows, device=x.device)
+        best = (x[at].to(a.dtype) @ a.T).amax(1).double().clamp_min(1e-300)
+        cap = torch.as_tensor(caps[rows], dtype=torch.float64, device=x.device)
+        scale[at] = torch.clamp(cap / best, max=1.0)
+    return x * scale.to(x.dtype)[:, None]
+
+
+def checked_aps(
+    source: APSSource,
+    cell_ids: np.ndarray,
+    grid_ids: np.ndarray,
+    grid_xyz: np.ndarray | None = None,
+    scenario: Scenario | None = None,
+) -> torch.Tensor:
+    """``source.aps``, refusing an answer that is not finite and ≥ 0 (never write NaN or drop beams silently); with
+    ``scenario``, capped where the source says round 1 could not have reported the pair (:func:`capped_aps`)."""
     x = source.aps(cell_ids, grid_ids, grid_xyz)
     bad = ~torch.isfinite(x) | (x < 0)
     if bool(bad.any()):
@@ -114,7 +143,7 @@ def checked_aps(
             f"{int(grid_ids[pair])}) ({int(bad.any(1).sum())} of {len(x)} pairs); its checkpoint is damaged or "
             "its training diverged: retrain it with the `train` command."
         )
-    return x
+    return x if scenario is None else capped_aps(source, scenario, cell_ids, grid_ids, x)
 
 
 PROGRESS_PAIRS = 2000
@@ -148,7 +177,7 @@ def predict_rsrp(
         for start in range(0, len(rows), chunk):
             sel = rows[start : start + chunk]
             with torch.no_grad():
-                x = checked_aps(source, cell_ids[sel], grid_ids[sel], grid_xyz[sel])  # [pairs, bins]
+                x = checked_aps(source, cell_ids[sel], grid_ids[sel], grid_xyz[sel], scenario)  # [pairs, bins]
                 own = 10.0 * torch.log10((x.to(a.dtype) @ a.T).clamp_min(MIN_POWER_MW)).double()
                 if offset is not None:  # the offset belongs to the source's own APS, not to a mixed-in one
                     own = own + torch.as_tensor(offset[sel], dtype=own.dtype, device=own.device)[:, None]
@@ -165,9 +194,13 @@ class Predicts:
     """Mixin giving an :class:`APSSource` that is not a model the models' ``checked_aps`` / ``predict_rsrp``."""
 
     def checked_aps(
-        self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None
+        self,
+        cell_ids: np.ndarray,
+        grid_ids: np.ndarray,
+        grid_xyz: np.ndarray | None = None,
+        scenario: Scenario | None = None,
     ) -> torch.Tensor:
-        return checked_aps(cast("APSSource", self), cell_ids, grid_ids, grid_xyz)
+        return checked_aps(cast("APSSource", self), cell_ids, grid_ids, grid_xyz, scenario)
 
     def predict_rsrp(
         self, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, chunk: int = 4096
@@ -198,4 +231,14 @@ def source_sha256(source: APSSource) -> str:
     return content_hash(to_plain(payload))
 
 
-__all__ = ["APSSource", "Predicts", "RsrpMix", "checked_aps", "mixed_db", "predict_rsrp", "rsrp_mix_of", "source_sha256"]
+__all__ = [
+    "APSSource",
+    "Predicts",
+    "RsrpMix",
+    "capped_aps",
+    "checked_aps",
+    "mixed_db",
+    "predict_rsrp",
+    "rsrp_mix_of",
+    "source_sha256",
+]

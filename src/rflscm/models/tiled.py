@@ -174,6 +174,20 @@ class TiledModel(LSCMModel):
                 found = True
         return RsrpMix(aps, weight) if found else None
 
+    def round1_caps(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray | None:
+        """Each pair's cap from its cell's tile (NaN where a tile has none); None when no tile has caps."""
+        cell_ids = np.asarray(cell_ids, dtype=np.int64).reshape(-1)
+        grid_ids = np.asarray(grid_ids, dtype=np.int64).reshape(-1)
+        owner = self.tile_of(cell_ids)
+        out, found = np.full(len(cell_ids), np.nan), False
+        for t in np.unique(owner):
+            rows = np.flatnonzero(owner == t)
+            caps = getattr(self.tiles[int(t)], "round1_caps", None)
+            got = None if caps is None else caps(cell_ids[rows], grid_ids[rows])
+            if got is not None:
+                out[rows], found = np.asarray(got, np.float64), True
+        return out if found else None
+
     # --- persistence --------------------------------------------------------------------------
     def manifest(self) -> dict[str, Any]:
         """Plain facts of the tiling: format, and per tile its model, sites and cells."""

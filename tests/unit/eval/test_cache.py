@@ -344,3 +344,33 @@ def test_the_optimisers_cache_keeps_the_mix_and_its_best_beam_power_is_predicts(
     cache_bad = ScenarioAPS._from_payload(payload)
     with pytest.raises(APSCacheError, match="damaged mixed APS or weight"):
         cache_bad._check(path)
+
+
+class _Capped(APSCache):
+    """A source that caps its odd grids' pairs at -100 dBm on the strongest round-1 SSB beam."""
+
+    def round1_caps(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray:
+        return np.where(np.asarray(grid_ids) % 2 == 1, 1e-10, np.nan)
+
+
+def test_capped_pairs_never_predict_their_round1_ssb_above_the_cap_and_the_others_are_untouched(fitted) -> None:
+    scenario, model, _, _ = fitted
+    pairs = scenario.measurements[scenario.measurements["round"] == 1][["cell_id", "grid_id"]].drop_duplicates()
+    pairs = pairs.reset_index(drop=True)
+    odd = pairs["grid_id"].to_numpy() % 2 == 1
+    own = predict_rsrp(model, scenario, 1, "ssb", pairs)
+    capped = predict_rsrp(_Capped(model), scenario, 1, "ssb", pairs)
+    assert (np.nanmax(own[odd], axis=1) > -100.0).any()  # the cap binds somewhere
+    np.testing.assert_allclose(
+        np.nanmax(capped[odd], axis=1), np.minimum(np.nanmax(own[odd], axis=1), -100.0), atol=1e-6
+    )
+    np.testing.assert_array_equal(capped[~odd], own[~odd])
+    # one scale per pair: the beams keep their differences (the APS is scaled, not clipped)
+    diff = capped[odd] - own[odd]
+    np.testing.assert_allclose(np.nanmax(diff, axis=1), np.nanmin(diff, axis=1), atol=1e-6)
+    cache = ScenarioAPS.render(_Capped(model), scenario)  # the optimiser's cache is capped the same way
+    i = 0
+    rows = cache.grid_ids[cache.known[i]]
+    a = scenario.sensing(int(cache.cell_ids[i]), "ssb", cache.angle_grid, round=1)[:, torch.as_tensor(cache.bins[i])]
+    best = 10 * torch.log10((cache.aps[i].double() @ a.double().T).amax(1))
+    assert float(best[torch.as_tensor(rows % 2 == 1)].max()) <= -100.0 + 1e-6

@@ -490,7 +490,9 @@ def test_posterior_pairs_get_wnomps_aps_of_their_reports_for_the_db_mix(monkeypa
             del state["mix"]["weight"]
         else:
             state["mix"]["weight"] = bad
-        with pytest.raises(CheckpointError, match=r"^the checkpoint's (pair corrections are|dB mix of WNOMP's APS is) dam"):
+        with pytest.raises(
+            CheckpointError, match=r"^the checkpoint's (pair corrections are|dB mix of WNOMP's APS is) dam"
+        ):
             PairCorrections.from_state(state, num_bins=40)
     without_atoms, _ = fit_atoms(False)
     assert without_atoms.mix is None
@@ -507,7 +509,8 @@ def test_the_mix_weight_follows_which_of_the_two_predicts_held_aside_reports_bet
     e_post = torch.tensor([2.0, -3.0, 1.0, 4.0], dtype=torch.float64)
     for e_wnomp, expected in ((torch.zeros(4, dtype=torch.float64), 0.75), (e_post * 0 + 15.0, 0.0)):
         err = {
-            w: float(((1 - w) * e_post + w * e_wnomp).abs().clamp_max(module.CLIP_DB).mean()) for w in module.MIX_WEIGHTS
+            w: float(((1 - w) * e_post + w * e_wnomp).abs().clamp_max(module.CLIP_DB).mean())
+            for w in module.MIX_WEIGHTS
         }
         assert min(module.MIX_WEIGHTS, key=lambda w: (err[w], w)) == expected
 
@@ -518,3 +521,25 @@ def test_a_checkpoint_written_before_the_mix_loads_without_one() -> None:
     del state["mix"]
     loaded = PairCorrections.from_state(state, num_bins=40)
     assert loaded.mix is None
+
+
+def test_round_one_silence_caps_only_unreported_pairs_at_visited_grids_and_survives_a_save() -> None:
+    from rflscm.models.rflscm.corrections import RoundOneCensor
+
+    reported = pd.MultiIndex.from_arrays([np.array([7, 7, 8]), np.array([100, 101, 100])], names=["cell_id", "grid_id"])
+    censor = RoundOneCensor(reported, np.array([100, 101]), -120.0)
+    caps = censor.caps_mw(np.array([7, 8, 8, 7]), np.array([100, 101, 102, 101]))
+    # reported; silent at a visited grid (capped at -120 dBm); a grid round 1 never visited; reported
+    assert np.isnan(caps[0]) and caps[1] == pytest.approx(1e-12) and np.isnan(caps[2]) and np.isnan(caps[3])
+    buffer = io.BytesIO()
+    torch.save(PairCorrections(censor=censor).to_state(), buffer)
+    buffer.seek(0)
+    loaded = PairCorrections.from_state(torch.load(buffer, weights_only=True), num_bins=4).censor
+    assert loaded is not None and loaded.cap_dbm == -120.0 and list(loaded.reported) == list(reported)
+    assert np.array_equal(loaded.visited, [100, 101])
+    for key, bad in (("cap_dbm", torch.tensor(float("nan"))), ("grid_id", torch.tensor([1.5])), ("visited", None)):
+        state = PairCorrections(censor=censor).to_state()
+        state["censor"][key] = bad
+        with pytest.raises(CheckpointError, match=r"^the checkpoint's round-1 silence table is damaged \("):
+            PairCorrections.from_state(state, num_bins=4)
+    assert PairCorrections.from_state({"censor": None}, num_bins=4).censor is None  # a checkpoint from before it

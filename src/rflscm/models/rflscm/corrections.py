@@ -47,7 +47,6 @@ from rflscm.models.rflscm.fallback import (
     predicted_reports,
     solve_reports,
 )
-from rflscm.models.wnomp import WNOMPConfig
 from rflscm.models.rflscm.posterior import (
     HOLDOUT,
     LAMBDA_PAIRS,
@@ -64,6 +63,7 @@ from rflscm.models.rflscm.posterior import (
     with_atoms,
     wnomp_atoms,
 )
+from rflscm.models.wnomp import WNOMPConfig
 
 PAIR_CHUNK = 64
 """Pairs per render chunk (A columns and APS rows stay small)."""
@@ -90,6 +90,51 @@ CHUNK_MARGIN = 1.25
 
 
 @dataclass
+class RoundOneCensor:
+    """What round 1's silence says: a pair it did not report at a grid it visited was below ``cap_dbm`` (the reporting
+    threshold, under rule ``threshold`` or ``top_n`` for SSB) on every SSB beam; its predictions are capped there
+    (:func:`~rflscm.models.source.capped_aps`).  ``reported``: the (cell_id, grid_id) pairs with a round-1 report;
+    ``visited``: the grid ids with any, sorted."""
+
+    reported: pd.MultiIndex
+    visited: np.ndarray
+    cap_dbm: float
+
+    def caps_mw(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray:
+        """``[N]`` the cap [mW] of each pair, NaN where round 1 reported it or never visited its grid."""
+        cells = np.asarray(cell_ids, np.int64).reshape(-1)
+        grids = np.asarray(grid_ids, np.int64).reshape(-1)
+        silent = np.isin(grids, self.visited) & ~pd.MultiIndex.from_arrays([cells, grids]).isin(self.reported)
+        return np.where(silent, 10.0 ** (self.cap_dbm / 10.0), np.nan)
+
+    def to_state(self) -> dict[str, torch.Tensor]:
+        return {
+            "cell_id": torch.as_tensor(self.reported.get_level_values(0).to_numpy(np.int64, copy=True)),
+            "grid_id": torch.as_tensor(self.reported.get_level_values(1).to_numpy(np.int64, copy=True)),
+            "visited": torch.as_tensor(np.asarray(self.visited, np.int64).copy()),
+            "cap_dbm": torch.tensor(float(self.cap_dbm), dtype=torch.float64),
+        }
+
+    @classmethod
+    def from_state(cls, state: object) -> RoundOneCensor | None:
+        """Inverse of :meth:`to_state` (None: absent, as in checkpoints before it); damaged: a one-line error."""
+        if state is None:
+            return None
+        damaged = "the checkpoint's round-1 silence table is damaged"
+        keys = ("cell_id", "grid_id", "visited", "cap_dbm")
+        if not isinstance(state, dict) or any(not isinstance(state.get(k), torch.Tensor) for k in keys):
+            raise CheckpointError(f"{damaged} (expected tensors {', '.join(keys)}); retrain the model.")
+        cells, grids, visited = (state[k].reshape(-1) for k in ("cell_id", "grid_id", "visited"))
+        cap = state["cap_dbm"]
+        if len(cells) != len(grids) or cap.numel() != 1 or not bool(torch.isfinite(cap).all()):
+            raise CheckpointError(f"{damaged} (columns of different lengths or a non-finite cap); retrain the model.")
+        if any(t.is_floating_point() or t.is_complex() for t in (cells, grids, visited)):
+            raise CheckpointError(f"{damaged} (ids that are not integers); retrain the model.")
+        reported = pd.MultiIndex.from_arrays([cells.long().numpy(), grids.long().numpy()], names=["cell_id", "grid_id"])
+        return cls(reported, np.sort(visited.long().numpy()), float(cap.reshape(())))
+
+
+@dataclass
 class PairCorrections:
     """Fitted corrections: ``levels [C, 2]`` [dB] (SSB, CSI-RS per cell index), ``anchors`` [dB] indexed by
     (cell_id, grid_id) and ``posterior`` gains; each None when switched off."""
@@ -105,6 +150,9 @@ class PairCorrections:
     mix: PairFallback | None = None
     """WNOMP's APS of posterior pairs' reports, averaged in dB into their predictions with each row's weight (its
     group's, chosen on held-aside reports: :func:`_mix_plan`; the model's ``rsrp_mix``), or None."""
+    censor: RoundOneCensor | None = None
+    """The pairs round 1 was silent about at the grids it visited, capped at its threshold (the model's
+    ``round1_caps``), or None (a reporting rule whose silence bound depends on interference: ``sinr``)."""
 
     def apply(
         self, aps: torch.Tensor, cell_index: np.ndarray, cell_ids: np.ndarray, grid_ids: np.ndarray
@@ -155,6 +203,7 @@ class PairCorrections:
             "fallback": self.fallback.to_state() if self.fallback is not None else None,
             "unseen_weight": torch.tensor(float(self.unseen_weight), dtype=torch.float64),
             "mix": self.mix.to_state() if self.mix is not None else None,
+            "censor": self.censor.to_state() if self.censor is not None else None,
         }
 
     @classmethod
@@ -184,6 +233,7 @@ class PairCorrections:
             PairFallback.from_state(state.get("fallback"), num_bins),
             unseen_weight,
             mix,
+            RoundOneCensor.from_state(state.get("censor")),
         )
 
 

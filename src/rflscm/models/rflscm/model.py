@@ -25,17 +25,18 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, cast
 
 import numpy as np
+import pandas as pd
 import torch
 from torch import nn
 
 from rflscm.data import BEAM_TYPES
+from rflscm.data.reporting import rule_of
 from rflscm.fields import PassiveMedium, TensorVM
 from rflscm.fields.point_prior import PointPrior
 from rflscm.fields.surfaces import SurfaceOrientation
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import LSCMModel, PassCost, TrainingPlan, register_model
 from rflscm.models.pairs import build_pair_data, reference_power, stacked_sensing
-from rflscm.models.source import RsrpMix
 from rflscm.models.rflscm import checkpoint
 from rflscm.models.rflscm.config import (
     FLOOR_DB,
@@ -52,6 +53,7 @@ from rflscm.models.rflscm.corrections import (
     PAIR_CHUNK,
     UNSEEN_WEIGHT,
     PairCorrections,
+    RoundOneCensor,
     TimeLeftFn,
     blend_grids,
     choose_blend,
@@ -79,6 +81,7 @@ from rflscm.models.rflscm.scene import (
     scene_box,
     visible_bins,
 )
+from rflscm.models.source import RsrpMix
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
@@ -122,6 +125,7 @@ class RFLSCM(LSCMModel):
         self.corrections = PairCorrections()
         """The post-training pair corrections (fitted in :meth:`finish_training`, applied in :meth:`aps`)."""
         self._train: TrainContext | None = None
+        self._silence_dbm: float | None = None  # round 1's SSB bound for a wholly unreported pair (None: rule sinr)
         self._blend_grids = np.zeros(0, np.int64)
         """Training grids held out of the field's training to choose the unseen-grid blend (``unseen_blend_grids``)."""
 
@@ -208,6 +212,8 @@ class RFLSCM(LSCMModel):
             self._init_attenuation(*targets)
         a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
         self._train = TrainContext(data.to(self.device), a_norm, a_coarse, num_ssb)
+        ssb_rule = rule_of(scenario, "ssb").rule
+        self._silence_dbm = None if ssb_rule == "sinr" else float(scenario.meta.rsrp_threshold_dbm)
         self.corrections = PairCorrections()
         self.position = -1.0
         self._calibrate_level(INIT_LEVEL_DB)
@@ -529,8 +535,17 @@ class RFLSCM(LSCMModel):
         aps = mix.apply(zeros, np.asarray(cell_ids).reshape(-1), np.asarray(grid_ids).reshape(-1)) * self.scene.x_ref
         weight = torch.zeros(len(rows), device=self.device)
         found = torch.as_tensor(np.flatnonzero(rows >= 0), dtype=torch.long, device=self.device)
-        weight[found] = mix.weight.to(self.device)[torch.as_tensor(rows[rows >= 0], dtype=torch.long, device=self.device)]
+        weight[found] = mix.weight.to(self.device)[
+            torch.as_tensor(rows[rows >= 0], dtype=torch.long, device=self.device)
+        ]
         return RsrpMix(aps, weight)
+
+    def round1_caps(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray | None:
+        """Per pair the most [mW] its strongest round-1 SSB beam may be predicted at: round 1's threshold for a pair it
+        did not report at a grid it visited (:class:`~rflscm.models.rflscm.corrections.RoundOneCensor`), NaN
+        elsewhere; None without a table (rule ``sinr``, or a checkpoint from before it)."""
+        censor = self.corrections.censor
+        return None if censor is None else censor.caps_mw(cell_ids, grid_ids)
 
     def level_offset_db(
         self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
@@ -568,6 +583,15 @@ class RFLSCM(LSCMModel):
             clock,
             visible=torch.as_tensor(self.scene.visible, device=self.device),
         )
+        if self._silence_dbm is not None:
+            reported = train.data.observed.any(1).cpu().numpy()
+            ids = np.asarray(self.scene.cell_ids, np.int64)[train.data.cell_index.cpu().numpy()[reported]]
+            grids = np.asarray(train.data.grid_ids, np.int64)[reported]
+            self.corrections.censor = RoundOneCensor(
+                pd.MultiIndex.from_arrays([ids, grids], names=["cell_id", "grid_id"]),
+                np.unique(grids),
+                self._silence_dbm,
+            )
         cfg = self.config.corrections
         if self._blend_grids.size:
             self._choose_unseen_blend()
