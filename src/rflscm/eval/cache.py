@@ -291,8 +291,11 @@ class ScenarioAPS:
                         other, weight = torch.zeros_like(dense), torch.zeros(len(rows))
                     other[start : start + len(sel)] = mix.aps.detach().float().cpu()
                     weight[start : start + len(sel)] = mix.weight.detach().float().cpu()
-            used = torch.maximum(dense.amax(dim=0), other.amax(dim=0)) if len(weight) else dense.amax(dim=0)
-            keep = torch.nonzero(used > 0).reshape(-1) if len(rows) else torch.zeros(0, dtype=torch.long)
+            if len(rows):
+                used = torch.maximum(dense.amax(dim=0), other.amax(dim=0)) if len(weight) else dense.amax(dim=0)
+                keep = torch.nonzero(used > 0).reshape(-1)
+            else:  # a cell with no pair to render (beyond every grid asked for)
+                keep = torch.zeros(0, dtype=torch.long)
             bins.append(keep.numpy())
             aps.append(dense[:, keep].contiguous())
             mix_aps.append(other[:, keep].contiguous())

@@ -374,3 +374,17 @@ def test_capped_pairs_never_predict_their_round1_ssb_above_the_cap_and_the_other
     a = scenario.sensing(int(cache.cell_ids[i]), "ssb", cache.angle_grid, round=1)[:, torch.as_tensor(cache.bins[i])]
     best = 10 * torch.log10((cache.aps[i].double() @ a.double().T).amax(1))
     assert float(best[torch.as_tensor(rows % 2 == 1)].max()) <= -100.0 + 1e-6
+
+
+def test_a_cell_with_no_pair_in_the_area_renders_to_an_empty_row_set(fitted) -> None:
+    """A cluster's area can leave a cell with no grid to render (it reaches none of the free cells' grids): its
+    cache entry is empty, with or without a mixing source (a regression: the kept bins were read off an empty
+    array)."""
+    scenario, model, _, _ = fitted
+    m = scenario.measurements
+    silent = int(scenario.cell_ids()[0])  # no round-1 row left: WNOMP renders it nowhere
+    quiet = dataclasses.replace(scenario, measurements=m[~((m["round"] == 1) & (m["cell_id"] == silent))])
+    for source in (model, _Mixed(model)):
+        cache = ScenarioAPS.render(source, quiet)
+        assert not cache.known[0].any() and len(cache.bins[0]) == 0 and cache.aps[0].shape[0] == 0
+        assert cache.known[1:].any()
