@@ -30,7 +30,7 @@ class RsrpMix(NamedTuple):
     A pair's prediction of a beam is ``(1 − w) r₁ + w r₂`` [dB]: ``r₁`` from the source's APS (with its
     :meth:`APSSource.level_offset_db`), ``r₂`` = 10 log₁₀(A x₂) from :attr:`aps` (no offset).  RF-LSCM gives its
     posterior's training pairs WNOMP's APS of their reports here: the two err differently, and their average in dB
-    beats each (docs/DECISIONS.md, "The posterior and WNOMP averaged in dB").
+    beats each (docs/DECISIONS.md, "Kept: the posterior pairs' predictions averaged in dB").
     """
 
     aps: torch.Tensor
@@ -107,7 +107,7 @@ def capped_aps(
     """``x [N, bins]`` with each row the source caps (``source.round1_caps(cell_ids, grid_ids)`` → ``[N]`` mW, NaN:
     none; an optional member) scaled down so that its strongest SSB beam under ``scenario``'s round-1 antennas is
     at most the cap: RF-LSCM's pairs that round 1 did not report at a grid it visited were below the reporting
-    threshold there (docs/DECISIONS.md, "Pairs round 1 did not report")."""
+    threshold there (docs/DECISIONS.md, "Kept: pairs round 1 did not report")."""
     caps_of = getattr(source, "round1_caps", None)
     caps = None if caps_of is None else caps_of(cell_ids, grid_ids)
     if caps is None or not np.isfinite(caps).any():
@@ -178,7 +178,7 @@ def predict_rsrp(
             sel = rows[start : start + chunk]
             with torch.no_grad():
                 x = checked_aps(source, cell_ids[sel], grid_ids[sel], grid_xyz[sel], scenario)  # [pairs, bins]
-                own = 10.0 * torch.log10((x.to(a.dtype) @ a.T).clamp_min(MIN_POWER_MW)).double()
+                own = 10.0 * torch.log10((x.to(a.dtype) @ a.T).clamp_min(MIN_POWER_MW).double())
                 if offset is not None:  # the offset belongs to the source's own APS, not to a mixed-in one
                     own = own + torch.as_tensor(offset[sel], dtype=own.dtype, device=own.device)[:, None]
                 mix = rsrp_mix_of(source, cell_ids[sel], grid_ids[sel])
