@@ -100,11 +100,16 @@ class RoundOneCensor:
     visited: np.ndarray
     cap_dbm: float
 
+    def __post_init__(self) -> None:
+        self.reported = self.reported.unique()  # get_indexer needs each pair once
+
     def caps_mw(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray:
         """``[N]`` the cap [mW] of each pair, NaN where round 1 reported it or never visited its grid."""
         cells = np.asarray(cell_ids, np.int64).reshape(-1)
         grids = np.asarray(grid_ids, np.int64).reshape(-1)
-        silent = np.isin(grids, self.visited) & ~pd.MultiIndex.from_arrays([cells, grids]).isin(self.reported)
+        # get_indexer: the reported pairs' hash table is built once and kept by the index (isin builds it per call)
+        known = self.reported.get_indexer(pd.MultiIndex.from_arrays([cells, grids])) >= 0
+        silent = np.isin(grids, self.visited) & ~known
         return np.where(silent, 10.0 ** (self.cap_dbm / 10.0), np.nan)
 
     def to_state(self) -> dict[str, torch.Tensor]:
@@ -131,7 +136,7 @@ class RoundOneCensor:
         if any(t.is_floating_point() or t.is_complex() for t in (cells, grids, visited)):
             raise CheckpointError(f"{damaged} (ids that are not integers); retrain the model.")
         reported = pd.MultiIndex.from_arrays([cells.long().numpy(), grids.long().numpy()], names=["cell_id", "grid_id"])
-        return cls(reported, np.sort(visited.long().numpy()), float(cap.reshape(())))
+        return cls(reported.unique(), np.sort(visited.long().numpy()), float(cap.reshape(())))
 
 
 @dataclass
