@@ -340,7 +340,6 @@ def fit_corrections(
         # no render: WNOMP's solve of the posterior pairs' own reports (~0.3 ms a pair), sized to the time left; its
         # atoms and each group's weight in the dB mix chosen on the λ pairs' held-aside reports
         solver, weights, mix_scores = _mix_plan(fit, rendered, rendered.rows_of(subset.unique()), levels, held, plan)
-        fit.plan = plan
         weight = torch.tensor(weights, dtype=torch.float32)[group_of(data.observed[with_mix].sum(1), plan.edges).cpu()]
         with_mix = with_mix[(weight > 0).to(with_mix.device)]
         if with_mix.numel():
