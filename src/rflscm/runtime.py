@@ -16,6 +16,12 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
+
+Mapper = Callable[[Callable[[Any], Any], Iterable[Any]], Iterator[Any]]
+"""How a loop's jobs run: ``mapper(fn, jobs)`` → ``fn(job)`` for each job, in the jobs' order, like the built-in
+``map`` (which is one; :func:`rflscm.parallel.work.mapper` gives one over Ray workers).  ``fn`` must pickle."""
 
 MMAP_THRESHOLD = 1 << 30
 """Allocations up to 1 GiB come from the heap (glibc's default: 128 KiB, adapting up to 32 MiB)."""

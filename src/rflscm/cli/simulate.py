@@ -18,6 +18,7 @@ from rflscm.cli.common import Device, DeviceOption, resolve_device, seed_everyth
 from rflscm.config import load_config
 from rflscm.data import SCENARIO_FILE
 from rflscm.errors import ConfigError
+from rflscm.parallel.engine import Engine, RayAddressOption, WorkersOption
 
 
 def parse_carriers(text: str) -> tuple[float, ...]:
@@ -149,9 +150,15 @@ def simulate(
         "--raw-cloud",
         help="Point cloud beside the raw samples: same (the scenario's file), a format (laz is ~4× smaller), or none.",
     ),
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:
-    """Trace a scene once per (site, carrier) and write a complete scenario with ground truth (truth/)."""
+    """Trace a scene once per (site, carrier) and write a complete scenario with ground truth (truth/).
+
+    With --workers N (or --ray-address) the traces, and the ideal regime's noiseless RSRP per site and carrier, run
+    on Ray workers; the scenario written is the same file for file."""
     backend, measurements = backend_choice.value, None if regime is None else regime.value
+    engine = Engine(workers, ray_address)
     from rflscm.cli.common import SEED_MAX, check_numbers, refuse_inputs_inside
     from rflscm.data.safe_io import guard_outputs
 
@@ -161,8 +168,9 @@ def simulate(
     if raw_out is not None and os.path.realpath(raw_out).startswith(os.path.realpath(out).rstrip(os.sep) + os.sep):
         raise ConfigError(f"--raw-out {raw_out}: is inside --out {out}, which is replaced; choose a folder beside it.")
     guard_outputs({"--out": out, "--raw-out": raw_out}, inputs, force=True, folders=("--out", "--raw-out"))
+    from rflscm.parallel.work import mapper as work_mapper
     from rflscm.sim import SimulationConfig, build_scenario, make_backend
-    from rflscm.sim.builder import grow_procedural
+    from rflscm.sim.builder import BackendSpec, grow_procedural
 
     if measurements not in (None, "ideal", "field"):
         raise ConfigError(f"--measurements must be ideal or field (got {measurements!r}).")
@@ -177,7 +185,7 @@ def simulate(
                 f"--from-trace re-measures an existing trace, so {', '.join(layout)} cannot change it; drop "
                 f"{'them' if len(layout) > 1 else 'it'} or simulate anew without --from-trace."
             )
-        _remeasure(from_trace, out, config, measurements, seed, force)
+        _remeasure(from_trace, out, config, measurements, seed, force, engine)
         _write_raw(out, raw_out, raw_samples, raw_fading, raw_grids, seed, raw_cloud.value)
         return
     cfg = load_config(SimulationConfig, config) if config is not None else SimulationConfig()
@@ -196,21 +204,35 @@ def simulate(
     _prepare_out(out, force)
     dev = resolve_device(device)
     seed_everything(cfg.seed)
+    spec = BackendSpec(backend, scene, seed=cfg.seed, device=dev.type, options=dict(cfg.backend_options))
     scene_backend = make_backend(backend, scene, seed=cfg.seed, device=dev.type, options=cfg.backend_options)
     out.parent.mkdir(parents=True, exist_ok=True)
     stats: dict[str, float] = {}
-    with tempfile.TemporaryDirectory(prefix=f".{out.name}.", dir=out.parent) as tmp:
-        build_scenario(scene_backend, cfg, Path(tmp) / "scenario", progress=progress, scene=scene, stats=stats)
+    with (
+        tempfile.TemporaryDirectory(prefix=f".{out.name}.", dir=out.parent) as tmp,
+        work_mapper(engine, "a trace", gpus=dev.type == "cuda" and backend == "sionna") as mapper,
+    ):
+        build_scenario(
+            scene_backend,
+            cfg,
+            Path(tmp) / "scenario",
+            progress=progress,
+            scene=scene,
+            stats=stats,
+            mapper=mapper,
+            spec=spec,
+        )
         if out.exists():
             shutil.rmtree(out) if any(out.iterdir()) else out.rmdir()
         shutil.move(str(Path(tmp) / "scenario"), str(out))
     console = Console(stderr=True)
+    where = f", on {workers} Ray workers" if engine.parallel else ""
     console.print(
         f"[green]wrote[/green] {out}: {int(stats['num_cells'])} cells, {int(stats['num_grids'])} grids, "
         f"{stats['paths_per_grid']:.1f} paths per grid and trace, "
         f"{100 * stats['fraction_missing']:.1f} % beams missing; "
         f"tracing {stats['trace_seconds']:.1f} s ({stats['seconds_per_1000_rx_per_carrier']:.2f} s per 1000 "
-        f"receivers per carrier). Check it with `rflscm check {out}`."
+        f"receivers per carrier{where}). Check it with `rflscm check {out}`."
     )
     _write_raw(out, raw_out, raw_samples, raw_fading, raw_grids, cfg.seed, raw_cloud.value)
 
@@ -251,7 +273,13 @@ def _write_raw(
 
 
 def _remeasure(
-    source: Path, out: Path, config: Path | None, measurements: str | None, seed: int | None, force: bool
+    source: Path,
+    out: Path,
+    config: Path | None,
+    measurements: str | None,
+    seed: int | None,
+    force: bool,
+    engine: Engine,
 ) -> None:
     """``--from-trace``: the trace's recorded config, overridden by the measurement keys of --config and the flags."""
     from rflscm.config import from_dict, load_yaml, to_dict
@@ -267,8 +295,16 @@ def _remeasure(
     cfg = from_dict(SimulationConfig, merged)
     _prepare_out(out, force)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix=f".{out.name}.", dir=out.parent) as tmp:
-        remeasure(source, cfg, Path(tmp) / "scenario")
+    from rflscm.parallel.work import mapper as work_mapper
+
+    if cfg.measurements == "field" and engine.parallel:  # only the ideal regime's RSRP runs per site on workers
+        Console(stderr=True).print("--workers: the field regime is measured in this process; no Ray is started.")
+        engine = Engine()
+    with (
+        tempfile.TemporaryDirectory(prefix=f".{out.name}.", dir=out.parent) as tmp,
+        work_mapper(engine, "a site's RSRP") as mapper,
+    ):
+        remeasure(source, cfg, Path(tmp) / "scenario", mapper=mapper)
         if out.exists():
             shutil.rmtree(out) if any(out.iterdir()) else out.rmdir()
         shutil.move(str(Path(tmp) / "scenario"), str(out))

@@ -29,6 +29,7 @@ from rflscm.config import to_dict
 from rflscm.data import PointCloud, Scenario, ScenarioMeta, empty_measurements, load_scenario, save_scenario
 from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
+from rflscm.runtime import Mapper
 from rflscm.sim.backend import SceneBackend
 from rflscm.sim.field import FieldConfig
 from rflscm.sim.noise import MeasurementModel
@@ -369,6 +370,89 @@ def receiver_points(backend: SceneBackend, grids: pd.DataFrame, config: Simulati
 
 
 # ---- tracing ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class BackendSpec:
+    """How to build a scene backend (:func:`rflscm.sim.make_backend`'s arguments): a worker process builds its
+    own from this, once, instead of receiving the driver's (a Sionna scene does not pickle)."""
+
+    name: str
+    scene: str | None = None
+    seed: int = 0
+    device: str = "cpu"
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def build(self) -> SceneBackend:
+        from rflscm.sim import make_backend
+
+        return make_backend(self.name, self.scene, seed=self.seed, device=self.device, options=self.options)
+
+
+@dataclass(frozen=True)
+class TraceJob:
+    """One (site, carrier) to trace: ``site`` and ``carrier`` are indices (0-based), ``receivers`` the indices of
+    the receiver points within range (``None``: all of them)."""
+
+    site: int
+    carrier: int
+    freq_hz: float
+    tx: np.ndarray
+    receivers: np.ndarray | None
+    seed: int
+
+
+@dataclass(frozen=True)
+class TraceSetup:
+    """What every trace of a build shares: the receivers ``[num_grids * K, 3]`` (grid-major), their grids' ids
+    ``[num_grids]``, K, and the truth floor of :func:`rflscm.sim.paths.trim_paths`."""
+
+    rx: np.ndarray
+    grid_ids: np.ndarray
+    points_per_grid: int
+    truth_floor_db: float | None
+
+
+def trace_job(
+    backend: SceneBackend, setup: TraceSetup, job: TraceJob, progress: Callable[[int, int], None] | None = None
+) -> tuple[pd.DataFrame, float]:
+    """One (site, carrier)'s trimmed paths in the columns of ``truth/paths.parquet``, and the trace's seconds."""
+    from rflscm.sim.paths import trim_paths
+    from rflscm.sim.stream import PATH_TABLE_COLUMNS
+
+    start = time.perf_counter()
+    near = job.receivers
+    if near is not None and len(near) == 0:  # no receiver within range of this site
+        from rflscm.sim.backend import empty_path_table
+
+        table = empty_path_table()
+    else:
+        kwargs = {} if progress is None else {"progress": progress}
+        table = backend.trace(
+            job.tx, setup.rx if near is None else setup.rx[near], job.freq_hz, seed=job.seed, **kwargs
+        )
+    seconds = time.perf_counter() - start
+    rx_index = table["rx_index"].to_numpy()
+    if near is not None:
+        rx_index = near[rx_index]
+    k = setup.points_per_grid
+    table = table.drop(columns="rx_index").assign(
+        site_id=np.int32(job.site + 1),
+        freq_hz=float(job.freq_hz),
+        grid_id=setup.grid_ids[rx_index // k],
+        point_id=(rx_index % k).astype(np.int16),
+    )
+    return trim_paths(table, setup.truth_floor_db)[PATH_TABLE_COLUMNS], seconds
+
+
+_WORKER_BACKEND: list[tuple[BackendSpec, SceneBackend]] = []  # a worker's backend, built on its first job
+
+
+def trace_in_worker(spec: BackendSpec, setup: TraceSetup, job: TraceJob) -> tuple[pd.DataFrame, float]:
+    """:func:`trace_job` on this process's backend of ``spec`` (built once per process)."""
+    if not _WORKER_BACKEND or _WORKER_BACKEND[0][0] != spec:
+        _WORKER_BACKEND[:] = [(spec, spec.build())]
+    return trace_job(_WORKER_BACKEND[0][1], setup, job)
+
+
 def trace_all(
     backend: SceneBackend,
     sites: np.ndarray,
@@ -377,64 +461,62 @@ def trace_all(
     config: SimulationConfig,
     progress: bool = True,
     sink: Callable[[int, float, pd.DataFrame], None] | None = None,
+    mapper: Mapper | None = None,
+    spec: BackendSpec | None = None,
 ) -> tuple[pd.DataFrame | None, dict[str, float]]:
     """One trace per (site, carrier) → the paths table of ``truth/paths.parquet`` and timing facts.
 
     With ``sink``, each (site, carrier)'s trimmed paths go to ``sink(site_id, freq_hz, table)`` as they are
-    traced and the table returned is ``None`` (only one trace is in memory at a time)."""
+    traced and the table returned is ``None`` (only one trace is in memory at a time, plus those a parallel
+    ``mapper`` has finished ahead of it).  With ``mapper`` and ``spec`` the traces run on the mapper's workers,
+    each on its own backend built from ``spec`` (the same scene, so the same paths); the sink still receives them
+    in site and carrier order.  ``trace_seconds`` is the traces' own time, summed over workers."""
+    from functools import partial
+
     from tqdm.auto import tqdm
 
-    from rflscm.sim.paths import trim_paths
-    from rflscm.sim.stream import PATH_TABLE_COLUMNS
-
-    k = config.points_per_grid
-    jobs = [(s, c, f) for s in range(len(sites)) for c, f in enumerate(config.carriers_hz)]
-    takes_progress = "progress" in inspect.signature(backend.trace).parameters
-    in_range = None
+    setup = TraceSetup(rx, np.asarray(grid_ids), config.points_per_grid, config.truth_floor_db)
+    in_range: list[np.ndarray | None] = [None] * len(sites)
     if config.trace_range_m is not None:
-        in_range = [
-            np.flatnonzero(np.hypot(rx[:, 0] - site[0], rx[:, 1] - site[1]) <= config.trace_range_m) for site in sites
-        ]
-    tables, seconds, num_paths, traced = [], 0.0, 0, 0
-    with tqdm(jobs, desc=f"tracing {backend.name}", unit="trace", disable=not progress, leave=True) as bar:
-        for s, c, freq in bar:
-            bar.set_postfix_str(f"site {s + 1}, {freq / 1e9:g} GHz")
-            kwargs = {}
-            if takes_progress and progress:
-                label = f"site {s + 1}, {freq / 1e9:g} GHz"
-                kwargs["progress"] = lambda done, total, label=label: bar.set_postfix_str(f"{label}, rx {done}/{total}")
-            start = time.perf_counter()
-            near = in_range[s] if in_range is not None else None
-            if near is not None and len(near) == 0:  # no receiver within range of this site
-                from rflscm.sim.backend import empty_path_table
+        in_range = [np.flatnonzero(np.hypot(rx[:, 0] - s[0], rx[:, 1] - s[1]) <= config.trace_range_m) for s in sites]
+    jobs = [
+        TraceJob(s, c, float(f), np.asarray(sites[s]), in_range[s], int(config.seed * 1000 + 10 * s + c))
+        for s in range(len(sites))
+        for c, f in enumerate(config.carriers_hz)
+    ]
+    parallel = mapper is not None and mapper is not map
+    if parallel and spec is None:
+        raise ValueError("trace_all: a mapper other than map needs the backend's spec")
+    takes_progress = "progress" in inspect.signature(backend.trace).parameters
+    tables, seconds, num_paths = [], 0.0, 0
+    desc = f"tracing {backend.name}"
+    with tqdm(total=len(jobs), desc=desc, unit="trace", disable=not progress, leave=True) as bar:
 
-                table = empty_path_table()
-            else:
-                table = backend.trace(
-                    sites[s],
-                    rx if near is None else rx[near],
-                    freq,
-                    seed=int(config.seed * 1000 + 10 * s + c),
-                    **kwargs,
-                )
-            seconds += time.perf_counter() - start
-            traced += len(rx) if near is None else len(near)
-            rx_index = table["rx_index"].to_numpy()
-            if near is not None:
-                rx_index = near[rx_index]
-            table = table.drop(columns="rx_index").assign(
-                site_id=np.int32(s + 1),
-                freq_hz=float(freq),
-                grid_id=grid_ids[rx_index // k],
-                point_id=(rx_index % k).astype(np.int16),
-            )
-            table = trim_paths(table, config.truth_floor_db)[PATH_TABLE_COLUMNS]
+        def serial(job: TraceJob) -> tuple[pd.DataFrame, float]:
+            label = f"site {job.site + 1}, {job.freq_hz / 1e9:g} GHz"
+            bar.set_postfix_str(label)
+            report = None
+            if takes_progress and progress:
+
+                def report(done: int, total: int) -> None:
+                    bar.set_postfix_str(f"{label}, rx {done}/{total}")
+
+            return trace_job(backend, setup, job, report)
+
+        if mapper is not None and spec is not None and parallel:
+            run = mapper(partial(trace_in_worker, spec, setup), jobs)
+        else:
+            run = map(serial, jobs)
+        for job, (table, took) in zip(jobs, run, strict=True):
+            seconds += took
             num_paths += len(table)
             if sink is None:
                 tables.append(table)
             else:
-                sink(s + 1, float(freq), table)
+                sink(job.site + 1, job.freq_hz, table)
+            bar.update(1)
     paths = pd.concat(tables, ignore_index=True) if sink is None else None
+    traced = sum(len(rx) if job.receivers is None else len(job.receivers) for job in jobs)
     stats = {
         "trace_seconds": seconds,
         "seconds_per_1000_rx_per_carrier": 1000.0 * seconds / max(traced, 1),
@@ -451,13 +533,17 @@ def build_scenario(
     progress: bool = True,
     scene: str | None = None,
     stats: dict[str, float] | None = None,
+    mapper: Mapper = map,
+    spec: BackendSpec | None = None,
 ) -> Path:
     """Simulate a scenario with ground truth into ``out_dir`` (created; must be empty or absent).
 
     Returns the folder.  Writes scenario.yaml (with a ``simulation:`` block), cells of rounds 1 and
     2, grids, measurements (both rounds), a PLY point cloud and ``truth/`` (paths, APS, noiseless
     RSRP); the result is validated with :func:`rflscm.data.load_scenario`.  ``stats``, when given,
-    receives timings and counts (kept out of the files so that they are reproducible).
+    receives timings and counts (kept out of the files so that they are reproducible).  ``mapper``
+    (with ``spec``, the backend's recipe): the traces and the ideal regime's noiseless RSRP run on its
+    workers (:func:`trace_all`, :func:`rflscm.sim.stream.stream_ideal`); the files are the same.
     """
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()):
@@ -486,7 +572,9 @@ def build_scenario(
         paths_file.append(compact_paths(table))
 
     try:
-        _, trace_stats = trace_all(backend, sites, rx, grids["grid_id"].to_numpy(), config, progress, sink=keep)
+        _, trace_stats = trace_all(
+            backend, sites, rx, grids["grid_id"].to_numpy(), config, progress, sink=keep, mapper=mapper, spec=spec
+        )
     finally:
         paths_file.close()
     del rx
@@ -509,7 +597,7 @@ def build_scenario(
     scenario = Scenario(out.resolve(), meta, {1: cells1, 2: cells2}, grids, empty_measurements(), cloud)
     scenario = _normalised(scenario)
     try:
-        write_measurements(scenario, store, config, rng, out, paths_written=True)
+        write_measurements(scenario, store, config, rng, out, paths_written=True, mapper=mapper)
     finally:
         store.remove()
     loaded = load_scenario(out)
@@ -540,6 +628,7 @@ def write_measurements(
     rng: np.random.Generator,
     out: Path,
     paths_written: bool = False,
+    mapper: Mapper = map,
 ) -> None:
     """The measurement step of :func:`build_scenario` (also run alone on an existing trace, see
     :func:`rflscm.sim.remeasure.remeasure`): truth/ and the measurements of ``config``'s regime, saved
@@ -549,7 +638,8 @@ def write_measurements(
     ``paths``: the whole path table, or a :class:`~rflscm.sim.stream.PathStore` read one (site, carrier) at
     a time.  The ideal regime streams per (round, cell) (:func:`rflscm.sim.stream.stream_ideal`); the field
     regime builds its tables whole.  ``paths_written``: ``truth/paths.parquet`` exists already (the trace
-    appended it)."""
+    appended it).  ``mapper``: where the ideal regime's noiseless RSRP is computed, one (site, carrier, round) per
+    job (the field regime runs in-process)."""
     from rflscm.sim.field import field_rsrp, report
     from rflscm.sim.stream import MemoryPaths, stream_ideal
 
@@ -573,6 +663,7 @@ def write_measurements(
             floor,
             config.angle_grid,
             measurements_file=streamed,
+            mapper=mapper,
         )
         save_scenario(scenario, out, table_format="parquet")  # meta names measurements.parquet: written empty
         os.replace(streamed, out / str(scenario.meta.measurements))

@@ -17,6 +17,7 @@ import numpy as np
 from rflscm.config import from_dict, to_dict
 from rflscm.data import load_scenario, read_table
 from rflscm.errors import ConfigError, DataError
+from rflscm.runtime import Mapper
 from rflscm.sim.builder import SimulationConfig, write_measurements
 from rflscm.sim.paths import PATHS_FILE
 
@@ -36,7 +37,7 @@ def trace_config(source: str | Path) -> SimulationConfig:
     return from_dict(SimulationConfig, recorded, prefix="simulation.config")
 
 
-def remeasure(source: str | Path, config: SimulationConfig, out: str | Path) -> Path:
+def remeasure(source: str | Path, config: SimulationConfig, out: str | Path, mapper: Mapper = map) -> Path:
     """Write a copy of the simulated scenario ``source`` into ``out`` measured with ``config``'s regime.
 
     Only the measurement keys of ``config`` may differ from the trace's own (``measurements``,
@@ -101,5 +102,5 @@ def remeasure(source: str | Path, config: SimulationConfig, out: str | Path) -> 
     )
     fresh = dataclasses.replace(scenario, root=out.resolve(), meta=meta)
     rng = np.random.default_rng([config.seed, REMEASURE_STREAM])
-    write_measurements(fresh, paths, config, rng, out)
+    write_measurements(fresh, paths, config, rng, out, mapper=mapper)
     return load_scenario(out).root

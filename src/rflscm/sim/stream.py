@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Iterator
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -27,17 +29,21 @@ import pandas as pd
 
 from rflscm.data import BEAM_TYPES
 from rflscm.geometry import AngleGrid
+from rflscm.runtime import Mapper
 from rflscm.sim.paths import (
     APS_FILE,
     COMPACT_PATHS,
     PATHS_FILE,
     RSRP_FILE,
     bin_paths,
-    cell_rsrp_dbm,
+    path_rsrp_mw,
     site_groups,
+    to_dbm,
 )
 
 if TYPE_CHECKING:
+    from rflscm.antenna import CellAntenna
+    from rflscm.antenna.codebook import Codebook
     from rflscm.data.scenario import Scenario
     from rflscm.sim.noise import MeasurementModel
 
@@ -274,6 +280,63 @@ def _rsrp_rows(
     }
 
 
+@dataclass(frozen=True)
+class RsrpJob:
+    """One (site, carrier)'s cells in one round, for :func:`group_rsrp`: per cell ``(cell_id, antenna, codebooks by
+    beam type, wavelength [m])``, in ascending cell id, and the (site, carrier)'s traced ``paths``."""
+
+    round: int
+    cells: tuple[tuple[int, CellAntenna, dict[str, Codebook], float], ...]
+    paths: pd.DataFrame
+
+
+def rsrp_jobs(scenario: Scenario, store: PathStore) -> Iterator[RsrpJob]:
+    """The jobs of :func:`stream_ideal`, round by round, cells in ascending id grouped by (site, carrier) as they
+    come (the cell ids of a site and carrier are consecutive), each group's paths read when its job is drawn."""
+    for rnd in scenario.rounds():
+        group: list[tuple[int, CellAntenna, dict[str, Codebook], float]] = []
+        group_key: tuple[int, float] | None = None
+        for cell_id, _, key in _cells_in_order(scenario, rnd):
+            if group and key != group_key:
+                yield RsrpJob(rnd, tuple(group), _paths_of(store, group_key))
+                group = []
+            group_key = key
+            books = {bt: scenario.codebook(cell_id, bt, rnd) for bt in BEAM_TYPES}
+            group.append((cell_id, scenario.antenna(cell_id, rnd), books, scenario.wavelength_m(cell_id)))
+        if group:
+            yield RsrpJob(rnd, tuple(group), _paths_of(store, group_key))
+
+
+def _paths_of(store: PathStore, key: tuple[int, float] | None) -> pd.DataFrame:
+    """The paths of ``key``, or no rows (in the store's columns) where that (site, carrier) was never traced."""
+    sub = None if key is None else store.group(key)
+    if sub is not None:
+        return sub
+    for other in store.group_keys():  # the columns and dtypes of a traced group
+        found = store.group(other)
+        if found is not None:
+            return found.iloc[:0]
+    from rflscm.sim.backend import empty_path_table
+
+    return empty_path_table()
+
+
+def group_rsrp(
+    grid_ids: np.ndarray, counts: pd.Series, job: RsrpJob
+) -> tuple[int, list[tuple[int, dict[str, np.ndarray]]]]:
+    """``(round, [(cell_id, noiseless RSRP [dBm] [grids, beams] by beam type), …])`` of ``job``'s cells at
+    ``grid_ids`` (:func:`rflscm.sim.paths.path_rsrp_mw` through each cell's antenna and codebooks)."""
+    out = []
+    for cell_id, antenna, books, wavelength in job.cells:
+        out.append(
+            (
+                cell_id,
+                {bt: to_dbm(path_rsrp_mw(job.paths, antenna, books[bt], wavelength, grid_ids, counts)) for bt in books},
+            )
+        )
+    return job.round, out
+
+
 def stream_ideal(
     scenario: Scenario,
     store: PathStore,
@@ -285,6 +348,7 @@ def stream_ideal(
     rsrp_floor_dbm: float | None,
     angle_grid: AngleGrid,
     measurements_file: Path | None = None,
+    mapper: Mapper = map,
 ) -> pd.DataFrame:
     """The ideal regime's measurements and ``truth/`` (APS and noiseless RSRP), one (round, cell) at a time.
 
@@ -295,7 +359,9 @@ def stream_ideal(
     round-1 row is computed again from the same paths (the same numbers).  ``truth/paths.parquet`` is not
     written here (the trace appends it).  Returns the measurements table; with ``measurements_file`` the
     table is appended to that Parquet file block by block instead (page checksums, as
-    :func:`rflscm.data.io.write_table` writes) and the table returned is empty.
+    :func:`rflscm.data.io.write_table` writes) and the table returned is empty.  ``mapper`` runs the noiseless
+    RSRP of each (site, carrier, round) (:func:`group_rsrp`; Ray workers with :func:`rflscm.parallel.work.mapper`);
+    the report noise is drawn here, in order, so the numbers do not depend on it.
     """
     from rflscm.data import empty_measurements
 
@@ -314,23 +380,13 @@ def stream_ideal(
         }
     )
     detect_t = None if detect_on is None else BEAM_TYPES.index(detect_on)
-    empty_paths = None
     kept: list[dict[str, np.ndarray]] = []
     sink = None
     if measurements_file is not None:
         sink = ParquetAppender(measurements_file, empty_measurements(), page_checksum=True)
     with ParquetAppender(truth / RSRP_FILE, empty_truth) as rsrp_file:
-        for rnd in scenario.rounds():
-            for cell_id, _, key in _cells_in_order(scenario, rnd):
-                sub = store.group(key)
-                if sub is None:
-                    if empty_paths is None:
-                        empty_paths = store.frame().iloc[:0]
-                    sub = empty_paths
-                noiseless = {
-                    beam_type: cell_rsrp_dbm(scenario, int(cell_id), beam_type, rnd, sub, grid_ids, counts)
-                    for beam_type in BEAM_TYPES
-                }
+        for rnd, cells in mapper(partial(group_rsrp, grid_ids, counts), rsrp_jobs(scenario, store)):
+            for cell_id, noiseless in cells:
                 reported = {bt: model.apply(noiseless[bt], rng) for bt in BEAM_TYPES}  # draws in table order
                 heard = [~np.isnan(reported[bt]).all(axis=1) for bt in BEAM_TYPES]  # [grids] per type
                 detected = heard[detect_t] if detect_t is not None else heard[0] | heard[1]
