@@ -41,6 +41,17 @@ def test_b10_runs_every_stage_at_two_sizes(tmp_path: Path) -> None:
     assert metrics  # the evaluation wrote its metrics
 
 
+@pytest.mark.slow
+def test_simulate_on_two_workers_is_timed_beside_one_and_checked_file_for_file(tmp_path: Path) -> None:
+    pytest.importorskip("ray")
+    plan = B10Plan(sites=(2,), grids_per_site=12, scene="small", carriers="3.5e9", workers=(1, 2))
+    rows = {r["stage"]: r for r in run_b10(plan, tmp_path)["stages"]}
+    assert rows["simulate@2"]["status"] == "ok" and rows["simulate@2"]["same_as_first"] is True
+    assert rows["simulate@2"]["wall_s"] > 0 and rows["simulate@2"]["peak_rss_mb"] > 100
+    assert not (tmp_path / "b10" / "city2" / "scenario_w2").exists()  # the identical copy was removed
+    assert rows["optimize_wnomp"]["status"] == "ok"  # the later stages ran on the first scenario
+
+
 def test_a_failing_stage_skips_the_rest_and_a_time_limit_stops_a_stage(tmp_path: Path) -> None:
     plan = B10Plan(sites=(1,), grids_per_site=12, scene="atlantis", carriers="3.5e9")
     rows = run_b10(plan, tmp_path)["stages"]
@@ -98,6 +109,7 @@ def test_rflscm_stages_run_tiled_and_once_per_worker_count(tmp_path: Path) -> No
     cmds = _commands(plan, 4, tmp_path)
     assert list(cmds) == [
         "simulate",
+        "simulate@2",
         "check",
         "train_wnomp",
         "evaluate_wnomp",
@@ -116,6 +128,9 @@ def test_rflscm_stages_run_tiled_and_once_per_worker_count(tmp_path: Path) -> No
     assert cmds["optimize_rflscm"][-2:] == ["--restarts", "0"] and cmds["optimize_rflscm@2"][-2:] == ["--restarts", "0"]
     outs = {c[c.index("--out") + 1] for k, c in cmds.items() if k.startswith("optimize")}
     assert len(outs) == 3  # serial and parallel runs never write over each other
+    sims = [cmds[k][cmds[k].index("--out") + 1] for k in ("simulate", "simulate@2")]
+    assert sims == [str(tmp_path / "scenario"), str(tmp_path / "scenario_w2")]  # later stages read the first
+    assert cmds["simulate@2"][-2:] == ["--workers", "2"] and cmds["check"][-1] == sims[0]
     given = B10Plan(sites=(4,), rflscm_minutes=2.0, given={4: "/data/city4"}, predict=False)
     cmds = _commands(given, 4, tmp_path)
     assert (
@@ -133,10 +148,12 @@ def test_projection_is_linear_in_cells_and_divides_only_the_stages_that_spread()
     rows = [
         {"stage": "simulate", "status": "ok", "cells": 100, "wall_s": 50.0},
         {"stage": "simulate", "status": "ok", "cells": 1000, "wall_s": 400.0},
+        {"stage": "check", "status": "ok", "cells": 1000, "wall_s": 80.0},
         {"stage": "evaluate_rflscm", "status": "ok", "cells": 1000, "wall_s": 300.0},
         {"stage": "train_rflscm", "status": "failed (exit 1)", "cells": 1000, "wall_s": 1.0},
     ]
     proj = project_wall(rows, 10_000, (1, 8))
-    assert proj["stages"]["simulate"]["wall_s"] == {"1": pytest.approx(4000.0), "8": pytest.approx(4000.0)}
+    assert proj["stages"]["simulate"]["wall_s"] == {"1": pytest.approx(4000.0), "8": pytest.approx(500.0)}
+    assert proj["stages"]["check"]["wall_s"] == {"1": pytest.approx(800.0), "8": pytest.approx(800.0)}
     assert proj["stages"]["evaluate_rflscm"]["wall_s"] == {"1": pytest.approx(3000.0), "8": pytest.approx(375.0)}
     assert "train_rflscm" not in proj["stages"]  # a failed stage projects nothing

@@ -4,7 +4,9 @@ For each size (a site count; cells = 3 sectors × sites × carriers) B10 runs, o
 its own process, the stages a user runs:
 
 * ``simulate``: ``rflscm simulate --backend procedural --sites N`` (the grown city of docs/scale.md: area,
-  buildings and grids grow with N; ``--grids`` only when the plan fixes it);
+  buildings and grids grow with N; ``--grids`` only when the plan fixes it), once per worker count of ``workers``
+  (``simulate@2``: traces and RSRP on 2 Ray workers, into a second folder compared byte for byte with the first,
+  ``same_as_first``, then removed when equal);
 * ``check``: ``rflscm check`` of that scenario;
 * ``train_wnomp``, ``evaluate_wnomp`` and ``optimize_wnomp``: ``rflscm train --model wnomp``, ``rflscm evaluate``
   and ``rflscm optimize`` of it;
@@ -41,6 +43,7 @@ import csv
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -68,10 +71,13 @@ STAGES = (
     "evaluate_rflscm",
     "optimize_rflscm",
 )
-SPREAD_STAGES = ("train_rflscm", "predict_rflscm", "evaluate_rflscm", "optimize_rflscm")
-"""Stages whose work spreads over Ray workers and machines (tiles; the APS of prediction, evaluation, optimiser)."""
-WORKER_STAGES = ("predict_rflscm", "evaluate_rflscm", "optimize_rflscm")
-"""Stages run once per worker count of :attr:`B10Plan.workers`."""
+SPREAD_STAGES = ("simulate", "train_rflscm", "predict_rflscm", "evaluate_rflscm", "optimize_rflscm")
+"""Stages whose work spreads over Ray workers and machines (traces and RSRP per site; tiles; the APS of prediction,
+evaluation, optimiser)."""
+WORKER_STAGES = ("simulate", "predict_rflscm", "evaluate_rflscm", "optimize_rflscm")
+"""Stages run once per worker count of :attr:`B10Plan.workers`.  ``simulate`` with the first count writes the
+scenario the other stages read; with another count it writes a second folder, compared with the first file by
+file (``same_as_first`` in its row)."""
 
 
 @dataclass(frozen=True)
@@ -162,30 +168,35 @@ def _commands(plan: B10Plan, sites: int, folder: Path) -> dict[str, list[str]]:
     cli = [sys.executable, "-m", "rflscm.cli", "--threads", str(plan.threads)]
     scen = str(plan.given.get(sites, folder / "scenario"))
     sim = [*cli, "simulate", "--backend", "procedural", "--scene", plan.scene, "--sites", str(sites)]
-    sim += ["--out", scen, "--no-progress", "--force", "--device", "cpu"]
+    sim += ["--no-progress", "--force", "--device", "cpu"]
     if plan.grids_per_site is not None:
         sim += ["--grids", str(plan.grids_per_site * sites)]
     if plan.carriers is not None:
         sim += ["--carriers", plan.carriers]
     quiet = ["--no-progress", "--device", "cpu", "--force"]
     wn = str(folder / "wnomp.ckpt")
-    commands = {
-        "simulate": sim,
-        "check": [*cli, "check", scen],
-        "train_wnomp": [*cli, "train", scen, "--model", "wnomp", "--out", wn, *quiet],
-        "evaluate_wnomp": [*cli, "evaluate", wn, scen, "--device", "cpu", "--force"],
-        "optimize_wnomp": [
-            *cli,
-            "optimize",
-            wn,
-            scen,
-            "--out",
-            str(folder / "opt_wnomp"),
-            "--device",
-            "cpu",
-            "--force",
-        ],
-    }
+    commands: dict[str, list[str]] = {}
+    for i, w in enumerate(plan.workers):
+        out = scen if i == 0 else str(_second_scenario(folder, w))
+        commands["simulate" + ("" if i == 0 else f"@{w}")] = [*sim, "--out", out, "--workers", str(w)]
+    commands.update(
+        {
+            "check": [*cli, "check", scen],
+            "train_wnomp": [*cli, "train", scen, "--model", "wnomp", "--out", wn, *quiet],
+            "evaluate_wnomp": [*cli, "evaluate", wn, scen, "--device", "cpu", "--force"],
+            "optimize_wnomp": [
+                *cli,
+                "optimize",
+                wn,
+                scen,
+                "--out",
+                str(folder / "opt_wnomp"),
+                "--device",
+                "cpu",
+                "--force",
+            ],
+        }
+    )
     commands["evaluate_wnomp"] += ["--json", str(folder / "wnomp_eval.json")]
     if plan.rflscm_minutes is not None:
         rf = str(folder / "rflscm.ckpt")
@@ -216,6 +227,27 @@ def _commands(plan: B10Plan, sites: int, folder: Path) -> dict[str, list[str]]:
                 commands[name] = [*commands[name], *args]
     order = {stage: i for i, stage in enumerate(STAGES)}
     return dict(sorted(commands.items(), key=lambda kv: order[kv[0].split("@")[0]]))
+
+
+def _second_scenario(folder: Path, workers: int) -> Path:
+    """Where ``simulate`` with a worker count other than the plan's first writes its scenario."""
+    return folder / f"scenario_w{workers}"
+
+
+def same_files(a: Path, b: Path) -> bool:
+    """True when folders ``a`` and ``b`` hold the same files with the same bytes."""
+    names = [sorted(str(p.relative_to(f)) for p in f.rglob("*") if p.is_file()) for f in (a, b)]
+    if names[0] != names[1]:
+        return False
+    for name in names[0]:
+        with open(a / name, "rb") as fa, open(b / name, "rb") as fb:
+            while True:
+                x, y = fa.read(1 << 20), fb.read(1 << 20)
+                if x != y:
+                    return False
+                if not x:
+                    break
+    return True
 
 
 def _scenario_size(scen: Path) -> dict[str, int]:
@@ -254,9 +286,12 @@ def run_b10(plan: B10Plan, out_dir: Path) -> dict[str, Any]:
         failed = None
         scen = Path(plan.given.get(int(sites), folder / "scenario"))
         for stage, cmd in _commands(plan, int(sites), folder).items():
-            if stage == "simulate" and int(sites) in plan.given:
-                size.update(_scenario_size(scen))
-                rows.append({"sites": int(sites), "stage": stage, "status": f"given ({scen})", "command": _shown(cmd)})
+            if stage.startswith("simulate") and int(sites) in plan.given:
+                if stage == "simulate":
+                    size.update(_scenario_size(scen))
+                    rows.append(
+                        {"sites": int(sites), "stage": stage, "status": f"given ({scen})", "command": _shown(cmd)}
+                    )
                 continue
             if stage.startswith("optimize") and plan.optimize_sites is not None and failed is None:
                 cluster = central_cells(scen, int(plan.optimize_sites))
@@ -268,6 +303,11 @@ def run_b10(plan: B10Plan, out_dir: Path) -> dict[str, Any]:
             result = run_stage(cmd, folder / f"{stage}.log", plan.timeout_s)
             if stage == "simulate" and result["rc"] == 0:
                 size.update(_scenario_size(scen))
+            if stage.startswith("simulate@") and result["rc"] == 0:
+                second = _second_scenario(folder, int(stage.split("@")[1]))
+                result["same_as_first"] = same_files(scen, second)
+                if result["same_as_first"]:  # a copy: free its disk (kept where it differs, to look at)
+                    shutil.rmtree(second, ignore_errors=True)
             if stage == "train_rflscm" and result["rc"] == 0:
                 size.update(_tile_figures(folder / "rflscm.ckpt"))
             status = "ok" if result["rc"] == 0 else f"failed (exit {result['rc']})"
