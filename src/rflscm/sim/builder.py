@@ -33,7 +33,7 @@ from rflscm.runtime import Mapper
 from rflscm.sim.backend import SceneBackend
 from rflscm.sim.field import FieldConfig
 from rflscm.sim.noise import MeasurementModel
-from rflscm.sim.paths import PATHS_FILE, write_truth
+from rflscm.sim.paths import PATHS_FILE
 from rflscm.sim.stream import PathStore
 
 ASPRS_BUILDING = 6
@@ -636,16 +636,13 @@ def write_measurements(
     field effects draw from a generator of their own (seeded by ``config.seed``).
 
     ``paths``: the whole path table, or a :class:`~rflscm.sim.stream.PathStore` read one (site, carrier) at
-    a time.  The ideal regime streams per (round, cell) (:func:`rflscm.sim.stream.stream_ideal`); the field
-    regime builds its tables whole.  ``paths_written``: ``truth/paths.parquet`` exists already (the trace
-    appended it).  ``mapper``: where the ideal regime's noiseless RSRP is computed, one (site, carrier, round) per
-    job (the field regime runs in-process)."""
-    from rflscm.sim.field import field_rsrp, report
+    a time.  Both regimes stream: the ideal one per (round, cell) (:func:`rflscm.sim.stream.stream_ideal`), the
+    field one per round and cell (:func:`rflscm.sim.field_stream.stream_field`).  ``paths_written``:
+    ``truth/paths.parquet`` exists already (the trace appended it).  ``mapper``: where the ideal regime's noiseless
+    RSRP is computed, one (site, carrier, round) per job (the field regime runs in-process)."""
     from rflscm.sim.stream import MemoryPaths, stream_ideal
 
     store = paths if isinstance(paths, PathStore) else MemoryPaths(paths)
-    grid_ids = scenario.grid_ids()
-    points_per_grid = pd.Series(config.points_per_grid, index=grid_ids)
     floor = None if config.truth_rsrp_margin_db is None else config.threshold_dbm - config.truth_rsrp_margin_db
     if config.measurements != "field":
         detect_on = None if config.detect_on == "any" else config.detect_on
@@ -668,16 +665,27 @@ def write_measurements(
         save_scenario(scenario, out, table_format="parquet")  # meta names measurements.parquet: written empty
         os.replace(streamed, out / str(scenario.meta.measurements))
         return
-    whole = store.frame()
-    field_rng = np.random.default_rng([config.seed, 12])
-    true_rsrp, noiseless, samples = field_rsrp(scenario, whole, config.points_per_grid, config.field_model, field_rng)
-    measurements = report(true_rsrp, scenario, config.field_model, rng)
+    from rflscm.sim.field_stream import stream_field
+
+    if not paths_written:
+        _write_paths(out / "truth", store)
     meta = dataclasses.replace(scenario.meta, reporting=config.field_model.reporting())
     scenario = dataclasses.replace(scenario, meta=meta)
-    write_truth(out / "truth", scenario, whole, noiseless, points_per_grid, config.angle_grid, floor)
-    write_sample_truth(out / "truth", scenario, whole, samples, config.points_per_grid, config.angle_grid)
-    scenario = dataclasses.replace(scenario, measurements=measurements)
+    streamed = out / ".measurements.parquet"
+    stream_field(
+        scenario,
+        store,
+        config.points_per_grid,
+        config.field_model,
+        np.random.default_rng([config.seed, 12]),
+        rng,
+        out / "truth",
+        floor,
+        config.angle_grid,
+        streamed,
+    )
     save_scenario(scenario, out, table_format="parquet")
+    os.replace(streamed, out / str(scenario.meta.measurements))
 
 
 def _write_paths(folder: Path, store: PathStore) -> None:
@@ -693,33 +701,6 @@ def _write_paths(folder: Path, store: PathStore) -> None:
             group = store.group(key)
             if group is not None:
                 out.append(compact_paths(group))
-
-
-def write_sample_truth(
-    folder: Path,
-    scenario: Scenario,
-    paths: pd.DataFrame,
-    samples: pd.DataFrame,
-    points_per_grid: int,
-    angle_grid: AngleGrid,
-) -> None:
-    """``truth/samples.parquet`` (the UE samples of every round) and ``truth/aps_samples.parquet``: the true
-    APS of each round's samples (``round``, ``cell_id``, ``grid_id``, ``bin``, ``power_lin``), the model
-    floor of ``rflscm evaluate``."""
-    from rflscm.sim.paths import true_aps_table
-
-    samples.astype({"round": "int8", "grid_id": "int32", "point_id": "int16", "weight": "float32"}).to_parquet(
-        folder / "samples.parquet", index=False, compression="zstd"
-    )
-    frames = []
-    for rnd, sub in samples.groupby("round"):
-        weight = pd.Series(sub["weight"].to_numpy(), index=pd.MultiIndex.from_frame(sub[["grid_id", "point_id"]]))
-        w = weight.reindex(pd.MultiIndex.from_frame(paths[["grid_id", "point_id"]].astype("int64"))).fillna(0.0)
-        weighted = paths.assign(power_lin=paths["power_lin"].to_numpy() * w.to_numpy() * points_per_grid)
-        aps = true_aps_table(weighted[weighted["power_lin"] > 0], scenario.cells[1], angle_grid, points_per_grid)
-        frames.append(aps.assign(round=np.int8(rnd)))
-    table = pd.concat(frames, ignore_index=True)[["round", "cell_id", "grid_id", "bin", "power_lin"]]
-    table.astype({"power_lin": "float32"}).to_parquet(folder / "aps_samples.parquet", index=False, compression="zstd")
 
 
 def _summary(scenario: Scenario, num_paths: int) -> dict[str, float]:
