@@ -168,8 +168,9 @@ def _read(root: Path, name: str, key: str, yaml_name: str, outside: bool) -> tup
     return df, TableRef(name, csv=table_kind(path) == "csv", lines=df.attrs.get(LINE_NUMBERS))
 
 
-def load_scenario(path: str | Path) -> Scenario:
-    """Load and validate a scenario folder (or its YAML file).
+def load_scenario(path: str | Path, measurements: bool = True) -> Scenario:
+    """Load and validate a scenario folder (or its YAML file); ``measurements=False`` leaves the measurements
+    table unread (empty), for a step that only needs cells, grids and the point cloud (re-measuring a trace).
 
     Raises:
         ConfigError: scenario.yaml is malformed (unknown or missing keys, bad values).
@@ -191,11 +192,11 @@ def load_scenario(path: str | Path) -> Scenario:
         elements.update(found)
     df, ref = _read(root, meta.grids, "grids", yaml_name, outside)
     grids = normalise_grids(df, ref, meta.origin, meta.ground)
-    if meta.measurements is None:
-        measurements = empty_measurements()
+    if meta.measurements is None or not measurements:
+        table = empty_measurements()
     else:
         df, ref = _read(root, meta.measurements, "measurements", yaml_name, outside)
-        measurements = normalise_measurements(df, ref, meta, cells, grids["grid_id"].to_numpy(), meta.grids)
+        table = normalise_measurements(df, ref, meta, cells, grids["grid_id"].to_numpy(), meta.grids)
     point_cloud = None
     if meta.point_cloud is not None:
         pc_path = _referenced(root, meta.point_cloud, "point_cloud", yaml_name, outside)
@@ -209,7 +210,7 @@ def load_scenario(path: str | Path) -> Scenario:
         parts.append((meta.point_cloud, point_cloud.xyz))
     check_overlap(parts)
     check_grid_heights(parts[1][1], [p[1] for p in parts[:1] + parts[2:]], ue, meta.grids)
-    scenario = Scenario(root, meta, cells, grids, measurements, point_cloud)
+    scenario = Scenario(root, meta, cells, grids, table, point_cloud)
     scenario._elements.update(elements)
     return scenario
 

@@ -49,6 +49,7 @@ if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
 
 SSB, CSI = BEAM_TYPES
+_SUM_COLUMNS = 4096  # (grid, beam) groups summed at once: 2 × cells × this many values in memory
 
 
 @dataclasses.dataclass
@@ -88,11 +89,15 @@ def _sum_in_table_order(stack: np.ndarray) -> np.ndarray:
     (the table's CSI-RS rows carry no SSB power but share the group), with pandas' compensated summation, so that
     SS-SINR is the whole-table path's to the bit."""
     cells = stack.shape[0]
-    flat = np.zeros((2 * cells, stack[0].size))
-    flat[0::2] = stack.reshape(cells, -1)
-    labels = np.tile(np.arange(flat.shape[1]), 2 * cells)
-    summed = pd.Series(flat.reshape(-1)).groupby(labels, sort=True).sum()
-    return summed.to_numpy().reshape(stack.shape[1:])
+    values = stack.reshape(cells, -1)
+    out = np.empty(values.shape[1])
+    for start in range(0, values.shape[1], _SUM_COLUMNS):  # groups are independent: a block at a time
+        block = values[:, start : start + _SUM_COLUMNS]
+        flat = np.zeros((2 * cells, block.shape[1]))
+        flat[0::2] = block
+        labels = np.tile(np.arange(block.shape[1]), 2 * cells)
+        out[start : start + block.shape[1]] = pd.Series(flat.reshape(-1)).groupby(labels, sort=True).sum().to_numpy()
+    return out.reshape(stack.shape[1:])
 
 
 def _rows_frame(rnd: int, cell_id: int, blocks: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -245,6 +250,7 @@ def stream_field(
                     _Reported(cell_id, carrier_of[cell_id], heard, noisy[SSB][heard], noisy[CSI][heard], lin)
                 )
             _report_round(rnd, reported, ssb_power, carrier_of, cells, grid_ids, config, route, sink)
+            del rsrp, reported, ssb_power  # this round's sample sums go before the next round's are drawn
     _write_sample_truth(truth, scenario, store, keys, samples, points_per_grid, angle_grid)
 
 

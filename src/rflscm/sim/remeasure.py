@@ -9,6 +9,7 @@ the measurements are rewritten; ``scenario.yaml`` records the new settings under
 from __future__ import annotations
 
 import dataclasses
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,7 @@ from rflscm.errors import ConfigError, DataError
 from rflscm.runtime import Mapper
 from rflscm.sim.builder import SimulationConfig, write_measurements
 from rflscm.sim.paths import PATHS_FILE
+from rflscm.sim.stream import SpilledPaths
 
 REMEASURE_STREAM = 2
 """Sub-stream of ``seed`` that draws the report error of a re-measured scenario (a new build draws it after
@@ -28,7 +30,7 @@ the layout, so a re-measured ideal scenario has other, equally distributed, nois
 
 def trace_config(source: str | Path) -> SimulationConfig:
     """The :class:`SimulationConfig` recorded in a simulated scenario's ``scenario.yaml``."""
-    scenario = load_scenario(source)
+    scenario = load_scenario(source, measurements=False)
     recorded = scenario.meta.simulation.get("config")
     if not isinstance(recorded, dict):
         raise DataError(
@@ -44,7 +46,7 @@ def remeasure(source: str | Path, config: SimulationConfig, out: str | Path, map
     ``field_model``, noise, threshold, ``detect_on``, ``seed``, ``name``, ``description``,
     ``truth_rsrp_margin_db``); a layout or tracing key that differs is a :class:`ConfigError`.
     """
-    scenario = load_scenario(source)
+    scenario = load_scenario(source, measurements=False)  # its measurements are replaced: never read
     traced = trace_config(source)
     allowed = {
         "measurements",
@@ -102,5 +104,14 @@ def remeasure(source: str | Path, config: SimulationConfig, out: str | Path, map
     )
     fresh = dataclasses.replace(scenario, root=out.resolve(), meta=meta)
     rng = np.random.default_rng([config.seed, REMEASURE_STREAM])
-    write_measurements(fresh, paths, config, rng, out, mapper=mapper)
+    store = SpilledPaths(out / ".trace")  # one (site, carrier) in memory at a time, in the trace's order
+    try:
+        for (site, freq), group in paths.groupby(["site_id", "freq_hz"], sort=False):
+            store.add(int(site), float(freq), group)
+        del paths
+        (out / "truth").mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(scenario.root / scenario.meta.truth / PATHS_FILE, out / "truth" / PATHS_FILE)  # the trace
+        write_measurements(fresh, store, config, rng, out, paths_written=True, mapper=mapper)
+    finally:
+        store.remove()
     return load_scenario(out).root

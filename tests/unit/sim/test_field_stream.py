@@ -116,3 +116,16 @@ def test_keep_top_keeps_the_strongest_and_breaks_ties_by_the_lower_beam() -> Non
     assert got[0, 1] == 3.0 and got[0, 2] == 3.0
     ties = _keep_top(np.array([[5.0, 5.0, 5.0]]), 2)
     np.testing.assert_array_equal(np.isnan(ties), [[False, False, True]])
+
+
+def test_the_interference_sum_is_the_same_in_blocks(monkeypatch: pytest.MonkeyPatch) -> None:
+    import rflscm.sim.field_stream as fs
+
+    rng = np.random.default_rng(0)
+    stack = 10.0 ** rng.uniform(-14, -6, (6, 7, 8))  # [cells, grids, beams] mW: sums where rounding matters
+    stack[rng.random(stack.shape) < 0.3] = 0.0
+    whole = fs._sum_in_table_order(stack)
+    monkeypatch.setattr(fs, "_SUM_COLUMNS", 5)  # 56 groups in 12 blocks, the last one short
+    blocks = fs._sum_in_table_order(stack)
+    assert np.array_equal(blocks, whole)
+    np.testing.assert_allclose(whole, stack.sum(axis=0), rtol=1e-12)
