@@ -219,3 +219,16 @@ def test_outside_ssb_is_part_of_equality_and_of_the_round_1_fingerprint(tiny: Sc
     assert cut([1]) != tiny and cut([1]) == cut([1]) and cut([1]) != cut([2])
     assert cut([1]).fingerprint() != tiny.fingerprint()  # it sets the training data's detection bounds
     assert cut([2]).fingerprint() == cut([2, 2]).fingerprint() != cut([1, 2]).fingerprint()  # round 1 only
+
+
+def test_loading_without_measurements_leaves_them_unread(tiny_dir: Path) -> None:
+    full = load_scenario(tiny_dir)
+    lean = load_scenario(tiny_dir, measurements=False)
+    assert len(full.measurements) > 0 and len(lean.measurements) == 0
+    assert list(lean.measurements.columns) == list(full.measurements.columns)
+    pd.testing.assert_frame_equal(lean.cells[1], full.cells[1])
+    pd.testing.assert_frame_equal(lean.grids, full.grids)
+    (tiny_dir / "measurements.csv").write_text("not, a, table\n")  # never opened
+    assert len(load_scenario(tiny_dir, measurements=False).measurements) == 0
+    with pytest.raises(DataError):
+        load_scenario(tiny_dir)
