@@ -226,7 +226,9 @@ def simulate(
             shutil.rmtree(out) if any(out.iterdir()) else out.rmdir()
         shutil.move(str(Path(tmp) / "scenario"), str(out))
     console = Console(stderr=True)
-    where = f", on {workers} Ray workers" if engine.parallel else ""
+    where = ""
+    if engine.parallel:
+        where = f"; {stats['trace_wall_seconds']:.1f} s wall on {workers} Ray workers"
     console.print(
         f"[green]wrote[/green] {out}: {int(stats['num_cells'])} cells, {int(stats['num_grids'])} grids, "
         f"{stats['paths_per_grid']:.1f} paths per grid and trace, "

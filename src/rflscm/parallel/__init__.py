@@ -6,9 +6,11 @@ prediction, a source's APS of the (cell, grid) pairs asked for: the pairs are pl
 calls the serial path makes (:mod:`rflscm.parallel.plan`), the calls are spread over workers that each load
 the checkpoint once (:mod:`rflscm.parallel.aps`), and their answers fill the APS cache the serial code then
 reads, in the original order, so the results are those of the serial path (bit-identical with ``--threads 1``).
+Tiles train as Ray tasks (:mod:`rflscm.parallel.tiles`), and ``simulate`` traces and computes RSRP per site
+through an ordered map over Ray actors (:mod:`rflscm.parallel.work`).
 
 This module imports neither torch nor ray (the CLI reads its options at start-up); the work is in
-:mod:`rflscm.parallel.aps`.
+:mod:`rflscm.parallel.aps`, :mod:`rflscm.parallel.tiles` and :mod:`rflscm.parallel.work`.
 """
 
 from rflscm.parallel.engine import Engine, RayAddressOption, WorkersOption, ray_session

@@ -470,7 +470,8 @@ def trace_all(
     traced and the table returned is ``None`` (only one trace is in memory at a time, plus those a parallel
     ``mapper`` has finished ahead of it).  With ``mapper`` and ``spec`` the traces run on the mapper's workers,
     each on its own backend built from ``spec`` (the same scene, so the same paths); the sink still receives them
-    in site and carrier order.  ``trace_seconds`` is the traces' own time, summed over workers."""
+    in site and carrier order.  ``trace_seconds`` is the traces' own time, summed over workers;
+    ``trace_wall_seconds`` the loop's wall time."""
     from functools import partial
 
     from tqdm.auto import tqdm
@@ -489,6 +490,7 @@ def trace_all(
         raise ValueError("trace_all: a mapper other than map needs the backend's spec")
     takes_progress = "progress" in inspect.signature(backend.trace).parameters
     tables, seconds, num_paths = [], 0.0, 0
+    wall = time.perf_counter()
     desc = f"tracing {backend.name}"
     with tqdm(total=len(jobs), desc=desc, unit="trace", disable=not progress, leave=True) as bar:
 
@@ -519,6 +521,7 @@ def trace_all(
     traced = sum(len(rx) if job.receivers is None else len(job.receivers) for job in jobs)
     stats = {
         "trace_seconds": seconds,
+        "trace_wall_seconds": time.perf_counter() - wall,
         "seconds_per_1000_rx_per_carrier": 1000.0 * seconds / max(traced, 1),
         "paths_per_grid": num_paths / max(len(jobs) * len(grid_ids), 1),
     }
