@@ -43,7 +43,15 @@ from rflscm.sim.field import (
     path_beam_power,
 )
 from rflscm.sim.paths import APS_FILE, RSRP_FILE, bin_paths, path_rsrp_mw, to_dbm
-from rflscm.sim.stream import ParquetAppender, PathStore, _category_codes, _measurement_frame, write_aps_streamed
+from rflscm.sim.stream import (
+    ParquetAppender,
+    PathStore,
+    _measurement_frame,
+    empty_truth_rsrp,
+    long_rows,
+    truth_rsrp_frame,
+    write_aps_streamed,
+)
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
@@ -98,34 +106,6 @@ def _sum_in_table_order(stack: np.ndarray) -> np.ndarray:
         labels = np.tile(np.arange(block.shape[1]), 2 * cells)
         out[start : start + block.shape[1]] = pd.Series(flat.reshape(-1)).groupby(labels, sort=True).sum().to_numpy()
     return out.reshape(stack.shape[1:])
-
-
-def _rows_frame(rnd: int, cell_id: int, blocks: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, np.ndarray]:
-    """Long-form columns of one (round, cell) from ``(grid ids [n], values [n, beams])`` of the SSB and then the
-    CSI-RS block: grid-major within a block, every beam of a listed grid."""
-    parts: dict[str, list[np.ndarray]] = {"grid_id": [], "beam_type": [], "beam_id": [], "rsrp_dbm": []}
-    for t, (grids, values) in enumerate(blocks):
-        n, num_beams = values.shape
-        parts["grid_id"].append(np.repeat(grids, num_beams))
-        parts["beam_type"].append(np.full(n * num_beams, t, dtype=np.int8))
-        parts["beam_id"].append(np.tile(np.arange(num_beams, dtype=np.int64), n))
-        parts["rsrp_dbm"].append(values.reshape(-1))
-    cols = {k: np.concatenate(v) for k, v in parts.items()}
-    num = len(cols["grid_id"])
-    return {"round": np.full(num, rnd, dtype=np.int64), "cell_id": np.full(num, cell_id, dtype=np.int64), **cols}
-
-
-def _truth_frame(rows: dict[str, np.ndarray]) -> pd.DataFrame:
-    return pd.DataFrame(
-        {
-            "round": rows["round"].astype(np.int8),
-            "cell_id": rows["cell_id"].astype(np.int32),
-            "grid_id": rows["grid_id"].astype(np.int32),
-            "beam_type": pd.Categorical.from_codes(_category_codes(rows["beam_type"]), categories=sorted(BEAM_TYPES)),
-            "beam_id": rows["beam_id"].astype(np.int16),
-            "rsrp_dbm": np.round(rows["rsrp_dbm"], 2).astype(np.float32),
-        }
-    )
 
 
 def _group(store: PathStore, key: tuple[int, float]) -> pd.DataFrame:
@@ -225,7 +205,7 @@ def stream_field(
     freq_of = scenario.cells[1].set_index("cell_id")["freq_hz"]  # the carrier groups of SS-SINR, as report's
     carriers = sorted({float(f) for f in freq_of})
     with (
-        ParquetAppender(truth / RSRP_FILE, _empty_truth()) as rsrp_file,
+        ParquetAppender(truth / RSRP_FILE, empty_truth_rsrp()) as rsrp_file,
         ParquetAppender(measurements_file, empty_measurements(), page_checksum=True) as sink,
     ):
         for rnd in rounds:
@@ -298,7 +278,7 @@ def _report_round(
             csi_grids = grids
         if config.csi_top_n is not None:
             csi = _keep_top(csi, config.csi_top_n)
-        block = _rows_frame(rnd, r.cell_id, [(grids, r.ssb), (csi_grids, csi)])
+        block = long_rows(rnd, r.cell_id, [(grids, r.ssb), (csi_grids, csi)])
         if route is not None:
             on_route = np.isin(block["grid_id"], route)
             block = {k: v[on_route] for k, v in block.items()}
@@ -319,20 +299,9 @@ def _append_truth(
     if floor_dbm is not None:
         keep = np.maximum(expected[SSB].max(axis=1), expected[CSI].max(axis=1)) >= floor_dbm
     if keep.any():
-        out.append(_truth_frame(_rows_frame(rnd, cell_id, [(grid_ids[keep], expected[bt][keep]) for bt in BEAM_TYPES])))
-
-
-def _empty_truth() -> pd.DataFrame:
-    return pd.DataFrame(
-        {
-            "round": pd.Series(dtype="int8"),
-            "cell_id": pd.Series(dtype="int32"),
-            "grid_id": pd.Series(dtype="int32"),
-            "beam_type": pd.Categorical([], categories=sorted(BEAM_TYPES)),
-            "beam_id": pd.Series(dtype="int16"),
-            "rsrp_dbm": pd.Series(dtype="float32"),
-        }
-    )
+        out.append(
+            truth_rsrp_frame(long_rows(rnd, cell_id, [(grid_ids[keep], expected[bt][keep]) for bt in BEAM_TYPES]))
+        )
 
 
 def _drive_route(scenario: Scenario, config: FieldConfig, rng: np.random.Generator) -> np.ndarray:

@@ -258,26 +258,55 @@ def write_aps_streamed(
         return out.num_rows
 
 
-def _rsrp_rows(
-    rsrp_dbm: dict[str, np.ndarray], keep: np.ndarray, rnd: int, cell_id: int, grid_ids: np.ndarray
-) -> dict[str, np.ndarray]:
-    """Long-form columns of one (round, cell)'s beams (SSB block, then CSI-RS block; grid-major within a block)
-    at the grids ``keep`` — the rows :func:`rflscm.sim.paths.noiseless_rsrp` lists for them, in its order."""
+def long_rows(rnd: int, cell_id: int, blocks: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Long-form columns of one (round, cell) from ``(grid ids [n], values [n, beams])`` of the SSB and then the
+    CSI-RS block (``BEAM_TYPES`` order): grid-major within a block, every beam of a listed grid — the rows
+    :func:`rflscm.sim.paths.noiseless_rsrp` lists for those grids, in its order."""
     parts: dict[str, list[np.ndarray]] = {"grid_id": [], "beam_type": [], "beam_id": [], "rsrp_dbm": []}
-    for beam_type in BEAM_TYPES:
-        values = rsrp_dbm[beam_type][keep]  # [kept grids, beams]
+    for t, (grids, values) in enumerate(blocks):
         n, num_beams = values.shape
-        parts["grid_id"].append(np.repeat(grid_ids[keep], num_beams))
-        parts["beam_type"].append(np.full(n * num_beams, BEAM_TYPES.index(beam_type), dtype=np.int8))
+        parts["grid_id"].append(np.repeat(grids, num_beams))
+        parts["beam_type"].append(np.full(n * num_beams, t, dtype=np.int8))
         parts["beam_id"].append(np.tile(np.arange(num_beams, dtype=np.int64), n))
         parts["rsrp_dbm"].append(values.reshape(-1))
     cols = {k: np.concatenate(v) for k, v in parts.items()}
     num = len(cols["grid_id"])
-    return {
-        "round": np.full(num, rnd, dtype=np.int64),
-        "cell_id": np.full(num, cell_id, dtype=np.int64),
-        **cols,
-    }
+    return {"round": np.full(num, rnd, dtype=np.int64), "cell_id": np.full(num, cell_id, dtype=np.int64), **cols}
+
+
+def _rsrp_rows(
+    rsrp_dbm: dict[str, np.ndarray], keep: np.ndarray, rnd: int, cell_id: int, grid_ids: np.ndarray
+) -> dict[str, np.ndarray]:
+    """:func:`long_rows` of one (round, cell)'s ``[grids, beams]`` values by beam type at the grids ``keep``."""
+    return long_rows(rnd, cell_id, [(grid_ids[keep], rsrp_dbm[bt][keep]) for bt in BEAM_TYPES])
+
+
+def empty_truth_rsrp() -> pd.DataFrame:
+    """``truth/rsrp_noiseless.parquet``'s columns and dtypes, no rows."""
+    return pd.DataFrame(
+        {
+            "round": pd.Series(dtype="int8"),
+            "cell_id": pd.Series(dtype="int32"),
+            "grid_id": pd.Series(dtype="int32"),
+            "beam_type": pd.Categorical([], categories=sorted(BEAM_TYPES)),
+            "beam_id": pd.Series(dtype="int16"),
+            "rsrp_dbm": pd.Series(dtype="float32"),
+        }
+    )
+
+
+def truth_rsrp_frame(rows: dict[str, np.ndarray]) -> pd.DataFrame:
+    """:func:`long_rows` in the columns of ``truth/rsrp_noiseless.parquet`` (RSRP rounded to 0.01 dB, float32)."""
+    return pd.DataFrame(
+        {
+            "round": rows["round"].astype(np.int8),
+            "cell_id": rows["cell_id"].astype(np.int32),
+            "grid_id": rows["grid_id"].astype(np.int32),
+            "beam_type": pd.Categorical.from_codes(_category_codes(rows["beam_type"]), categories=sorted(BEAM_TYPES)),
+            "beam_id": rows["beam_id"].astype(np.int16),
+            "rsrp_dbm": np.round(rows["rsrp_dbm"], 2).astype(np.float32),
+        }
+    )
 
 
 @dataclass(frozen=True)
@@ -369,22 +398,12 @@ def stream_ideal(
     counts = pd.Series(points_per_grid, index=grid_ids)
     truth.mkdir(parents=True, exist_ok=True)
     write_aps_streamed(truth / APS_FILE, scenario, store, angle_grid, counts)
-    empty_truth = pd.DataFrame(
-        {
-            "round": pd.Series(dtype="int8"),
-            "cell_id": pd.Series(dtype="int32"),
-            "grid_id": pd.Series(dtype="int32"),
-            "beam_type": pd.Categorical([], categories=sorted(BEAM_TYPES)),
-            "beam_id": pd.Series(dtype="int16"),
-            "rsrp_dbm": pd.Series(dtype="float32"),
-        }
-    )
     detect_t = None if detect_on is None else BEAM_TYPES.index(detect_on)
     kept: list[dict[str, np.ndarray]] = []
     sink = None
     if measurements_file is not None:
         sink = ParquetAppender(measurements_file, empty_measurements(), page_checksum=True)
-    with ParquetAppender(truth / RSRP_FILE, empty_truth) as rsrp_file:
+    with ParquetAppender(truth / RSRP_FILE, empty_truth_rsrp()) as rsrp_file:
         for rnd, cells in mapper(partial(group_rsrp, grid_ids, counts), rsrp_jobs(scenario, store)):
             for cell_id, noiseless in cells:
                 reported = {bt: model.apply(noiseless[bt], rng) for bt in BEAM_TYPES}  # draws in table order
@@ -400,21 +419,7 @@ def stream_ideal(
                     best = np.maximum(noiseless[BEAM_TYPES[0]].max(axis=1), noiseless[BEAM_TYPES[1]].max(axis=1))
                     keep_truth = best >= rsrp_floor_dbm
                 if keep_truth.any():
-                    rows = _rsrp_rows(noiseless, keep_truth, rnd, cell_id, grid_ids)
-                    rsrp_file.append(
-                        pd.DataFrame(
-                            {
-                                "round": rows["round"].astype(np.int8),
-                                "cell_id": rows["cell_id"].astype(np.int32),
-                                "grid_id": rows["grid_id"].astype(np.int32),
-                                "beam_type": pd.Categorical.from_codes(
-                                    _category_codes(rows["beam_type"]), categories=sorted(BEAM_TYPES)
-                                ),
-                                "beam_id": rows["beam_id"].astype(np.int16),
-                                "rsrp_dbm": np.round(rows["rsrp_dbm"], 2).astype(np.float32),
-                            }
-                        )
-                    )
+                    rsrp_file.append(truth_rsrp_frame(_rsrp_rows(noiseless, keep_truth, rnd, cell_id, grid_ids)))
     if sink is not None:
         sink.close()
         return empty_measurements()
