@@ -21,7 +21,7 @@ from typing import Any
 
 import torch
 
-from rflscm.errors import RflscmError
+from rflscm.errors import ConfigError, RflscmError
 from rflscm.parallel.engine import Engine, ray_session
 from rflscm.runtime import Mapper
 
@@ -42,7 +42,8 @@ class _Worker:
 @contextmanager
 def mapper(engine: Engine, what: str = "a job", gpus: bool = False) -> Iterator[Mapper]:
     """``map`` for one worker in-process; else an ordered map over ``engine.workers`` Ray actors (a local Ray
-    started on demand, or the cluster at ``engine.address``), each asking for one CPU (and one GPU with ``gpus``).
+    started on demand, or the cluster at ``engine.address``), each asking for one CPU (and one GPU with ``gpus``:
+    then no more actors than the cluster's GPUs, and a cluster without one is a :class:`ConfigError`).
     ``what`` names a job in the error raised when a worker fails (e.g. ``"a trace"``)."""
     if not engine.parallel:
         yield map
@@ -52,9 +53,15 @@ def mapper(engine: Engine, what: str = "a job", gpus: bool = False) -> Iterator[
 
         actor = ray.remote(num_cpus=1, num_gpus=1 if gpus else 0, max_restarts=0)(_Worker)
         threads = torch.get_num_threads()
+        workers = engine.workers
+        if gpus:  # an actor holds its GPU for life: no more actors than GPUs, or the extra ones never start
+            available = int(ray.cluster_resources().get("GPU", 0))
+            if available == 0:
+                raise ConfigError("the Ray cluster has no GPU for CUDA workers; pass --device cpu.")
+            workers = min(workers, available)
 
         def ordered(fn: Callable[[Any], Any], jobs: Iterable[Any]) -> Iterator[Any]:
-            actors = [actor.remote(fn, threads) for _ in range(engine.workers)]
+            actors = [actor.remote(fn, threads) for _ in range(workers)]
             pool = ActorPool(actors)
             todo = iter(jobs)
 
@@ -62,7 +69,7 @@ def mapper(engine: Engine, what: str = "a job", gpus: bool = False) -> Iterator[
                 pool.submit(lambda a, j: a.run.remote(j), job)
 
             try:
-                for job in islice(todo, JOBS_PER_WORKER * engine.workers):
+                for job in islice(todo, JOBS_PER_WORKER * workers):
                     submit(job)
                 while pool.has_next():
                     try:

@@ -2,7 +2,8 @@
 :func:`rflscm.sim.field.report` → ``write_truth`` / ``write_sample_truth`` write, without their long tables.
 
 The whole-table path builds the RSRP of every (round, cell, grid, beam) twice (faded and fading-free) as long
-tables before it reports: 2 × rounds × cells × grids × 40 rows, 8 GB at 222 cells and beyond this machine at 1 002.
+tables before it reports: 2 × rounds × cells × grids × 40 rows, 8–24 GB at 222 cells (1 300–4 229 grids) and
+beyond this machine at 1 002.
 Here each round is measured cell by cell, in the whole table's order:
 
 1. the faded and the fading-free RSRP of a cell (``[grids, beams]`` per beam type, the same sample sums, real
@@ -134,7 +135,7 @@ class _CellRsrp:
         element: Any,
         rnd: int,
     ) -> None:
-        self.scenario, self.store, self.grid_ids, self.k = scenario, store, grid_ids, points_per_grid
+        self.scenario, self.store, self.grid_ids = scenario, store, grid_ids
         self.config, self.gains, self.element, self.rnd = config, gains, element, rnd
         self.exact = _no_channel_effects(config)
         self.sums: dict[tuple[int, float], SampleSums] = {}
@@ -143,6 +144,7 @@ class _CellRsrp:
             for key in keys:
                 self.sums[key] = SampleSums(_group(store, key), grid_ids, in_round, config, rng)
         self.keys = set(keys)
+        self.counts = pd.Series(points_per_grid, index=grid_ids)
 
     def __call__(self, cell_id: int, beam_type: str) -> tuple[np.ndarray, np.ndarray]:
         sc, rnd = self.scenario, self.rnd
@@ -155,8 +157,7 @@ class _CellRsrp:
         paths = _group(self.store, key)
         antenna = sc.antenna(cell_id, rnd)
         if self.exact:
-            counts = pd.Series(self.k, index=self.grid_ids)
-            exact = to_dbm(path_rsrp_mw(paths, antenna, book, sc.wavelength_m(cell_id), self.grid_ids, counts))
+            exact = to_dbm(path_rsrp_mw(paths, antenna, book, sc.wavelength_m(cell_id), self.grid_ids, self.counts))
             return exact, exact
         if self.element is not None:
             antenna = dataclasses.replace(antenna, element=self.element)

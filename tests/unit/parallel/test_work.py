@@ -74,3 +74,19 @@ def test_a_workers_error_of_ours_comes_back_as_itself_and_any_other_as_one_line(
     message = str(failed.value)
     assert message.startswith("a Ray worker failed on a trace:") and "division by zero" in message
     assert "\n" not in message
+
+
+def test_cuda_workers_on_a_cluster_without_a_gpu_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    from types import SimpleNamespace
+
+    import rflscm.parallel.engine as engine_module
+
+    joined = SimpleNamespace(
+        is_initialized=lambda: True,  # joined: nothing started or stopped
+        shutdown=lambda: None,
+        remote=lambda **options: lambda cls: cls,
+        cluster_resources=lambda: {"CPU": 16.0},
+    )
+    monkeypatch.setattr(engine_module, "import_ray", lambda: joined)
+    with pytest.raises(ConfigError, match="no GPU"), mapper(Engine(workers=2, address="auto"), gpus=True):
+        pass
