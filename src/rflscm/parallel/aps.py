@@ -45,9 +45,11 @@ class FilledAPSCache(APSCache):
         if len(rows) != len(call):
             raise RflscmError(f"a worker answered {len(rows)} APS rows for a call of {len(call)} pairs")
         for cell, grid, (bins, values) in zip(call.cell_ids.tolist(), call.grid_ids.tolist(), rows, strict=True):
+            # copies: Ray hands out read-only views of its object store (torch warns on those), and the cache
+            # outlives the worker's answer
             self._rows[(cell, grid)] = (
-                torch.from_numpy(bins).to(self.device),
-                torch.from_numpy(values).to(self.device),
+                torch.tensor(bins, device=self.device),
+                torch.tensor(values, device=self.device),
             )
 
     filled: int = 0  # pairs filled from elsewhere
