@@ -1,5 +1,6 @@
 """The field regime, one cell at a time (issue 29): what :func:`rflscm.sim.field.field_rsrp` →
-:func:`rflscm.sim.field.report` → ``write_truth`` / ``write_sample_truth`` write, without their long tables.
+:func:`rflscm.sim.field.report` → :func:`rflscm.sim.paths.write_truth` and the samples' truth wrote on long tables
+(``tests/unit/sim/test_field_stream.py`` keeps that path as its reference), without the long tables.
 
 The whole-table path builds the RSRP of every (round, cell, grid, beam) twice (faded and fading-free) as long
 tables before it reports: 2 × rounds × cells × grids × 40 rows, 8–24 GB at 222 cells (1 300–4 229 grids) and
@@ -43,7 +44,7 @@ from rflscm.sim.field import (
     drive_route,
     path_beam_power,
 )
-from rflscm.sim.paths import APS_FILE, RSRP_FILE, bin_paths, path_rsrp_mw, to_dbm
+from rflscm.sim.paths import APS_FILE, RSRP_FILE, bin_paths, cell_rsrp_dbm, to_dbm
 from rflscm.sim.stream import (
     ParquetAppender,
     PathStore,
@@ -155,10 +156,10 @@ class _CellRsrp:
             none = np.full((len(self.grid_ids), book.num_beams), -np.inf)
             return none, none
         paths = _group(self.store, key)
-        antenna = sc.antenna(cell_id, rnd)
         if self.exact:
-            exact = to_dbm(path_rsrp_mw(paths, antenna, book, sc.wavelength_m(cell_id), self.grid_ids, self.counts))
+            exact = cell_rsrp_dbm(sc, cell_id, beam_type, rnd, paths, self.grid_ids, self.counts)
             return exact, exact
+        antenna = sc.antenna(cell_id, rnd)
         if self.element is not None:
             antenna = dataclasses.replace(antenna, element=self.element)
         q = path_beam_power(paths, antenna, book, sc.wavelength_m(cell_id), self.gains[cell_id])
@@ -327,8 +328,8 @@ def _write_sample_truth(
     points_per_grid: int,
     angle_grid: AngleGrid,
 ) -> None:
-    """``truth/samples.parquet`` and ``truth/aps_samples.parquet`` (:func:`rflscm.sim.builder.write_sample_truth`),
-    the APS round by round and cell by cell."""
+    """``truth/samples.parquet`` (the UE samples of every round) and ``truth/aps_samples.parquet`` (the true APS of
+    each round's samples, the model floor of ``rflscm evaluate``), the APS round by round and cell by cell."""
     samples.astype({"round": "int8", "grid_id": "int32", "point_id": "int16", "weight": "float32"}).to_parquet(
         folder / "samples.parquet", index=False, compression="zstd"
     )
