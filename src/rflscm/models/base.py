@@ -80,6 +80,9 @@ class PassCost:
     """Seconds the whole pass would take (every training pair)."""
     per_pair_s: float
     """Seconds per rendered pair (the pass's own rate; an evaluation's renders cost about as much)."""
+    least_s: float = 0.0
+    """Seconds of the least pass a budget must leave: the levels, and WNOMP's APS of every training pair's own
+    reports where the pass cannot reach it (the safety net that keeps an under-trained model near WNOMP)."""
 
 
 class NonFiniteError(RflscmError):

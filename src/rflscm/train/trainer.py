@@ -14,7 +14,9 @@ upsampling) follows a *progress* fraction p ∈ [0, 1]: p = step / ``train.steps
 p = min(1, elapsed / training time) when :func:`fit` is given a time budget (budget mode).  A budget is a
 promise for the whole fit: the training time is the budget less the time kept for the model's pass after
 training (``finish_training``), which the model estimates (``finish_seconds``, measured on one chunk) and which
-may take at most ``train.finish_share`` of the budget; that pass is then given the time left, to the budget's end.  The learning-rate
+may take at most ``train.finish_share`` of what the budget leaves after a caller's later work, but never less than
+its least (the levels and WNOMP's APS of every pair, :attr:`PassCost.least_s`); training keeps at least
+``MIN_TRAIN_SHARE`` of the budget; that pass is then given the time left, to the budget's end.  The learning-rate
 factor is ``lr_decay ** p``; the model sees the *schedule position* p · ``train.steps`` (in units of the
 nominal schedule's steps; exactly the step in step mode), so ``train.steps`` is the length of the
 nominal schedule in both modes.  In step mode everything is a pure function of the step, so a
@@ -141,12 +143,14 @@ def fit(
             raise CheckpointError(f"{checkpoint_path}: cannot resume: the checkpoint holds no optimizer state.")
         trainer.check_budget(state, checkpoint_path)
         trainer.load_state_dict(state)
-    time_left, after = None, 0.0
+    time_left, after, least = None, 0.0, 0.0
     if budget_s is not None:
         cost = model.finish_seconds(clock)
         after = FINISH_SAFETY * (after_pairs * cost.per_pair_s + after_s)
-        kept = min(FINISH_SAFETY * cost.total_s, model.train_config.finish_share * budget_s)
-        trainer.stop_s = budget_s - after - kept
+        room = budget_s - after  # what the fit itself may take: training and the pass after it
+        least = FINISH_SAFETY * cost.least_s
+        kept = min(FINISH_SAFETY * cost.total_s, max(model.train_config.finish_share * room, least))
+        trainer.stop_s = max(room - kept, MIN_TRAIN_SHARE * budget_s)
     evals0, time0 = model.decoder_evals(), clock()
     summary = trainer.run(
         progress=progress,
@@ -158,7 +162,9 @@ def fit(
     finish0 = clock()
     if budget_s is not None:
         saving = SAVE_SAFETY * trainer.save_s if checkpoint_path else 0.0
-        end = finish0 + budget_s - after - trainer.elapsed_s - saving
+        # the least pass always runs (WNOMP's APS for the pairs it cannot reach): a budget too small for the data
+        # overruns by it rather than leave pairs with an untrained field
+        end = max(finish0 + budget_s - after - trainer.elapsed_s - saving, finish0 + least)
         time_left = lambda: end - clock()  # noqa: E731
     model.finish_training(progress=progress, time_left=time_left, clock=clock)
     summary["finish_s"] = clock() - finish0
@@ -172,6 +178,10 @@ def fit(
     return summary
 
 
+MIN_TRAIN_SHARE = 0.2
+"""Training keeps at least this share of a budget, however much the pass after it and a caller's later work (the
+demo's evaluation) are estimated to need: a scenario too large for its budget then overruns it (the pass is cut to
+its least, see :attr:`~rflscm.models.base.PassCost.least_s`) instead of leaving the field one step of training."""
 FINISH_SAFETY = 1.2
 """The time kept for the pass after training is this many times the model's estimate (its measurement is of one
 chunk, and the pass also takes its residuals and λ choice); ``train.finish_share`` caps it."""

@@ -439,6 +439,7 @@ def test_wnomps_aps_of_the_left_over_pairs_is_solved_only_while_it_fits(monkeypa
 
     monkeypatch.setattr(module._Fit, "solve", slow_solve)
     monkeypatch.setattr(module, "FALLBACK_SOLVE", 32)
+    monkeypatch.setattr(module, "FALLBACK_CHUNK", 16)  # the pass times its solve on this many pairs (0.16 s here)
 
     def run(seconds: float) -> PairCorrections:
         now[0] = 0.0

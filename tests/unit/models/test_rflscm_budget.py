@@ -140,6 +140,31 @@ def test_a_budget_keeps_time_for_the_pass_after_training_and_gives_it_the_rest(s
         assert model.run_info["fit"]["train_time_s"] == summary["total_s"]
 
 
+def test_the_pass_keeps_its_least_and_training_its_share_when_the_budget_is_short(scenario) -> None:
+    """The pass is never given less than its least (levels and WNOMP's APS of every pair), even past the share;
+    when a caller's later work leaves no room at all, training still gets ``MIN_TRAIN_SHARE`` of the budget (with a
+    progress bar that draws) and the pass its least: the fit runs over rather than leave the field one step."""
+    from rflscm.train.trainer import MIN_TRAIN_SHARE
+
+    # 1.2 × least (60 s) beats the share (0.2 × 100 s): training stops at 40 s, the pass is told 60 s
+    clock, seen, left = StepClock(10.0), [], []
+    model = timed_model(clock, seen)
+    model.config = dataclasses.replace(model.config, train=dataclasses.replace(model.config.train, finish_share=0.2))
+    model.finish_seconds = lambda clock: PassCost(80.0, 0.5, 50.0)  # type: ignore[method-assign]
+    model.finish_training = lambda progress=False, time_left=None, clock=None: left.append(time_left())  # type: ignore[method-assign]
+    summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock)
+    assert summary["train_budget_s"] == pytest.approx(40.0) and summary["steps"] == 4
+    assert left == [pytest.approx(60.0)]
+    # the demo's evaluation estimated at 1.2 × 200 × 0.5 = 120 s of a 100 s budget: nothing is left for the fit
+    clock, seen, left = StepClock(10.0), [], []
+    model = timed_model(clock, seen)
+    model.finish_seconds = lambda clock: PassCost(50.0, 0.5, 20.0)  # type: ignore[method-assign]
+    model.finish_training = lambda progress=False, time_left=None, clock=None: left.append(time_left())  # type: ignore[method-assign]
+    summary = fit(model, scenario, progress=True, budget_s=100.0, clock=clock, after_pairs=200)
+    assert summary["train_budget_s"] == pytest.approx(MIN_TRAIN_SHARE * 100.0) and summary["steps"] == 2
+    assert left == [pytest.approx(1.2 * 20.0)]  # the least pass, past the budget's end
+
+
 def test_finish_share_must_be_a_fraction() -> None:
     from rflscm.errors import ConfigError
     from rflscm.models.rflscm.config import TrainConfig
@@ -153,7 +178,14 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
     """``finish_seconds`` times two chunks of the real pass on the clock it is given (1 s between reads here): the
     first pays the per-cell setup, the second gives the per-pair render, preparation and fit; the total adds the
     λ and atoms choice, and an evaluation's render per pair is the render alone."""
-    from rflscm.models.rflscm.corrections import LAMBDA_PAIRS, LAMBDAS, WNOMP_ATOMS, WNOMP_PRIORS, PassTimes
+    from rflscm.models.rflscm.corrections import (
+        LAMBDA_PAIRS,
+        LAMBDAS,
+        LEVEL_PAIRS_PER_CELL,
+        WNOMP_ATOMS,
+        WNOMP_PRIORS,
+        PassTimes,
+    )
 
     model = RFLSCM.build(tiny_config(), GRID)
     model.prepare(scenario)
@@ -172,6 +204,11 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
     expected = setup + pairs * 3 * each + options * min(pairs, LAMBDA_PAIRS) * (1 + len(LAMBDAS)) * each
     assert estimate.total_s == pytest.approx(expected)
     assert PassTimes(setup, each, each, each).total_s(cfg, pairs) == pytest.approx(expected)
+    # the least pass: the levels' pairs rendered and prepared, and WNOMP's solve of every pair, timed on a spread
+    # sample of them all (one clock read before and after)
+    levels = min(pairs, LEVEL_PAIRS_PER_CELL * len(model.scene.cell_ids)) * 2 * each
+    assert estimate.least_s == pytest.approx(setup + levels + 1.0)
+    assert estimate.least_s < estimate.total_s
 
 
 def test_work_after_the_fit_is_kept_out_of_the_budget(scenario) -> None:

@@ -401,6 +401,8 @@ class PassTimes:
     render_s: float
     prep_s: float
     fit_s: float
+    solve_s: float = 0.0
+    """Per pair, WNOMP's solve of its own reports (the fallback of a pair the pass does not reach)."""
 
     def total_s(self, cfg: CorrectionsConfig, pairs: int) -> float:
         """The whole pass over ``pairs`` pairs with reports: setup, each pair once, and the λ (and atoms) choice:
@@ -411,6 +413,12 @@ class PassTimes:
         options = 1 + (len(WNOMP_ATOMS) * len(WNOMP_PRIORS) if cfg.wnomp_atoms else 0)
         choice = options * min(pairs, LAMBDA_PAIRS) * (self.prep_s + len(LAMBDAS) * self.fit_s)
         return self.setup_s + each + choice
+
+    def least_s(self, cfg: CorrectionsConfig, pairs: int, cells: int) -> float:
+        """The least pass over ``pairs`` pairs of ``cells`` cells that a budget must leave: the levels' pairs rendered
+        and, with the fallback on, WNOMP's APS of every pair's own reports (no render)."""
+        levels = min(pairs, LEVEL_PAIRS_PER_CELL * cells) * (self.render_s + self.prep_s)
+        return self.setup_s + levels + (pairs * self.solve_s if cfg.wnomp_fallback else 0.0)
 
 
 @torch.no_grad()
@@ -427,7 +435,8 @@ def measure_pass(
     """What the corrections' pass costs, on ``clock``: two chunks of spread pairs with reports rendered (the
     first also pays the renderer's per-cell setup, counted once per cell), the second's residuals and columns
     prepared with the most WNOMP atoms the pass may choose (``wnomp_atoms`` on and ``visible`` given) and its
-    gains fitted once (posterior on).  All zero when every correction is off."""
+    gains fitted once (posterior on), and WNOMP's solve of a spread sample's reports (the fallback, when on).  All
+    zero when every correction is off."""
     pairs = torch.nonzero(data.observed.any(1)).squeeze(1)
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior) or not pairs.numel():
         return PassTimes(0.0, 0.0, 0.0, 0.0)
@@ -446,10 +455,15 @@ def measure_pass(
     for chunk in chunks if cfg.pair_posterior else []:
         fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask, LAMBDAS[0])
     t4 = clock()
+    sample = _spread(pairs, FALLBACK_CHUNK)  # the fallback solves thousands of pairs at a time, over every cell
+    if cfg.wnomp_fallback:
+        fit.solve(sample, data.observed[sample], None)
+    t5 = clock()
     n_first, n_second = first.numel(), second.numel()
     cells_first = int(data.cell_index[first].unique().numel())
     setup = max(0.0, (t1 - t0) - (t2 - t1) * n_first / n_second) * num_cells / max(cells_first, 1)
-    return PassTimes(setup, (t2 - t1) / n_second, (t3 - t2) / n_second, (t4 - t3) / n_second)
+    per = [(b - a) / n_second for a, b in ((t1, t2), (t2, t3), (t3, t4))]
+    return PassTimes(setup, *per, (t5 - t4) / sample.numel())
 
 
 def _spread(pairs: torch.Tensor, count: int) -> torch.Tensor:
@@ -462,7 +476,8 @@ def _first_pairs(
 ) -> tuple[torch.Tensor, _Rendered, float, torch.Tensor]:
     """Within a budget, the pairs rendered before any other: the levels' and λ's, ``(pairs, rendered, seconds per
     pair, λ's pairs)``.  One pair per cell first (every cell needs its level), timed; then the levels' other pairs
-    (up to ``LEVEL_PAIRS_PER_CELL`` per cell) and λ's ``subset`` as far as ``FIRST_SHARE`` of the time left allows.
+    (up to ``LEVEL_PAIRS_PER_CELL`` per cell) and λ's ``subset`` as far as ``FIRST_SHARE`` of the time left allows,
+    once the time of the fallback's WNOMP solve of every other pair (timed on a spread sample) is kept aside.
     When it does not, λ's pairs shrink first (to ``PAIR_CHUNK``), then the levels' pairs per cell: a CSI-RS level
     measured on too few pairs is off by many dB on every pair of its cells, which no later correction undoes (a
     tile measured on one pair per cell: +15 dB), while λ chosen on fewer pairs is only a coarser choice."""
@@ -484,7 +499,14 @@ def _first_pairs(
     fit._atom_cache.clear()  # timed with held=None: the choice's held-aside atoms are other ones
     options = 1 + (len(WNOMP_ATOMS) * len(WNOMP_PRIORS) if top and cfg.wnomp_atoms else 0)  # as PassTimes counts
     each = render_s + prep_s  # a pair rendered and corrected; λ's pairs are also prepared once per option
-    room = FIRST_SHARE * time_left()
+    safety_net = 0.0  # the fallback's WNOMP solve of every other pair comes after these: its time is kept
+    if cfg.wnomp_fallback and fit.visible is not None:
+        every = torch.nonzero(fit.data.observed.any(1)).squeeze(1)
+        sample = _spread(every, FALLBACK_CHUNK)  # spread over the cells, as the fallback's chunks are
+        begun = clock()
+        fit.solve(sample, fit.data.observed[sample], None)
+        safety_net = CHUNK_MARGIN * (clock() - begun) / max(sample.numel(), 1) * (every.numel() - one.numel())
+    room = FIRST_SHARE * max(time_left() - safety_net, 0.0)
     cells = max(one.numel(), 1)
 
     def cost(per_cell: int, lam_pairs: int) -> float:

@@ -670,7 +670,8 @@ class RFLSCM(LSCMModel):
             torch.as_tensor(self.scene.visible, device=self.device),
         )
         pairs = int(train.data.observed.any(1).sum())
-        return PassCost(times.total_s(self.config.corrections, pairs), times.render_s)
+        cfg, cells = self.config.corrections, len(self.scene.cell_ids)
+        return PassCost(times.total_s(cfg, pairs), times.render_s, times.least_s(cfg, pairs, cells))
 
     @torch.no_grad()
     def _render_training(
