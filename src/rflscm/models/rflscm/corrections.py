@@ -462,8 +462,8 @@ def measure_pass(
     n_first, n_second = first.numel(), second.numel()
     cells_first = int(data.cell_index[first].unique().numel())
     setup = max(0.0, (t1 - t0) - (t2 - t1) * n_first / n_second) * num_cells / max(cells_first, 1)
-    per = [(b - a) / n_second for a, b in ((t1, t2), (t2, t3), (t3, t4))]
-    return PassTimes(setup, *per, (t5 - t4) / sample.numel())
+    render_s, prep_s, fit_s = ((b - a) / n_second for a, b in ((t1, t2), (t2, t3), (t3, t4)))
+    return PassTimes(setup, render_s, prep_s, fit_s, (t5 - t4) / sample.numel())
 
 
 def _spread(pairs: torch.Tensor, count: int) -> torch.Tensor:
