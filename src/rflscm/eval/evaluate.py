@@ -233,6 +233,16 @@ def _oracle(
         return None
 
 
+def tested_pairs(scenario: Scenario, protocol: Protocol) -> tuple[int, int]:
+    """How many distinct (cell, grid) pairs ``protocol``'s test set of ``scenario`` asks for that have training
+    reports, and how many that have none (a field model renders the latter whatever its pass did)."""
+    tested = protocol.test_set(scenario).pairs()
+    known = pd.MultiIndex.from_frame(tested[["cell_id", "grid_id"]]).isin(
+        _trained_pairs(protocol.training_scenario(scenario))
+    )
+    return int(known.sum()), int((~known).sum())
+
+
 def _trained_pairs(train: Scenario) -> pd.MultiIndex:
     """(cell_id, grid_id) pairs with at least one reported round-1 beam in the training data."""
     m = train.measurements

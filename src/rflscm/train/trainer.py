@@ -106,6 +106,7 @@ def fit(
     started: float | None = None,
     after_pairs: int = 0,
     after_s: float = 0.0,
+    after_fresh: int = 0,
 ) -> dict[str, float]:
     """Learn ``model`` from the round-1 measurements of ``scenario``; returns a summary (a :class:`Trainable`
     model also records it in ``run_info["train"]`` and ``run_info["fit"]``, whose ``train_time_s`` is then the whole
@@ -123,8 +124,10 @@ def fit(
     the time kept for the pass after training, see the module's docstring), the schedule follows the elapsed
     fraction of that share instead of the step count (``train.steps`` is then only the length of the nominal
     schedule), and the pass after training gets the time left.  A caller with work of its own after the fit inside
-    the same budget (the demo's evaluation) names it: ``after_pairs`` pairs it will render (at the model's measured
-    cost per pair) and ``after_s`` seconds of other work; the fit keeps that time free too.
+    the same budget (the demo's evaluation) names it: ``after_pairs`` pairs it will ask for that have training
+    reports (rendered only where the pass corrects them: the others are answered by the pass's WNOMP fallback),
+    ``after_fresh`` pairs without any (always rendered), each at the model's measured cost per pair, and ``after_s``
+    seconds of other work; the fit keeps that time free too (:func:`budget_split`).
     """
     started = clock() if started is None else started
     checked_budget(budget_s)  # before minutes of data preparation
@@ -146,11 +149,9 @@ def fit(
     time_left, after, least = None, 0.0, 0.0
     if budget_s is not None:
         cost = model.finish_seconds(clock)
-        after = FINISH_SAFETY * (after_pairs * cost.per_pair_s + after_s)
-        room = budget_s - after  # what the fit itself may take: training and the pass after it
+        after, kept = budget_split(cost, budget_s, model.train_config.finish_share, after_pairs, after_s, after_fresh)
         least = FINISH_SAFETY * cost.least_s
-        kept = min(FINISH_SAFETY * cost.total_s, max(model.train_config.finish_share * room, least))
-        trainer.stop_s = max(room - kept, MIN_TRAIN_SHARE * budget_s)
+        trainer.stop_s = max(budget_s - after - kept, MIN_TRAIN_SHARE * budget_s)
     evals0, time0 = model.decoder_evals(), clock()
     summary = trainer.run(
         progress=progress,
@@ -176,6 +177,31 @@ def fit(
     if checkpoint_path is not None:
         trainer.save(checkpoint_path)
     return summary
+
+
+def budget_split(
+    cost: PassCost, budget_s: float, share: float, after_pairs: int = 0, after_s: float = 0.0, after_fresh: int = 0
+) -> tuple[float, float]:
+    """``(after, kept)`` [s] of a ``budget_s`` fit: the time kept for a caller's work after it and for the pass after
+    training, each with ``FINISH_SAFETY``.  The pass keeps ``share`` of what the caller leaves, at least its least
+    and at most the whole pass.  The caller renders its ``after_fresh`` pairs, and of its ``after_pairs`` the share
+    the pass will have corrected (estimated from the time the pass is kept: the pairs it cannot reach are answered
+    without a render), which depends on ``kept`` in turn: the fraction is the fixed point, found by bisection."""
+
+    def split(fraction: float) -> tuple[float, float]:
+        after = FINISH_SAFETY * ((after_pairs * fraction + after_fresh) * cost.per_pair_s + after_s)
+        least = FINISH_SAFETY * cost.least_s
+        return after, min(FINISH_SAFETY * cost.total_s, max(share * (budget_s - after), least))
+
+    def corrected(kept: float) -> float:  # the pass's share of its pairs beyond its least
+        spare = cost.total_s - cost.least_s
+        return 1.0 if spare <= 0 else min(max((kept / FINISH_SAFETY - cost.least_s) / spare, 0.0), 1.0)
+
+    low, high = 0.0, 1.0  # corrected(split(f)[1]) falls as f rises: one crossing
+    for _ in range(30):
+        mid = 0.5 * (low + high)
+        low, high = (mid, high) if corrected(split(mid)[1]) > mid else (low, mid)
+    return split(high)
 
 
 MIN_TRAIN_SHARE = 0.2

@@ -155,14 +155,37 @@ def test_the_pass_keeps_its_least_and_training_its_share_when_the_budget_is_shor
     summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock)
     assert summary["train_budget_s"] == pytest.approx(40.0) and summary["steps"] == 4
     assert left == [pytest.approx(60.0)]
-    # the demo's evaluation estimated at 1.2 × 200 × 0.5 = 120 s of a 100 s budget: nothing is left for the fit
+    # the demo's evaluation of 200 pairs without training data (always rendered): 1.2 × 200 × 0.5 = 120 s of a 100 s
+    # budget, nothing is left for the fit
     clock, seen, left = StepClock(10.0), [], []
     model = timed_model(clock, seen)
     model.finish_seconds = lambda clock: PassCost(50.0, 0.5, 20.0)  # type: ignore[method-assign]
     model.finish_training = lambda progress=False, time_left=None, clock=None: left.append(time_left())  # type: ignore[method-assign]
-    summary = fit(model, scenario, progress=True, budget_s=100.0, clock=clock, after_pairs=200)
+    summary = fit(model, scenario, progress=True, budget_s=100.0, clock=clock, after_fresh=200)
     assert summary["train_budget_s"] == pytest.approx(MIN_TRAIN_SHARE * 100.0) and summary["steps"] == 2
     assert left == [pytest.approx(1.2 * 20.0)]  # the least pass, past the budget's end
+
+
+def test_the_evaluation_renders_only_the_pairs_the_pass_will_correct() -> None:
+    """Pairs with training reports cost the caller a render only where the pass corrects them (the others get WNOMP's
+    APS, unrendered): the reserve takes the fixed point between the pass's time and the share it corrects."""
+    from rflscm.train.trainer import FINISH_SAFETY, budget_split
+
+    cost = PassCost(50.0, 0.5, 20.0)
+    # nothing after the fit: the pass keeps its share of the budget (half of 100 s: less than 1.2 × 50)
+    assert budget_split(cost, 100.0, 0.5) == (0.0, pytest.approx(50.0))
+    # 200 such pairs: all rendered would be 120 s; the pass then corrects a share f of its 30 s beyond its least,
+    # f = ((50 − 60 f) / 1.2 − 20) / 30, so f = 0.2708 and the caller renders 54 pairs
+    after, kept = budget_split(cost, 100.0, 0.5, after_pairs=200)
+    f = (kept / FINISH_SAFETY - cost.least_s) / (cost.total_s - cost.least_s)
+    assert after == pytest.approx(FINISH_SAFETY * 200 * f * 0.5, rel=1e-6) and f == pytest.approx(0.2708, abs=1e-3)
+    assert kept == pytest.approx(0.5 * (100.0 - after))
+    # the same pairs without training data are always rendered
+    after, kept = budget_split(cost, 100.0, 0.5, after_fresh=200)
+    assert after == pytest.approx(120.0) and kept == pytest.approx(FINISH_SAFETY * cost.least_s)
+    # an ample budget: the whole pass, every pair corrected and rendered after it
+    after, kept = budget_split(cost, 1000.0, 0.5, after_pairs=200, after_s=5.0)
+    assert kept == pytest.approx(60.0) and after == pytest.approx(FINISH_SAFETY * (100.0 + 5.0))
 
 
 def test_finish_share_must_be_a_fraction() -> None:
