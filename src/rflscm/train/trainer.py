@@ -15,7 +15,8 @@ p = min(1, elapsed / training time) when :func:`fit` is given a time budget (bud
 promise for the whole fit: the training time is the budget less the time kept for the model's pass after
 training (``finish_training``), which the model estimates (``finish_seconds``, measured on one chunk) and which
 may take at most ``train.finish_share`` of what the budget leaves after a caller's later work, but never less than
-its least (the levels and WNOMP's APS of every pair, :attr:`PassCost.least_s`); training keeps at least
+its least (the levels and WNOMP's APS of every pair, :attr:`PassCost.least_s`, up to that share of the whole
+budget); training keeps at least
 ``MIN_TRAIN_SHARE`` of the budget; that pass is then given the time left, to the budget's end.  The learning-rate
 factor is ``lr_decay ** p``; the model sees the *schedule position* p · ``train.steps`` (in units of the
 nominal schedule's steps; exactly the step in step mode), so ``train.steps`` is the length of the
@@ -150,7 +151,7 @@ def fit(
     if budget_s is not None:
         cost = model.finish_seconds(clock)
         after, kept = budget_split(cost, budget_s, model.train_config.finish_share, after_pairs, after_s, after_fresh)
-        least = FINISH_SAFETY * cost.least_s
+        least = min(FINISH_SAFETY * cost.least_s, model.train_config.finish_share * budget_s)
         trainer.stop_s = max(budget_s - after - kept, MIN_TRAIN_SHARE * budget_s)
     evals0, time0 = model.decoder_evals(), clock()
     summary = trainer.run(
@@ -184,13 +185,15 @@ def budget_split(
 ) -> tuple[float, float]:
     """``(after, kept)`` [s] of a ``budget_s`` fit: the time kept for a caller's work after it and for the pass after
     training, each with ``FINISH_SAFETY``.  The pass keeps ``share`` of what the caller leaves, at least its least
-    and at most the whole pass.  The caller renders its ``after_fresh`` pairs, and of its ``after_pairs`` the share
+    (itself at most ``share`` of the budget: on a network whose every pair's WNOMP solve outlasts that, the fallback
+    covers what fits, as the pass's other steps do) and at most the whole pass.  The caller renders its ``after_fresh`` pairs, and of its ``after_pairs`` the share
     the pass will have corrected (estimated from the time the pass is kept: the pairs it cannot reach are answered
     without a render), which depends on ``kept`` in turn: the fraction is the fixed point, found by bisection."""
 
+    least = min(FINISH_SAFETY * cost.least_s, share * budget_s)  # at most the pass's share of the whole budget
+
     def split(fraction: float) -> tuple[float, float]:
         after = FINISH_SAFETY * ((after_pairs * fraction + after_fresh) * cost.per_pair_s + after_s)
-        least = FINISH_SAFETY * cost.least_s
         return after, min(FINISH_SAFETY * cost.total_s, max(share * (budget_s - after), least))
 
     def corrected(kept: float) -> float:  # the pass's share of its pairs beyond its least

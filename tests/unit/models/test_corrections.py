@@ -544,3 +544,29 @@ def test_round_one_silence_caps_only_unreported_pairs_at_visited_grids_and_survi
         with pytest.raises(CheckpointError, match=r"^the checkpoint's round-1 silence table is damaged \("):
             PairCorrections.from_state(state, num_bins=4)
     assert PairCorrections.from_state({"censor": None}, num_bins=4).censor is None  # a checkpoint from before it
+
+
+def test_a_mix_cut_short_takes_the_missing_pairs_from_the_left_over_solutions() -> None:
+    """When the mix's own WNOMP solve is cut by the time left, the corrected pairs it missed take WNOMP's APS solved
+    for them before the pass reached them (padded to one width), so every corrected pair of a mixing group is mixed;
+    a pair neither has stays out, and without left-over solutions the mix is unchanged."""
+    from rflscm.models.rflscm.corrections import _with_solved
+    from rflscm.models.rflscm.fallback import PairFallback
+
+    def index(grids: list[int]) -> pd.MultiIndex:
+        return pd.MultiIndex.from_arrays([[7] * len(grids), grids], names=["cell_id", "grid_id"])
+
+    mix = PairFallback(
+        index([1, 2]), torch.tensor([[3, -1], [4, 5]]), torch.tensor([[1.0, 0.0], [2.0, 3.0]]), {"k2": 1}
+    )
+    solved = PairFallback(
+        index([2, 3, 4, 5]), torch.tensor([[0, 1, 2]] * 4), torch.arange(12, dtype=torch.float32).reshape(4, 3)
+    )
+    out = _with_solved(mix, solved, pd.MultiIndex.from_arrays([[7, 7, 7, 7], [1, 2, 3, 9]]))
+    assert list(out.index) == [(7, 1), (7, 2), (7, 3)] and out.scores == {"k2": 1}
+    torch.testing.assert_close(out.bins, torch.tensor([[3, -1, -1], [4, 5, -1], [0, 1, 2]]))
+    torch.testing.assert_close(out.gains, torch.tensor([[1.0, 0.0, 0.0], [2.0, 3.0, 0.0], [3.0, 4.0, 5.0]]))
+    aps = out.apply(torch.zeros(1, 8), np.array([7]), np.array([3]))
+    torch.testing.assert_close(aps, torch.tensor([[3.0, 4.0, 5.0, 0, 0, 0, 0, 0]]))
+    assert _with_solved(mix, None, index([1, 2, 3])) is mix
+    assert _with_solved(mix, solved, index([1, 2])) is mix

@@ -146,15 +146,24 @@ def test_the_pass_keeps_its_least_and_training_its_share_when_the_budget_is_shor
     progress bar that draws) and the pass its least: the fit runs over rather than leave the field one step."""
     from rflscm.train.trainer import MIN_TRAIN_SHARE
 
-    # 1.2 × least (60 s) beats the share (0.2 × 100 s): training stops at 40 s, the pass is told 60 s
-    clock, seen, left = StepClock(10.0), [], []
-    model = timed_model(clock, seen)
-    model.config = dataclasses.replace(model.config, train=dataclasses.replace(model.config.train, finish_share=0.2))
-    model.finish_seconds = lambda clock: PassCost(80.0, 0.5, 50.0)  # type: ignore[method-assign]
-    model.finish_training = lambda progress=False, time_left=None, clock=None: left.append(time_left())  # type: ignore[method-assign]
-    summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock)
-    assert summary["train_budget_s"] == pytest.approx(40.0) and summary["steps"] == 4
-    assert left == [pytest.approx(60.0)]
+    def run(cost: PassCost, share: float = 0.5, **after: float) -> tuple[dict[str, float], list[float]]:
+        clock, seen, left = StepClock(10.0), [], []
+        model = timed_model(clock, seen)
+        train = dataclasses.replace(model.config.train, finish_share=share)
+        model.config = dataclasses.replace(model.config, train=train)
+        model.finish_seconds = lambda clock: cost  # type: ignore[method-assign]
+        model.finish_training = lambda progress=False, time_left=None, clock=None: left.append(time_left())  # type: ignore[method-assign]
+        return fit(model, scenario, progress=False, budget_s=100.0, clock=clock, **after), left
+
+    # 48 s kept for later work; half of the 52 s left (26 s) is less than the least pass, 1.2 × 25 = 30 s: training
+    # stops at 22 s (three steps, 30 s) and the pass is told its least, 30 s, past the budget's end
+    summary, left = run(PassCost(80.0, 0.5, 25.0), after_s=40.0)
+    assert summary["train_budget_s"] == pytest.approx(22.0) and summary["steps"] == 3
+    assert left == [pytest.approx(30.0)]
+    # the least is at most the pass's share of the whole budget: a network whose every pair's fallback outlasts
+    # that (1.2 × 50 s against 0.2 × 100 s) keeps its budget, and the fallback covers what fits
+    summary, left = run(PassCost(80.0, 0.5, 50.0), share=0.2)
+    assert summary["train_budget_s"] == pytest.approx(80.0) and left == [pytest.approx(20.0)]
     # the demo's evaluation of 200 pairs without training data (always rendered): 1.2 × 200 × 0.5 = 120 s of a 100 s
     # budget, nothing is left for the fit
     clock, seen, left = StepClock(10.0), [], []

@@ -314,6 +314,7 @@ def fit_corrections(
     index = pd.MultiIndex.from_arrays([ids, data.grid_ids[kept]], names=["cell_id", "grid_id"])
     median = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)
     anchor_series = pd.Series(median, index=index, name="anchor_db") if cfg.pair_anchors else None
+    solved = left_over  # WNOMP's APS of every later pair, before the pass's own pairs leave it
     if left_over is not None:
         left_over = left_over.without(index)
     if not cfg.pair_posterior:
@@ -347,6 +348,7 @@ def fit_corrections(
             mixed_index = pd.MultiIndex.from_arrays(
                 [np.asarray(cell_ids, np.int64)[data.cell_index[with_mix].cpu().numpy()], data.grid_ids[with_mix.cpu()]]
             )
+            mix = _with_solved(mix, solved, mixed_index)
             mix.weight = weight[weight > 0][torch.as_tensor(mixed_index.get_indexer(mix.index), dtype=torch.long)]
     return PairCorrections(levels, anchor_series, posterior, left_over, mix=mix)
 
@@ -506,7 +508,8 @@ def _first_pairs(
         begun = clock()
         fit.solve(sample, fit.data.observed[sample], None)
         safety_net = CHUNK_MARGIN * (clock() - begun) / max(sample.numel(), 1) * (every.numel() - one.numel())
-    room = FIRST_SHARE * max(time_left() - safety_net, 0.0)
+    left = time_left()  # the fallback's time kept, up to half: the levels' pairs keep a quarter of the pass at least
+    room = FIRST_SHARE * (left - min(safety_net, FIRST_SHARE * max(left, 0.0)))
     cells = max(one.numel(), 1)
 
     def cost(per_cell: int, lam_pairs: int) -> float:
@@ -1045,6 +1048,29 @@ def _mix_plan(
         weights.append(min(MIX_WEIGHTS, key=lambda w: (mix_err[w], w)))
         scores[f"w{g}"] = weights[-1]
     return dataclasses.replace(SOLVER, k_max=k_best), tuple(weights), scores
+
+
+def _with_solved(mix: PairFallback, solved: PairFallback | None, wanted: pd.MultiIndex) -> PairFallback:
+    """``mix`` with the ``wanted`` pairs it lacks (its solve is cut to the time left) taken from ``solved``, WNOMP's
+    APS of the pass's later pairs solved before the pass reached them (the baseline's atom count instead of the mix's
+    choice): a pair the pass corrected is mixed either way, instead of keeping a posterior whose group chose the mix
+    on held-aside reports."""
+    if solved is None or not len(solved.index):
+        return mix
+    missing = wanted[~wanted.isin(mix.index)]
+    rows = solved.index.get_indexer(missing)
+    rows = rows[rows >= 0]
+    if not rows.size:
+        return mix
+    take = torch.as_tensor(rows, dtype=torch.long)
+    width = max(mix.bins.shape[1], solved.bins.shape[1])
+
+    def padded(x: torch.Tensor, fill: float) -> torch.Tensor:
+        return torch.nn.functional.pad(x, (0, width - x.shape[1]), value=fill)
+
+    bins = torch.cat([padded(mix.bins, -1), padded(solved.bins[take].to(mix.bins.dtype), -1)])
+    gains = torch.cat([padded(mix.gains, 0.0), padded(solved.gains[take].to(mix.gains.dtype), 0.0)])
+    return PairFallback(mix.index.append(solved.index[rows]), bins, gains, mix.scores)
 
 
 def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:
