@@ -89,7 +89,11 @@ class Trainable(Protocol):
     def save(self, path: str | Path, train_state: dict[str, Any] | None = None) -> Path: ...
 
     def finish_training(
-        self, progress: bool = False, time_left: Callable[[], float] | None = None, clock: Callable[[], float] = ...
+        self,
+        progress: bool = False,
+        time_left: Callable[[], float] | None = None,
+        clock: Callable[[], float] = ...,
+        after_pair_s: float = 0.0,
     ) -> None: ...
 
     def finish_seconds(self, clock: Callable[[], float] = ...) -> PassCost: ...
@@ -147,12 +151,16 @@ def fit(
             raise CheckpointError(f"{checkpoint_path}: cannot resume: the checkpoint holds no optimizer state.")
         trainer.check_budget(state, checkpoint_path)
         trainer.load_state_dict(state)
-    time_left, after, least = None, 0.0, 0.0
+    time_left, after, least, per_corrected = None, 0.0, 0.0, 0.0
     if budget_s is not None:
         cost = model.finish_seconds(clock)
         after, kept = budget_split(cost, budget_s, model.train_config.finish_share, after_pairs, after_s, after_fresh)
         least = min(FINISH_SAFETY * cost.least_s, model.train_config.finish_share * budget_s)
         trainer.stop_s = max(budget_s - after - kept, MIN_TRAIN_SHARE * budget_s)
+        if after_pairs:  # the caller's renders of the pairs the pass corrects: charged by the pass as it goes
+            pairs = max(int(plan.pairs.numel()), 1)
+            per_corrected = FINISH_SAFETY * cost.per_pair_s * after_pairs / pairs
+            after = FINISH_SAFETY * (after_fresh * cost.per_pair_s + after_s)
     evals0, time0 = model.decoder_evals(), clock()
     summary = trainer.run(
         progress=progress,
@@ -168,7 +176,8 @@ def fit(
         # overruns by it rather than leave pairs with an untrained field
         end = max(finish0 + budget_s - after - trainer.elapsed_s - saving, finish0 + least)
         time_left = lambda: end - clock()  # noqa: E731
-    model.finish_training(progress=progress, time_left=time_left, clock=clock)
+    charge = {"after_pair_s": per_corrected} if per_corrected else {}
+    model.finish_training(progress=progress, time_left=time_left, clock=clock, **charge)
     summary["finish_s"] = clock() - finish0
     summary.update(model.run_info.get("corrections", {}))  # how many training pairs the pass corrected
     summary["total_s"] = clock() - started

@@ -151,6 +151,24 @@ def test_within_a_deadline_the_pass_corrects_the_pairs_that_fit_and_the_rest_kee
     pd.testing.assert_series_equal(ample.anchors.sort_index(), full.anchors.sort_index(), atol=1e-5)
 
 
+def test_a_pass_charged_for_the_callers_later_renders_corrects_fewer_pairs() -> None:
+    """With ``after_pair_s`` each corrected pair also costs the caller's later render of it: the deadline that fitted
+    the levels' pairs and one chunk of 64 (10 ms a render) at no charge fits the levels' pairs only at 10 ms a pair
+    (the next chunk's charge counts before it starts), so the pass's time plus the charge for what it corrected
+    stays within the deadline."""
+    from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL, PAIR_CHUNK
+
+    rsrp, cells, costly, now = timed_problem(200, 2, seed=1)
+    args = (CorrectionsConfig(pair_posterior=False), data(rsrp, cells), 1, np.array([7, 8]), costly, columns)
+    for charge, expected in ((0.0, 2 * LEVEL_PAIRS_PER_CELL + PAIR_CHUNK), (0.01, 2 * LEVEL_PAIRS_PER_CELL)):
+        now[0] = 0.0
+        cut = fit_corrections(
+            *args, seed=0, time_left=lambda: 1.7 - now[0], clock=lambda: now[0], after_pair_s=charge
+        )  # fmt: skip
+        assert cut.corrected_pairs() == expected
+        assert now[0] + charge * expected <= 1.7
+
+
 def test_short_of_time_lambdas_pairs_shrink_before_the_levels_pairs(monkeypatch: pytest.MonkeyPatch) -> None:
     """The levels are measured on every cell's full share of pairs while λ's pairs shrink: a level measured on one
     pair per cell was off by 15 dB on CSI-RS in a tile of the 37-site network (DECISIONS)."""

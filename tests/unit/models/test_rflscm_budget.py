@@ -244,12 +244,26 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
 
 
 def test_work_after_the_fit_is_kept_out_of_the_budget(scenario) -> None:
-    """``after_pairs`` renders at the measured cost per pair and ``after_s`` seconds are kept free as well (×1.2)."""
-    clock, seen, left = StepClock(10.0), [], []
+    """``after_pairs`` renders at the measured cost per pair and ``after_s`` seconds are kept free as well (×1.2):
+    training's share counts them all; the pass is told the time left less ``after_s``, and charges itself each pair
+    it corrects at the caller's render of ``after_pairs`` per training pair."""
+    clock, seen, left, charged, planned = StepClock(10.0), [], [], [], []
     model = timed_model(clock, seen)
+    prepare = model.prepare
+    model.prepare = lambda sc: planned.append(prepare(sc)) or planned[-1]  # type: ignore[method-assign]
     model.finish_seconds = lambda clock: PassCost(10.0, 0.5)  # type: ignore[method-assign]
-    model.finish_training = lambda progress=False, time_left=None, clock=None: left.append(time_left())  # type: ignore[method-assign]
+
+    def finish(progress=False, time_left=None, clock=None, after_pair_s=0.0) -> None:  # type: ignore[no-untyped-def]
+        left.append(time_left())
+        charged.append(after_pair_s)
+
+    model.finish_training = finish  # type: ignore[method-assign]
     summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_pairs=20, after_s=5.0)
     # kept after the fit: 1.2 × (20 × 0.5 + 5) = 18 s; for the pass 1.2 × 10 = 12 s; training stops at 70 s
     assert summary["train_budget_s"] == pytest.approx(70.0) and summary["steps"] == 7
-    assert left == [pytest.approx(100.0 - 18.0 - 70.0)]
+    # the pass: 100 − 1.2 × 5 − 70 = 24 s, each corrected pair charged 1.2 × 0.5 × 20 / (training pairs)
+    assert left == [pytest.approx(100.0 - 6.0 - 70.0)]
+    assert charged == [pytest.approx(1.2 * 0.5 * 20 / planned[0].pairs.numel())]
+    left.clear()
+    fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_fresh=20, after_s=5.0)
+    assert left == [pytest.approx(100.0 - 18.0 - 70.0)]  # pairs without training data: all kept up front

@@ -255,14 +255,25 @@ def fit_corrections(
     time_left: TimeLeftFn | None = None,
     clock: Callable[[], float] = time.perf_counter,
     visible: torch.Tensor | None = None,
+    after_pair_s: float = 0.0,
 ) -> PairCorrections:
     """Fit the switched-on corrections of the training ``data`` (``num_ssb`` SSB beams first, ``cell_ids`` of its
     cell indices) from one render of its pairs with reports (``render``, ``columns`` at the final weights;
     ``seed`` draws the posterior's held-aside reports and, within a budget, the order of the pairs; ``progress``: a
     bar; ``visible [C, N]``: the bins each cell's APS may hold, among which WNOMP's atoms are searched).  With
     ``time_left`` (seconds left, read on ``clock``'s time) the pass is sized to it: see the module's docstring;
-    without it every pair with reports is corrected (the result does not depend on ``seed``'s order)."""
+    without it every pair with reports is corrected (the result does not depend on ``seed``'s order).
+    ``after_pair_s``: what each pair the pass corrects costs the caller later, within the same deadline (the demo's
+    evaluation renders a corrected pair, not one answered by the fallback): the time left is charged for the pairs
+    corrected so far and the next chunk's."""
     from tqdm.auto import tqdm
+
+    corrected = [0]
+    if time_left is not None and after_pair_s > 0:
+        deadline = time_left
+
+        def time_left() -> float:  # the pairs corrected so far, and the next chunk's
+            return deadline() - after_pair_s * (corrected[0] + PAIR_CHUNK)
 
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
         return PairCorrections()
@@ -279,6 +290,7 @@ def fit_corrections(
         render_s = 0.0
     else:
         first, rendered, render_s, subset = _first_pairs(fit, subset, time_left, clock, bar)
+        corrected[0] = first.numel()
     levels = fit.levels(rendered) if cfg.calibrate_levels else None
     plan = _Plan()
     if cfg.pair_posterior and pairs.numel():
@@ -295,8 +307,11 @@ def fit_corrections(
         # solved now for every later pair (no render: ~0.3 ms a pair), dropped below for the pairs the pass reaches
         on = subset if cfg.pair_posterior else first
         left_over = _left_over(fit, rendered, on, later, cell_ids, levels, seed, time_left, clock)
+    yielded = 0
     for chunk in fit.corrected_chunks(rendered, later, levels, fitting, time_left, clock, bar, PAIR_CHUNK * render_s):
         done.append(chunk.pairs)
+        yielded += chunk.pairs.numel()
+        corrected[0] = max(corrected[0], yielded)  # the first pairs were counted when they were rendered
         anchors.append(chunk.anchor)
         if chunk.top_bins is not None:
             assert chunk.lam is not None

@@ -564,10 +564,12 @@ class RFLSCM(LSCMModel):
         progress: bool = False,
         time_left: TimeLeftFn | None = None,
         clock: Callable[[], float] = time.perf_counter,
+        after_pair_s: float = 0.0,
     ) -> None:
         """After the last step: fit the pair corrections that predictions and the checkpoint carry, once (one
         render of every training pair; ``progress``: a bar).  With ``time_left`` (seconds left on ``clock``, a budget
-        run's) the pass is sized to the time left (:func:`~rflscm.models.rflscm.corrections.fit_corrections`)."""
+        run's) the pass is sized to the time left, each pair it corrects charged ``after_pair_s`` more for the
+        caller's later render of it (:func:`~rflscm.models.rflscm.corrections.fit_corrections`)."""
         train = self._training()
         assert self.scene is not None
         self.corrections = fit_corrections(
@@ -582,6 +584,7 @@ class RFLSCM(LSCMModel):
             time_left,
             clock,
             visible=torch.as_tensor(self.scene.visible, device=self.device),
+            after_pair_s=after_pair_s,
         )
         if self._silence_dbm is not None:
             reported = train.data.observed.any(1).cpu().numpy()
