@@ -1072,9 +1072,9 @@ def _mix_plan(
 
 def _with_solved(mix: PairFallback, solved: PairFallback | None, wanted: pd.MultiIndex) -> PairFallback:
     """``mix`` with the ``wanted`` pairs it lacks (its solve is cut to the time left) taken from ``solved``, WNOMP's
-    APS of the pass's later pairs solved before the pass reached them (the fallback's atom count, chosen on the same
-    held-aside reports as the mix's): a pair the pass corrected is mixed either way, instead of keeping a posterior
-    whose group chose the mix on held-aside reports."""
+    APS of the pass's later pairs solved before the pass reached them (the baseline's default atom count instead of
+    the mix's choice): a pair the pass corrected is mixed either way, instead of keeping a posterior whose group chose
+    the mix on held-aside reports."""
     if solved is None or not len(solved.index):
         return mix
     missing = wanted[~wanted.isin(mix.index)]
