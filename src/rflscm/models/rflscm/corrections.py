@@ -978,14 +978,12 @@ def _left_over(
 ) -> PairFallback:
     """WNOMP's APS of the ``later`` pairs (:mod:`.fallback`) when it beats the field with its level on the reports of
     the rendered pairs ``on`` held aside as the posterior's λ holds them (``seed``), WNOMP fitted on their other
-    reports with each of :data:`MIX_ATOMS` atoms, the best count kept (as the WNOMP baseline's selection chooses it);
-    else no pairs, with the scores (``"level"``, ``"wnomp"``: held-aside MAE [dB]; ``"k2"``…: each count's) either
-    way.  With ``time_left``: as many of ``later`` (in their order) as fit (:meth:`_Fit.fallback`)."""
+    reports; else no pairs, with the scores (``"level"``, ``"wnomp"``: held-aside MAE [dB]) either way.  With
+    ``time_left``: as many of ``later`` (in their order) as fit (:meth:`_Fit.fallback`)."""
     d = fit.data
     pairs = on.unique()
     held = torch.rand(d.rsrp.shape, generator=torch.Generator().manual_seed(seed)) < HOLDOUT
-    level_sum = 0.0
-    wnomp_sum = dict.fromkeys(MIX_ATOMS, 0.0)
+    level_sum = wnomp_sum = 0.0
     count = 0
     for start in range(0, pairs.numel(), FALLBACK_CHUNK):
         part = pairs[start : start + FALLBACK_CHUNK]
@@ -995,17 +993,14 @@ def _left_over(
         if levels is not None:
             beam_type = (torch.arange(pred.shape[1], device=pred.device) >= fit.num_ssb).long()
             pred = pred * torch.pow(10.0, levels[cells][:, beam_type] / 10.0)
+        bins, gains = fit.solve(part, observed & ~score, levels)
+        wnomp = predicted_reports(fit.columns, cells, bins, gains)
         level_err, n = held_mae_db(d.rsrp[part], pred, score)
-        for k in MIX_ATOMS:
-            bins, gains = fit.solve(part, observed & ~score, levels, dataclasses.replace(SOLVER, k_max=k))
-            wnomp_sum[k] += held_mae_db(d.rsrp[part], predicted_reports(fit.columns, cells, bins, gains), score)[0]
-        level_sum, count = level_sum + level_err, count + n
-    k_best = min(MIX_ATOMS, key=lambda k: (wnomp_sum[k], k))
-    scores = {"level": level_sum / count, "wnomp": wnomp_sum[k_best] / count} if count else {}
-    scores |= {f"k{k}": wnomp_sum[k] / count for k in MIX_ATOMS} if count else {}
+        wnomp_err, _ = held_mae_db(d.rsrp[part], wnomp, score)
+        level_sum, wnomp_sum, count = level_sum + level_err, wnomp_sum + wnomp_err, count + n
+    scores = {"level": level_sum / count, "wnomp": wnomp_sum / count} if count else {}
     use = bool(scores) and scores["wnomp"] < scores["level"]
-    solver = dataclasses.replace(SOLVER, k_max=k_best)
-    return fit.fallback(later if use else later[:0], cell_ids, levels, scores, time_left, clock, solver)
+    return fit.fallback(later if use else later[:0], cell_ids, levels, scores, time_left, clock)
 
 
 MIX_ATOMS = (2, 4, 8)
