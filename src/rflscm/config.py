@@ -40,14 +40,15 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
-        errors = []
+        errors: list[str] = []
         for arg in args:
             if arg is type(None):
                 continue
             try:
                 return _coerce(arg, value, where)
             except ConfigError as exc:
-                errors.append(str(exc))
+                # a mapping's error is its dataclass's (a bad key or value in it), not another member's type
+                errors.insert(0 if isinstance(value, dict) and _is_dataclass_type(arg) else len(errors), str(exc))
         raise ConfigError(errors[0] if errors else f"`{where}` has an invalid value {value!r}.")
     if origin is typing.Literal:
         if value not in args:
@@ -349,6 +350,16 @@ def _scalar_for(tp: Any, value: Any) -> Any:
     return value
 
 
+def _section_of(tp: Any) -> Any:
+    """The dataclass of a field typed ``X | Dataclass`` (a switch that may also carry settings, e.g. ``bool |
+    WNOMPConfig``), so that ``--set`` reaches into it; any other type unchanged."""
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        sections = [arg for arg in typing.get_args(tp) if _is_dataclass_type(arg)]
+        if len(sections) == 1:
+            return sections[0]
+    return tp
+
+
 def apply_sets(
     cls: type, data: dict[str, Any], items: list[str] | tuple[str, ...], option: str = "--set"
 ) -> dict[str, Any]:
@@ -365,6 +376,7 @@ def apply_sets(
         node = out
         for depth, key in enumerate(path):
             where = ".".join(path[: depth + 1])
+            tp = _section_of(tp)
             if _is_dataclass_type(tp):
                 hints = typing.get_type_hints(tp)
                 fields = sorted(f.name for f in dataclasses.fields(tp) if f.init)

@@ -73,3 +73,23 @@ def test_the_demo_gives_rflscm_what_wnomp_left_and_at_least_a_floor() -> None:
     assert rflscm_budget(170.0, console) == 170.0 and text.getvalue() == ""
     assert rflscm_budget(-3.0, console) == MIN_RFLSCM_S
     assert "WNOMP left 0 s of the budget" in text.getvalue() and "will run over" in text.getvalue()
+
+
+def test_the_demos_rflscm_answers_the_pairs_its_pass_misses_with_the_baselines_selected_settings(
+    scenario_dir: Path, tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """The demo hands RF-LSCM the WNOMP settings its baseline selected (``corrections.wnomp_fallback``), so that a
+    pair the budget's pass does not reach is answered as the baseline answers it; a ``--set`` of it still wins."""
+    config = tmp_path / "tiny.yaml"
+    config.write_text(TINY)
+    base = ["demo", "--scenario", str(scenario_dir), "--config", str(config), "--minutes", "0.5", "--no-progress"]
+    code, _, err = run_cli([*base, "--out", str(tmp_path / "a")], monkeypatch, capsys)
+    assert code == 0, err
+    wnomp = load_model(tmp_path / "a" / "wnomp.ckpt").config
+    fallback = load_model(tmp_path / "a" / "rflscm.ckpt").config.corrections.wnomp_fallback
+    assert fallback == wnomp  # the selected settings, whichever they are
+    code, _, err = run_cli(
+        [*base, "--out", str(tmp_path / "b"), "--set", "corrections.wnomp_fallback=true"], monkeypatch, capsys
+    )
+    assert code == 0, err
+    assert load_model(tmp_path / "b" / "rflscm.ckpt").config.corrections.wnomp_fallback is True

@@ -88,3 +88,42 @@ def test_a_config_yaml_overrides_the_chosen_preset_not_the_bare_defaults(tmp_pat
         model_config("rflscm", str(user), None, [])
     with pytest.raises(ConfigError, match="name two presets"):
         model_config("rflscm", "quick", "full", [])
+
+
+@dataclass(frozen=True)
+class _Switch:
+    on: bool | _Inner = True
+
+
+def test_a_switch_that_may_carry_settings_takes_a_mapping_and_set_reaches_into_it() -> None:
+    """A field typed ``bool | Dataclass`` (``corrections.wnomp_fallback``) reads true/false or a mapping of the
+    dataclass's settings; ``--set`` can set the switch or one setting (the others at their defaults); a bad key or
+    value in the mapping is named as the dataclass's, not as a failed bool."""
+    assert from_dict(_Switch, {"on": False}).on is False
+    assert from_dict(_Switch, {"on": {"steps": 3}}).on == _Inner(steps=3)
+    assert from_dict(_Switch, apply_sets(_Switch, {}, ["on.steps=4"])).on == _Inner(steps=4)
+    assert from_dict(_Switch, apply_sets(_Switch, {"on": {"steps": 4}}, ["on=false"])).on is False
+    with pytest.raises(ConfigError, match=r"unknown key `stepz` in `on`; valid keys: cap, flag, rate, steps"):
+        apply_sets(_Switch, {}, ["on.stepz=4"])
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) 'stepz' in `on`"):
+        from_dict(_Switch, {"on": {"stepz": 4}})
+    with pytest.raises(ConfigError, match=r"`on` must be true or false"):
+        from_dict(_Switch, {"on": "maybe"})
+
+
+def test_settings_a_command_chooses_sit_under_the_users_yaml_and_set(tmp_path: Path) -> None:
+    """``model_config(..., under=)``: the demo's WNOMP settings for RF-LSCM's fallback apply over the preset, and the
+    user's YAML and ``--set`` override them."""
+    from rflscm.models.rflscm import RFLSCM
+    from rflscm.models.wnomp import WNOMPConfig
+
+    under = {"corrections": {"wnomp_fallback": {"k_max": 2, "tolerance": 0.05}}}
+    cfg = RFLSCM.build(model_config("rflscm", "quick", None, [], under)).config
+    assert cfg.corrections.wnomp_fallback == WNOMPConfig(k_max=2, tolerance=0.05)
+    assert cfg.field == RFLSCM.build("quick").config.field
+    cfg = RFLSCM.build(model_config("rflscm", "quick", None, ["corrections.wnomp_fallback=false"], under)).config
+    assert cfg.corrections.wnomp_fallback is False
+    user = tmp_path / "mine.yaml"
+    user.write_text("corrections: {wnomp_fallback: {k_max: 4}}\n")
+    cfg = RFLSCM.build(model_config("rflscm", str(user), None, [], under)).config
+    assert cfg.corrections.wnomp_fallback == WNOMPConfig(k_max=4, tolerance=0.05)  # merged key by key

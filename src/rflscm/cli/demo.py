@@ -197,6 +197,11 @@ def demo(
     )
     from rflscm.config import to_dict
 
+    # the pairs RF-LSCM's pass does not reach within the budget get WNOMP's APS of their reports with the baseline's
+    # selected settings, as the baseline answers them (a YAML or --set of corrections.wnomp_fallback still wins)
+    rflscm_cfg = model_config(
+        "rflscm", config, preset, sets, under={"corrections": {"wnomp_fallback": to_dict(wnomp_cfg)}}
+    )
     configs: dict[str, str | dict[str, Any]] = {"wnomp": to_dict(wnomp_cfg), "rflscm": rflscm_cfg}
     # RF-LSCM's evaluation renders each test pair once, where its pass corrected it or it has no round-1 report
     known, fresh = tested_pairs(scen, AdjustProtocol())

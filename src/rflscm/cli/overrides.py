@@ -26,9 +26,13 @@ SetOption = typer.Option(
 )
 
 
-def model_config(model: str, config: str, preset: str | None, sets: list[str]) -> str | dict[str, Any]:
+def model_config(
+    model: str, config: str, preset: str | None, sets: list[str], under: dict[str, Any] | None = None
+) -> str | dict[str, Any]:
     """What to hand ``MODEL_REGISTRY[model].build``: the preset name when nothing overrides it, else the merged
-    mapping (preset ← YAML ← ``--set``), already checked against the model's config class."""
+    mapping (preset ← ``under`` ← YAML ← ``--set``), already checked against the model's config class.  ``under``:
+    settings a command chooses itself (the demo's WNOMP settings for RF-LSCM's fallback), which the user's YAML and
+    ``--set`` still override."""
     from rflscm.config import apply_sets, from_dict, load_yaml, merge_config, to_dict
     from rflscm.geometry import AngleGrid
     from rflscm.models import MODEL_REGISTRY
@@ -42,11 +46,11 @@ def model_config(model: str, config: str, preset: str | None, sets: list[str]) -
         if preset is not None and preset != config:
             raise ConfigError(f"--config {config} and --preset {preset} name two presets; give one.")
         preset = config
-    if not is_file and not sets:
+    if not is_file and not sets and not under:
         return config
     base = MODEL_REGISTRY[model].build(preset, AngleGrid(), "cpu").config  # type: ignore[attr-defined]  # all have one
     cls = type(base)
-    data = to_dict(base)
+    data = merge_config(to_dict(base), under or {})
     if is_file:
         path = Path(config)
         if path.suffix.lower() not in (".yaml", ".yml") and not path.is_file():

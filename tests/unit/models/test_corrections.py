@@ -378,6 +378,38 @@ def test_pairs_the_pass_cannot_reach_get_wnomps_aps_when_it_predicts_held_report
     torch.testing.assert_close(loaded.apply(field, c, ids[c], rows), out)
 
 
+def test_the_left_over_pairs_are_solved_with_the_wnomp_settings_the_config_gives() -> None:
+    """``wnomp_fallback`` as WNOMP settings (the demo's selected baseline): the left-over pairs' APS is WNOMP's
+    solution of their reports with exactly those settings (2 atoms here), where True gives the defaults' 8."""
+    from rflscm.models.rflscm.fallback import SOLVER, solve_reports
+    from rflscm.models.wnomp import WNOMPConfig
+
+    pair_data, costly, columns_, truth, _, cells, now = fallback_problem()
+    visible = torch.ones(2, truth.shape[1], dtype=torch.bool)
+    two = WNOMPConfig(k_max=2, tolerance=0.05, residual_floor=0.25)
+
+    def run(setting: bool | WNOMPConfig) -> PairCorrections:
+        now[0] = 0.0
+        cfg = CorrectionsConfig(pair_posterior=False, wnomp_fallback=setting)
+        return fit_corrections(
+            cfg, pair_data, 8, np.array([7, 8]), costly, columns_, 0, time_left=lambda: 2.0 - now[0],
+            clock=lambda: now[0], visible=visible,
+        )  # fmt: skip
+
+    default, selected = run(True).fallback, run(two).fallback
+    assert default is not None and selected is not None and len(selected.index) > 0
+    assert default.bins.shape[1] == SOLVER.k_max == 8 and selected.bins.shape[1] == 2
+    rows = torch.as_tensor([g for _, g in selected.index])  # this problem's grid id is its pair's index
+    every = torch.arange(truth.shape[1])[None]
+
+    def matrix(cell: int) -> torch.Tensor:
+        return columns_(torch.tensor([cell]), every)[0]
+
+    bins, gains = solve_reports(matrix, cells[rows], pair_data.rsrp[rows], pair_data.observed[rows], two)
+    assert torch.equal(selected.bins, bins)
+    torch.testing.assert_close(selected.gains, gains)
+
+
 def test_damaged_wnomp_pairs_are_refused_in_one_line() -> None:
     from rflscm.models.rflscm.fallback import PairFallback
 

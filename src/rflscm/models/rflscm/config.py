@@ -21,6 +21,7 @@ from typing import Any, ClassVar, Literal
 
 from rflscm.config import from_dict, load_yaml
 from rflscm.errors import ConfigError
+from rflscm.models.wnomp import WNOMPConfig
 
 PRESETS = ("quick", "full")
 
@@ -351,10 +352,13 @@ class CorrectionsConfig:
     with λ on held-aside reports.  Where a posterior is chosen, its predictions are also averaged in dB with WNOMP's
     APS of the pair's reports, with a weight chosen per group on held-aside reports
     (:data:`~rflscm.models.rflscm.corrections.MIX_WEIGHTS`).  Needs ``pair_posterior``."""
-    wnomp_fallback: bool = True
+    wnomp_fallback: bool | WNOMPConfig = True
     """Within a time budget, the training pairs that the pass after training cannot reach get WNOMP's APS of their
     own round-1 reports (no render; :mod:`~rflscm.models.rflscm.fallback`) instead of the field with its level,
-    when that predicts the held-aside reports of the rendered pairs better.  Without a budget every pair is reached
+    when that predicts the held-aside reports of the rendered pairs better.  True: with WNOMP's default settings
+    (what ``rflscm train --model wnomp`` fits); a mapping of WNOMP settings (``k_max``, ``weighting``,
+    ``tolerance``, ``residual_floor``, …): with those (``rflscm demo`` gives the ones its WNOMP baseline selected,
+    so that such a pair is answered as the baseline answers it); False: off.  Without a budget every pair is reached
     and this does nothing."""
     lambda_groups: int = 3
     """The posterior's λ, WNOMP atoms and their prior centre are chosen on held-aside reports per group of pairs

@@ -474,7 +474,7 @@ def measure_pass(
     t4 = clock()
     sample = _spread(pairs, FALLBACK_CHUNK)  # the fallback solves thousands of pairs at a time, over every cell
     if cfg.wnomp_fallback:
-        fit.solve(sample, data.observed[sample], None)
+        fit.solve(sample, data.observed[sample], None, fallback_solver(cfg))
     t5 = clock()
     n_first, n_second = first.numel(), second.numel()
     cells_first = int(data.cell_index[first].unique().numel())
@@ -521,7 +521,7 @@ def _first_pairs(
         every = torch.nonzero(fit.data.observed.any(1)).squeeze(1)
         sample = _spread(every, FALLBACK_CHUNK)  # spread over the cells, as the fallback's chunks are
         begun = clock()
-        fit.solve(sample, fit.data.observed[sample], None)
+        fit.solve(sample, fit.data.observed[sample], None, fallback_solver(cfg))
         safety_net = CHUNK_MARGIN * (clock() - begun) / max(sample.numel(), 1) * (every.numel() - one.numel())
     left = time_left()  # the fallback's time kept, up to half: the levels' pairs keep a quarter of the pass at least
     room = FIRST_SHARE * (left - min(safety_net, FIRST_SHARE * max(left, 0.0)))
@@ -993,14 +993,22 @@ def _left_over(
         if levels is not None:
             beam_type = (torch.arange(pred.shape[1], device=pred.device) >= fit.num_ssb).long()
             pred = pred * torch.pow(10.0, levels[cells][:, beam_type] / 10.0)
-        bins, gains = fit.solve(part, observed & ~score, levels)
+        bins, gains = fit.solve(part, observed & ~score, levels, fallback_solver(fit.cfg))
         wnomp = predicted_reports(fit.columns, cells, bins, gains)
         level_err, n = held_mae_db(d.rsrp[part], pred, score)
         wnomp_err, _ = held_mae_db(d.rsrp[part], wnomp, score)
         level_sum, wnomp_sum, count = level_sum + level_err, wnomp_sum + wnomp_err, count + n
     scores = {"level": level_sum / count, "wnomp": wnomp_sum / count} if count else {}
     use = bool(scores) and scores["wnomp"] < scores["level"]
-    return fit.fallback(later if use else later[:0], cell_ids, levels, scores, time_left, clock)
+    return fit.fallback(
+        later if use else later[:0], cell_ids, levels, scores, time_left, clock, fallback_solver(fit.cfg)
+    )
+
+
+def fallback_solver(cfg: CorrectionsConfig) -> WNOMPConfig:
+    """WNOMP's settings for the pairs a budget's pass does not reach: ``cfg.wnomp_fallback``'s where it gives them (the
+    demo's selected baseline), else the baseline's defaults (:data:`~rflscm.models.rflscm.fallback.SOLVER`)."""
+    return cfg.wnomp_fallback if isinstance(cfg.wnomp_fallback, WNOMPConfig) else SOLVER
 
 
 MIX_ATOMS = (2, 4, 8)
@@ -1067,8 +1075,8 @@ def _mix_plan(
 
 def _with_solved(mix: PairFallback, solved: PairFallback | None, wanted: pd.MultiIndex) -> PairFallback:
     """``mix`` with the ``wanted`` pairs it lacks (its solve is cut to the time left) taken from ``solved``, WNOMP's
-    APS of the pass's later pairs solved before the pass reached them (the baseline's default atom count instead of
-    the mix's choice): a pair the pass corrected is mixed either way, instead of keeping a posterior whose group chose
+    APS of the pass's later pairs solved before the pass reached them (with the fallback's settings instead of the
+    mix's atom choice): a pair the pass corrected is mixed either way, instead of keeping a posterior whose group chose
     the mix on held-aside reports."""
     if solved is None or not len(solved.index):
         return mix

@@ -31,7 +31,8 @@ from rflscm.models.rflscm.posterior import pair_rows
 from rflscm.models.wnomp import CellMatrices, WNOMPConfig, solve_jobs
 
 SOLVER = WNOMPConfig()
-"""The WNOMP baseline's own settings (atoms, tolerance, weighting): a left-over pair gets what WNOMP would fit."""
+"""The WNOMP baseline's default settings (atoms, tolerance, weighting): a left-over pair gets what WNOMP would fit
+(``corrections.wnomp_fallback`` may give other settings, as the demo gives its selected baseline's)."""
 
 
 def solve_reports(
