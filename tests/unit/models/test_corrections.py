@@ -321,6 +321,53 @@ def test_a_short_deadline_measures_the_levels_on_fewer_pairs_per_cell() -> None:
     assert cut.anchors is not None and len(cut.anchors) == 12 and now[0] <= 0.3
 
 
+def test_the_later_pairs_come_in_random_blocks_each_sorted_and_the_estimate_times_such_a_chunk() -> None:
+    """The pass takes the pairs it has not rendered in a seeded random order of ``PASS_BLOCK``-pair blocks, each sorted
+    (so a render chunk spans few cells); ``measure_pass`` times its per-pair render on a chunk of such a block, not on
+    pairs spread over every cell: with a render that costs per pair and per cell in the chunk, the estimate is the
+    block chunk's cost."""
+    import rflscm.models.rflscm.corrections as module
+
+    cells, per_cell = 40, 100
+    n = cells * per_cell
+    pairs = torch.arange(n)
+    first = torch.arange(0, n, 7)
+    order = module._later_pairs(pairs, first, seed=3)
+    rest = pairs[~torch.isin(pairs, first)]
+    assert torch.equal(order.sort().values, rest)  # every pair not rendered first, once
+    blocks = order.split(module.PASS_BLOCK)
+    assert all(torch.equal(b, b.sort().values) for b in blocks)
+    assert int(blocks[0].max() - blocks[0].min()) > n // 2  # a block is drawn over the whole network
+    assert torch.equal(order, module._later_pairs(pairs, first, seed=3))
+    assert not torch.equal(order, module._later_pairs(pairs, first, seed=4))
+
+    cell_of = pairs // per_cell
+    now = [0.0]
+
+    def render(p: torch.Tensor):
+        now[0] += 0.001 * p.numel() + 0.01 * cell_of[p].unique().numel()  # per pair, and per cell in the chunk
+        return torch.zeros(p.numel(), 1, dtype=torch.long), torch.ones(p.numel(), 1), torch.ones(p.numel(), 4)
+
+    pair_data = PairData(
+        cell_index=cell_of,
+        grid_ids=np.arange(n, dtype=np.int64),
+        grid_xyz=torch.zeros(n, 3),
+        rsrp=torch.ones(n, 4),
+        beam_mask=torch.ones(n, 4, dtype=torch.bool),
+        val_mask=torch.zeros(n, 4, dtype=torch.bool),
+        x_scale=torch.ones(n),
+        bound=torch.full((n, 4), float("nan")),
+        val_pairs=torch.zeros(0, dtype=torch.long),
+    )
+    cfg = CorrectionsConfig(pair_posterior=False, wnomp_fallback=False)
+    times = module.measure_pass(cfg, pair_data, 2, cells, render, columns, lambda: now[0])
+    block_cells = int(cell_of[module._later_pairs(pairs, pairs[:0], 0)[: module.PASS_BLOCK]].unique().numel())
+    assert block_cells == cells  # a block covers the network; a chunk of it spans few cells
+    assert times.render_s < 0.001 + 0.01 * 4 / module.PAIR_CHUNK  # at most four cells in the chunk
+    spread = 0.001 + 0.01 * cells / module.PAIR_CHUNK  # what a chunk spread over every cell costs a pair
+    assert times.render_s < 0.5 * spread
+
+
 def fallback_problem(pairs: int = 400):
     """:func:`atom_problem` with many pairs and a clock that charges 10 ms per rendered pair."""
     pair_data, render_, columns_, truth, a2, cells = atom_problem(0, pairs=pairs)

@@ -214,6 +214,7 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
         LAMBDA_PAIRS,
         LAMBDAS,
         LEVEL_PAIRS_PER_CELL,
+        PAIR_CHUNK,
         WNOMP_ATOMS,
         WNOMP_PRIORS,
         PassTimes,
@@ -225,8 +226,7 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
     estimate = model.finish_seconds(lambda: float(next(ticks)))
     data = model._training().data
     pairs = int(data.observed.any(1).sum())
-    spread = torch.linspace(0, pairs - 1, min(pairs, 128)).round().long().unique()
-    n_first, n_second = len(spread[0::2]), len(spread[1::2])
+    n_first = n_second = min(pairs, PAIR_CHUNK)  # a spread chunk, then a chunk of a block as the pass takes them
     assert estimate.per_pair_s == pytest.approx(1 / n_second)
     cfg = model.config.corrections
     assert cfg.pair_posterior and cfg.wnomp_atoms

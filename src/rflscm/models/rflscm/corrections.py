@@ -85,6 +85,10 @@ FALLBACK_CHUNK = 1024
 FALLBACK_SOLVE = 4096
 """Within a budget, the left-over pairs' WNOMP solutions are found this many pairs at a time, each chunk started
 only while it fits (~1 ms a pair: a tile of 53 k pairs spent 39 s of its 87-s pass on them)."""
+PASS_BLOCK = 1024
+"""The pairs the pass reaches after its first ones come in a seeded random order (spread over cells and grids where
+the pass is cut) this many at a time, each block sorted by pair (so by cell): a render chunk's cost grows with the
+cells it spans (800-grid city: 5.5 ms a pair for a chunk of 64 pairs over 42 cells, 3.5 ms for chunks of a few)."""
 CHUNK_MARGIN = 1.25
 """A further chunk is started only when the time left exceeds this many times the slowest chunk so far."""
 
@@ -449,16 +453,19 @@ def measure_pass(
     clock: Callable[[], float] = time.perf_counter,
     visible: torch.Tensor | None = None,
 ) -> PassTimes:
-    """What the corrections' pass costs, on ``clock``: two chunks of spread pairs with reports rendered (the
-    first also pays the renderer's per-cell setup, counted once per cell), the second's residuals and columns
+    """What the corrections' pass costs, on ``clock``: two chunks of pairs with reports rendered (the first spread over
+    the cells, paying the renderer's per-cell setup, counted once per cell; the second a chunk of a block as the pass
+    takes them, :func:`_later_pairs`, which is also what an evaluation's chunk costs), the second's residuals and columns
     prepared with the most WNOMP atoms the pass may choose (``wnomp_atoms`` on and ``visible`` given) and its
     gains fitted once (posterior on), and WNOMP's solve of a spread sample's reports (the fallback, when on).  All
     zero when every correction is off."""
     pairs = torch.nonzero(data.observed.any(1)).squeeze(1)
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior) or not pairs.numel():
         return PassTimes(0.0, 0.0, 0.0, 0.0)
-    spread = torch.linspace(0, pairs.numel() - 1, min(pairs.numel(), 2 * PAIR_CHUNK)).round().long().unique()
-    first, second = pairs[spread[0::2]], pairs[spread[1::2]] if spread.numel() > 1 else pairs[spread]
+    first = _spread(pairs, PAIR_CHUNK).unique()  # every cell it touches pays the renderer's setup
+    block = _later_pairs(pairs, pairs[:0], 0)[:PASS_BLOCK]  # a block as the pass takes its pairs, and a chunk of it
+    start = max(0, (block.numel() - PAIR_CHUNK) // 2)
+    second = block[start : start + PAIR_CHUNK]
     fit = _Fit(cfg, data, num_ssb, num_cells, render, columns, visible)
     atoms = max(WNOMP_ATOMS) if cfg.pair_posterior and cfg.wnomp_atoms and visible is not None else 0
     fit.plan = _Plan.uniform(atoms, 0, LAMBDAS[0])
@@ -562,10 +569,14 @@ def _merged(a: _Rendered, b: _Rendered) -> _Rendered:
 
 
 def _later_pairs(pairs: torch.Tensor, first: torch.Tensor, seed: int) -> torch.Tensor:
-    """``pairs`` not in ``first``, in a seeded random order (empty when ``first`` holds them all)."""
+    """``pairs`` not in ``first``, in a seeded random order of blocks of ``PASS_BLOCK``, each block sorted (so by cell)
+    (empty when ``first`` holds them all)."""
     rest = pairs[~torch.isin(pairs, first)]
     order = torch.randperm(rest.numel(), generator=torch.Generator().manual_seed(seed))
-    return rest[order.to(rest.device)]
+    rest = rest[order.to(rest.device)]
+    block = torch.arange(rest.numel(), device=rest.device) // PASS_BLOCK
+    span = int(rest.max()) + 1 if rest.numel() else 1
+    return rest[torch.argsort(block * span + rest)]
 
 
 @dataclass
