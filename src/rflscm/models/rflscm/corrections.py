@@ -18,7 +18,8 @@ result, applies it and saves it on its own (tensors only).
 
 Within a time budget (``time_left``) the pass is sized to the time left: the pairs the levels and λ are measured
 on come first (one per cell, then as many of the others as half the time left allows), then the other pairs in a
-seeded random order (spread over cells and grids), a chunk at a time, while a chunk still fits.  When the pass
+seeded random order (spread over cells and grids; in blocks of ``PASS_BLOCK``, each sorted by cell, so that a render
+chunk spans few cells), a chunk at a time, while a chunk still fits.  When the pass
 cannot reach every pair, the pairs left over get WNOMP's APS of their own reports (:mod:`.fallback`, no render)
 where that predicts the held-aside reports better than the field with its level, else they keep the level only.
 :func:`measure_pass` measures the pass's cost on two chunks, so that a budget run can keep time for it.
