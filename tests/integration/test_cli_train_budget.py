@@ -79,7 +79,8 @@ def test_the_demos_rflscm_answers_the_pairs_its_pass_misses_with_the_baselines_s
     scenario_dir: Path, tmp_path: Path, monkeypatch, capsys
 ) -> None:
     """The demo hands RF-LSCM the WNOMP settings its baseline selected (``corrections.wnomp_fallback``), so that a
-    pair the budget's pass does not reach is answered as the baseline answers it; a ``--set`` of it still wins."""
+    pair the budget's pass does not reach is answered as the baseline answers it (that a user's ``--set`` of it still
+    wins: ``tests/unit/test_config_overrides.py``)."""
     config = tmp_path / "tiny.yaml"
     config.write_text(TINY)
     base = ["demo", "--scenario", str(scenario_dir), "--config", str(config), "--minutes", "0.5", "--no-progress"]
@@ -88,8 +89,3 @@ def test_the_demos_rflscm_answers_the_pairs_its_pass_misses_with_the_baselines_s
     wnomp = load_model(tmp_path / "a" / "wnomp.ckpt").config
     fallback = load_model(tmp_path / "a" / "rflscm.ckpt").config.corrections.wnomp_fallback
     assert fallback == wnomp  # the selected settings, whichever they are
-    code, _, err = run_cli(
-        [*base, "--out", str(tmp_path / "b"), "--set", "corrections.wnomp_fallback=true"], monkeypatch, capsys
-    )
-    assert code == 0, err
-    assert load_model(tmp_path / "b" / "rflscm.ckpt").config.corrections.wnomp_fallback is True

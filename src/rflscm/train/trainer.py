@@ -17,10 +17,9 @@ training (``finish_training``), which the model estimates (``finish_seconds``, m
 may take at most ``train.finish_share`` of what the budget leaves after a caller's later work, but never less than
 its least (the levels and WNOMP's APS of every pair, :attr:`PassCost.least_s`, up to that share of the whole
 budget); training keeps at least ``MIN_TRAIN_SHARE`` of the budget; that pass is then given the time left, to the
-budget's end.  The learning-rate
-factor is ``lr_decay ** p``; the model sees the *schedule position* p · ``train.steps`` (in units of the
-nominal schedule's steps; exactly the step in step mode), so ``train.steps`` is the length of the
-nominal schedule in both modes.  In step mode everything is a pure function of the step, so a
+budget's end.  The learning-rate factor is ``lr_decay ** p``; the model sees the *schedule position*
+p · ``train.steps`` (in units of the nominal schedule's steps; exactly the step in step mode), so ``train.steps``
+is the length of the nominal schedule in both modes.  In step mode everything is a pure function of the step, so a
 checkpoint holding parameters, optimizer state, step and generator state resumes *exactly*; a budget
 run resumes from its saved elapsed time (not bit-identical to an uninterrupted one: timing differs).
 """
