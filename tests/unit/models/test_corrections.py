@@ -494,6 +494,43 @@ def test_pairs_with_few_and_many_reports_choose_their_posterior_apart() -> None:
     assert pooled.posterior.groups[0]["lam"] == pooled.posterior.lam
 
 
+def test_chunks_whose_groups_take_different_atom_counts_stack_into_one_posterior(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A chunk holds the field's bins and the most WNOMP atoms of its pairs' groups, so chunks of one group each
+    differ in width (a 222-cell field run in tiles raised "Sizes of tensors must match" when the pass took its pairs
+    sorted by cell); the posterior stacks them widened with no-op columns, and predicts as with one chunk for all."""
+    import rflscm.models.rflscm.corrections as module
+
+    whole, _ = fit_atoms(True, groups=2, thin=3)  # 48 pairs in one chunk
+    monkeypatch.setattr(module, "PAIR_CHUNK", 24)  # the 24 few-report pairs, then the 24 others
+    split, _ = fit_atoms(True, groups=2, thin=3)
+    post, post_split = whole.posterior, split.posterior
+    assert post is not None and post_split is not None
+    assert post.groups[0]["atoms"] != post.groups[1]["atoms"] or math.isinf(post.groups[0]["lam"])
+    field = torch.rand(48, 40, generator=torch.Generator().manual_seed(1))
+    cells = (torch.arange(48) % 2).numpy()
+    ids = np.array([7, 8])[cells]
+    grids = np.arange(48, dtype=np.int64)
+    torch.testing.assert_close(post_split.apply(field, ids, grids), post.apply(field, ids, grids))
+
+
+def test_widening_a_posteriors_blocks_changes_nothing_it_predicts() -> None:
+    """The added columns repeat a row's first bin with a gain of 0 dB and a base of 0."""
+    from rflscm.models.rflscm.corrections import _widened
+
+    index = pd.MultiIndex.from_arrays([np.array([7, 7, 8]), np.array([0, 1, 2])], names=["cell_id", "grid_id"])
+    bins = [torch.tensor([[3, 5]]), torch.tensor([[1, 2, 4], [0, 6, 7]])]
+    gains = [torch.tensor([[1.0, -2.0]]), torch.tensor([[0.5, 0.0, 3.0], [-1.0, 2.0, 0.0]])]
+    bases = [torch.tensor([[0.0, 0.1]]), torch.tensor([[0.2, 0.0, 0.0], [0.0, 0.3, 0.1]])]
+    wide = PairPosterior(index, _widened(bins), _widened(gains), 1.0, {}, _widened(bases))
+    assert wide.bins.shape == (3, 3) and wide.bins[0].tolist() == [3, 5, 3] and wide.gain_db[0, 2] == 0.0
+    aps = torch.rand(3, 8, generator=torch.Generator().manual_seed(0))
+    first = PairPosterior(index[:1], bins[0], gains[0], 1.0, {}, bases[0])
+    out = wide.apply(aps, np.array([7, 7, 8]), np.array([0, 1, 2]))
+    torch.testing.assert_close(out[:1], first.apply(aps[:1], np.array([7]), np.array([0])))
+
+
 def test_the_mixed_prior_lowers_the_field_through_the_anchor_and_adds_wnomps_atoms() -> None:
     from rflscm.models.rflscm.corrections import _Fit, _Plan
     from rflscm.models.rflscm.posterior import WNOMP_PRIORS

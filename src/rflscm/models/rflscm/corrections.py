@@ -325,8 +325,7 @@ def fit_corrections(
             ridge = torch.where(on, chunk.lam, torch.ones_like(chunk.lam))
             gains.append(fit_gains(*chunk.fit_inputs(), chunk.resid, chunk.mask & on[:, None], ridge).cpu())
             bins_of.append(chunk.top_bins.cpu())
-            if chunk.base is not None:
-                bases.append(chunk.stored_base().cpu())
+            bases.append(chunk.stored_base().cpu() if chunk.base is not None else None)
         bar.update(chunk.pairs.numel() * (per_pair - 1))
     bar.close()
     kept = torch.cat(done).cpu().numpy() if done else np.zeros(0, np.int64)
@@ -351,10 +350,12 @@ def fit_corrections(
             plan.groups,
         )
         return PairCorrections(levels, anchor_series, posterior, left_over)
-    gain_db = torch.cat(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
-    base = torch.cat(bases) if bases else None
+    # a chunk's width is the field's bins and the most WNOMP atoms of its pairs' groups: chunks differ
+    gain_db = _widened(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
+    with_base = [b if b is not None else torch.zeros_like(g) for b, g in zip(bases, gains, strict=True)]
+    base = _widened(with_base) if any(b is not None for b in bases) else None
     lam, scores = plan.summary()
-    posterior = PairPosterior(index, torch.cat(bins_of), gain_db, lam, scores, base, plan.atom_scores, plan.groups)
+    posterior = PairPosterior(index, _widened(bins_of), gain_db, lam, scores, base, plan.atom_scores, plan.groups)
     mix = None
     with_mix = torch.cat(mixed).sort().values if mixed else torch.zeros(0, dtype=torch.long)
     if cfg.wnomp_atoms and visible is not None and with_mix.numel():
@@ -1083,6 +1084,23 @@ def _mix_plan(
         weights.append(min(MIX_WEIGHTS, key=lambda w: (mix_err[w], w)))
         scores[f"w{g}"] = weights[-1]
     return dataclasses.replace(SOLVER, k_max=k_best), tuple(weights), scores
+
+
+def _widened(parts: list[torch.Tensor]) -> torch.Tensor:
+    """Row blocks ``[B_i, K_i]`` of the posterior (bins, gains or prior bases) stacked at the widest ``K``: a bins
+    block is widened with its rows' first bin, any other with zeros, so the added columns change nothing (a gain of 0
+    dB and a base of 0 on a bin the row already holds, as :func:`~rflscm.models.rflscm.posterior.with_atoms` leaves
+    an atom that is not there)."""
+    width = max(p.shape[1] for p in parts)
+
+    def wide(p: torch.Tensor) -> torch.Tensor:
+        extra = width - p.shape[1]
+        if not extra:
+            return p
+        fill = p[:, :1].expand(-1, extra) if not p.is_floating_point() else p.new_zeros(p.shape[0], extra)
+        return torch.cat([p, fill], 1)
+
+    return torch.cat([wide(p) for p in parts])
 
 
 def _with_solved(mix: PairFallback, solved: PairFallback | None, wanted: pd.MultiIndex) -> PairFallback:
