@@ -1086,18 +1086,21 @@ def _mix_plan(
     return dataclasses.replace(SOLVER, k_max=k_best), tuple(weights), scores
 
 
-def _widened(parts: list[torch.Tensor]) -> torch.Tensor:
-    """Row blocks ``[B_i, K_i]`` of the posterior (bins, gains or prior bases) stacked at the widest ``K``: a bins
-    block is widened with its rows' first bin, any other with zeros, so the added columns change nothing (a gain of 0
-    dB and a base of 0 on a bin the row already holds, as :func:`~rflscm.models.rflscm.posterior.with_atoms` leaves
-    an atom that is not there)."""
+def _widened(parts: list[torch.Tensor], none: int | None = None) -> torch.Tensor:
+    """Row blocks ``[B_i, K_i]`` of sparse APS (bins, gains or prior bases) stacked at the widest ``K``, with columns
+    that change nothing: a bins block is widened with ``none`` (a :class:`PairFallback`'s −1) or, without it, with its
+    rows' first bin (a posterior's bins must be bins: as :func:`~rflscm.models.rflscm.posterior.with_atoms` leaves an
+    atom that is not there), any other block with zeros (a gain of 0 dB, a base of 0)."""
     width = max(p.shape[1] for p in parts)
 
     def wide(p: torch.Tensor) -> torch.Tensor:
         extra = width - p.shape[1]
         if not extra:
             return p
-        fill = p[:, :1].expand(-1, extra) if not p.is_floating_point() else p.new_zeros(p.shape[0], extra)
+        if p.is_floating_point():
+            fill = p.new_zeros(p.shape[0], extra)
+        else:
+            fill = p[:, :1].expand(-1, extra) if none is None else p.new_full((p.shape[0], extra), none)
         return torch.cat([p, fill], 1)
 
     return torch.cat([wide(p) for p in parts])
@@ -1116,13 +1119,8 @@ def _with_solved(mix: PairFallback, solved: PairFallback | None, wanted: pd.Mult
     if not rows.size:
         return mix
     take = torch.as_tensor(rows, dtype=torch.long)
-    width = max(mix.bins.shape[1], solved.bins.shape[1])
-
-    def padded(x: torch.Tensor, fill: float) -> torch.Tensor:
-        return torch.nn.functional.pad(x, (0, width - x.shape[1]), value=fill)
-
-    bins = torch.cat([padded(mix.bins, -1), padded(solved.bins[take].to(mix.bins.dtype), -1)])
-    gains = torch.cat([padded(mix.gains, 0.0), padded(solved.gains[take].to(mix.gains.dtype), 0.0)])
+    bins = _widened([mix.bins, solved.bins[take].to(mix.bins.dtype)], none=-1)
+    gains = _widened([mix.gains, solved.gains[take].to(mix.gains.dtype)])
     return PairFallback(mix.index.append(solved.index[rows]), bins, gains, mix.scores)
 
 
