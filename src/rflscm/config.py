@@ -90,7 +90,8 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
 
 def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
     """Build dataclass ``cls`` from ``data``; unknown keys are a :class:`ConfigError` (one that names a key in
-    ``cls.REMOVED``, a mapping key → (value, note) of removed options, says it was removed)."""
+    ``cls.REMOVED``, a mapping key → (value, note) of removed options, says it was removed).  A class whose checks
+    name their keys from a fixed place (``cls.KEY``, e.g. ``model``) has that place renamed ``prefix`` in its errors."""
     if data is None:
         data = {}
     if not isinstance(data, dict):
@@ -119,7 +120,13 @@ def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
             f"give {', '.join(required)} (valid keys: {', '.join(sorted(fields))})."
         )
     kwargs = {name: _coerce(hints[name], value, f"{prefix}.{name}" if prefix else name) for name, value in data.items()}
-    return cls(**kwargs)
+    home = getattr(cls, "KEY", "")
+    try:
+        return cls(**kwargs)
+    except ConfigError as exc:  # its checks name its keys from where it usually sits (``KEY``); say where it is
+        if not home or not prefix or prefix == home or f"`{home}." not in str(exc):
+            raise
+        raise ConfigError(str(exc).replace(f"`{home}.", f"`{prefix}.", 1)) from None
 
 
 def to_dict(obj: Any) -> Any:

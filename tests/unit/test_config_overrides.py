@@ -127,3 +127,15 @@ def test_settings_a_command_chooses_sit_under_the_users_yaml_and_set(tmp_path: P
     user.write_text("corrections: {wnomp_fallback: {k_max: 4}}\n")
     cfg = RFLSCM.build(model_config("rflscm", str(user), None, [], under)).config
     assert cfg.corrections.wnomp_fallback == WNOMPConfig(k_max=4, tolerance=0.05)  # merged key by key
+
+
+def test_a_bad_setting_inside_the_fallback_is_named_where_it_was_given() -> None:
+    """WNOMP's checks name their keys ``model.…`` (where its settings sit in a WNOMP run); inside RF-LSCM's
+    ``corrections.wnomp_fallback`` the same error names that path, and a WNOMP run's error stays ``model.…``."""
+    from rflscm.models.rflscm import RFLSCM
+    from rflscm.models.wnomp import wnomp_config
+
+    with pytest.raises(ConfigError, match=r"^`corrections\.wnomp_fallback\.k_max` must be >= 1 \(got 0\)\.$"):
+        RFLSCM.build(model_config("rflscm", "quick", None, ["corrections.wnomp_fallback.k_max=0"]))
+    with pytest.raises(ConfigError, match=r"^`model\.k_max` must be >= 1 \(got 0\)\.$"):
+        wnomp_config({"k_max": 0})

@@ -19,7 +19,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 import numpy as np
 import pandas as pd
@@ -38,6 +38,10 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class WNOMPConfig:
     """Settings of the WNOMP baseline (YAML keys = field names)."""
+
+    KEY: ClassVar[str] = "model"
+    """Where these settings usually sit (its errors name ``model.…``; :func:`~rflscm.config.from_dict` renames
+    that prefix where they sit elsewhere, as in ``corrections.wnomp_fallback``)."""
 
     k_max: int = 8
     """Maximum number of atoms (non-zero APS bins) per (cell, grid)."""
