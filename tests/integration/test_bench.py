@@ -257,6 +257,9 @@ def test_b9_time_to_target_tiny(tmp_path: Path, scenario_dir: Path) -> None:
             assert np.isfinite(row["cpu_s"]) and row["eval_s"] > 0
             for bt in BEAM_TYPES:
                 assert all(np.isfinite(row["mae_db"][bt][k]) for k in ("all", "changed"))
+    # the new model's fallback answers with the settings of the WNOMP it is compared with; the old code has no such key
+    assert entry["new"]["overrides"]["corrections"]["wnomp_fallback"] == entry["wnomp"]["config"]
+    assert "corrections" not in entry["old"]["overrides"]
     old_src = Path(entry["old"]["rflscm_file"]).parents[1]
     assert old_src == (baseline / "src").resolve()  # the worker imported the baseline's copy
     assert Path(entry["new"]["rflscm_file"]).parents[1] != old_src
