@@ -302,3 +302,39 @@ def _hash_text(digest: hashlib._Hash, series: pd.Series) -> None:
 
 _TEXT_BLOCK = 1 << 20
 """Rows of a text column joined at once when hashing."""
+
+
+class SensingCache:
+    """A view of ``scenario`` that keeps its sensing matrices on an :class:`AngleGrid` (every other attribute is the
+    scenario's), so that several models predicting the same cells share them: the model and the oracle one cell after
+    the other (``size`` 4), or the candidates of WNOMP's selection (``size`` None: every cell's, about 1 MB a cell on
+    the default grid)."""
+
+    def __init__(self, scenario: Scenario, size: int | None = 4) -> None:
+        self._scenario = scenario
+        self._size = size
+        self._cache: dict[tuple, torch.Tensor] = {}
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._scenario, name)
+
+    def sensing(
+        self,
+        cell_id: int,
+        beam_type: str,
+        directions: AngleGrid | torch.Tensor,
+        round: int = 1,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str | None = None,
+    ) -> torch.Tensor:
+        """:meth:`Scenario.sensing`, computed once per cell, beam type, grid, round, dtype and device."""
+        if not isinstance(directions, AngleGrid):
+            return self._scenario.sensing(cell_id, beam_type, directions, round=round, dtype=dtype, device=device)
+        key = (int(cell_id), beam_type, directions, round, dtype, str(device))
+        if key not in self._cache:
+            if self._size is not None and len(self._cache) >= self._size:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[key] = self._scenario.sensing(
+                cell_id, beam_type, directions, round=round, dtype=dtype, device=device
+            )
+        return self._cache[key]

@@ -68,12 +68,12 @@ import pandas as pd
 import torch
 
 from rflscm.data import BEAM_TYPES
+from rflscm.data.scenario import SensingCache
 from rflscm.errors import ConfigError, DataError
 from rflscm.eval import metrics as M
 from rflscm.eval.cache import APSCache
 from rflscm.eval.oracle import OracleModel
 from rflscm.eval.protocols import AdjustProtocol, Protocol, protocol_from_dict, protocol_to_dict
-from rflscm.geometry import AngleGrid
 from rflscm.models.base import UnsupportedError
 from rflscm.models.source import APSSource, checked_aps, predict_rsrp
 
@@ -260,39 +260,6 @@ def _predict(
     return out
 
 
-class _SensingCache:
-    """A scenario view that keeps the last few sensing matrices on an :class:`AngleGrid`, so that the
-    model and the oracle, predicting one cell after the other, share them."""
-
-    def __init__(self, scenario: Scenario, size: int = 4) -> None:
-        self._scenario = scenario
-        self._size = size
-        self._cache: dict[tuple, torch.Tensor] = {}
-
-    def __getattr__(self, name: str) -> object:
-        return getattr(self._scenario, name)
-
-    def sensing(
-        self,
-        cell_id: int,
-        beam_type: str,
-        directions: AngleGrid | torch.Tensor,
-        round: int = 1,
-        dtype: torch.dtype = torch.float32,
-        device: torch.device | str | None = None,
-    ) -> torch.Tensor:
-        if not isinstance(directions, AngleGrid):
-            return self._scenario.sensing(cell_id, beam_type, directions, round=round, dtype=dtype, device=device)
-        key = (int(cell_id), beam_type, directions, round, dtype, str(device))
-        if key not in self._cache:
-            if len(self._cache) >= self._size:
-                self._cache.pop(next(iter(self._cache)))
-            self._cache[key] = self._scenario.sensing(
-                cell_id, beam_type, directions, round=round, dtype=dtype, device=device
-            )
-        return self._cache[key]
-
-
 def _predict_where_possible(
     model: APSSource, scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, width: int, ask: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, str | None]:
@@ -328,7 +295,7 @@ def _predict_beam_type(
     oracle_pred = None if oracle is None else np.full((len(pairs), width), np.nan)
     why = None
     cells = pairs["cell_id"].to_numpy()
-    view = cast("Scenario", _SensingCache(scenario))  # the scenario, with its sensing matrices kept
+    view = cast("Scenario", SensingCache(scenario, size=4))  # the scenario, with its sensing matrices kept
     for cell in np.unique(cells):  # cell by cell: model and oracle share the sensing matrices
         rows = np.flatnonzero(cells == cell)
         sub = pairs.iloc[rows].reset_index(drop=True)

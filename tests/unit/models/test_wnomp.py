@@ -242,3 +242,21 @@ def test_settings_are_chosen_on_held_aside_round1_beams_only(tiny) -> None:
     best2, table2 = select_wnomp(tiny.with_measurements(scrambled, validate=False), grid, fraction=0.5, seed=0)
     assert best2 == best
     np.testing.assert_allclose(table2["mae_db"], table["mae_db"])
+
+
+def test_the_selection_fits_only_the_pairs_it_scores_and_holds_aside_at_most_max_held(tiny, monkeypatch) -> None:
+    """WNOMP fits each pair alone: fitting only the pairs with a held-aside beam scores every candidate as fitting
+    them all does; at most ``max_held`` beams are held aside, a subset of those picked without the cap."""
+    import rflscm.models.wnomp_select as ws
+
+    grid = AngleGrid(num_el=16, num_az=24, el_min_deg=-60.0, el_step_deg=8.0)
+    best, table = ws.select_wnomp(tiny, grid, fraction=0.5, seed=0)
+    monkeypatch.setattr(ws, "_pairs_of", lambda table, held: table)  # every pair fitted, as before
+    best_all, table_all = ws.select_wnomp(tiny, grid, fraction=0.5, seed=0)
+    assert best == best_all and (table["beams"] == table_all["beams"]).all()
+    np.testing.assert_allclose(
+        table[["mae_ssb_db", "mae_csi_db", "mae_db"]], table_all[["mae_ssb_db", "mae_csi_db", "mae_db"]], atol=1e-6
+    )
+    _, held = ws.hold_aside(tiny.measurements, fraction=1.0, seed=0)
+    _, capped = ws.hold_aside(tiny.measurements, fraction=1.0, seed=0, max_held=3)
+    assert len(held) > 3 and len(capped) == 3 and set(capped) <= set(held) and (np.diff(capped) > 0).all()
