@@ -15,8 +15,7 @@ p = min(1, elapsed / training time) when :func:`fit` is given a time budget (bud
 promise for the whole fit: the training time is the budget less the time kept for the model's pass after
 training (``finish_training``), which the model estimates (``finish_seconds``, measured on one chunk) and which
 may take at most ``train.finish_share`` of what the budget leaves after a caller's later work, but never less than
-its least (the levels and WNOMP's APS of every pair, :attr:`PassCost.least_s`, up to that share of the whole
-budget); training keeps at least ``MIN_TRAIN_SHARE`` of the budget; that pass is then given the time left, to the
+its least (the levels and WNOMP's APS of every pair, :attr:`PassCost.least_s`, past the budget's end if need be); training keeps at least ``MIN_TRAIN_SHARE`` of the budget; that pass is then given the time left, to the
 budget's end.  The learning-rate factor is ``lr_decay ** p``; the model sees the *schedule position*
 p · ``train.steps`` (in units of the nominal schedule's steps; exactly the step in step mode), so ``train.steps``
 is the length of the nominal schedule in both modes.  In step mode everything is a pure function of the step, so a
@@ -154,7 +153,7 @@ def fit(
     if budget_s is not None:
         cost = model.finish_seconds(clock)
         after, kept = budget_split(cost, budget_s, model.train_config.finish_share, after_pairs, after_s, after_fresh)
-        least = least_pass_s(cost, budget_s, model.train_config.finish_share)
+        least = least_pass_s(cost)
         trainer.stop_s = max(budget_s - after - kept, MIN_TRAIN_SHARE * budget_s)
         if after_pairs:  # the caller's renders of the pairs the pass corrects: charged by the pass as it goes
             pairs = max(int(plan.pairs.numel()), 1)
@@ -197,7 +196,7 @@ def budget_split(
     ``after_pairs`` the share the pass will have corrected (estimated from the time the pass is kept: the pairs it
     cannot reach are answered without a render), which depends on ``kept`` in turn: the fraction is the fixed point,
     found by bisection."""
-    least = least_pass_s(cost, budget_s, share)
+    least = least_pass_s(cost)
 
     def split(fraction: float) -> tuple[float, float]:
         after = FINISH_SAFETY * ((after_pairs * fraction + after_fresh) * cost.per_pair_s + after_s)
@@ -214,11 +213,12 @@ def budget_split(
     return split(high)
 
 
-def least_pass_s(cost: PassCost, budget_s: float, share: float) -> float:
-    """The least time [s] a ``budget_s`` fit keeps for its pass after training: ``FINISH_SAFETY`` × the model's least
-    pass, at most ``share`` of the budget (on a network whose every pair's WNOMP solve outlasts that, the fallback
-    covers what fits, as the pass's other steps do)."""
-    return min(FINISH_SAFETY * cost.least_s, share * budget_s)
+def least_pass_s(cost: PassCost) -> float:
+    """The least time [s] a budget's fit keeps for its pass after training: ``FINISH_SAFETY`` × the model's least
+    pass (the levels and WNOMP's APS of every pair it cannot reach), whatever the budget: where that does not fit,
+    the fit runs past the budget's end rather than leave pairs with a barely trained field, which is worse than
+    trivial and which a later evaluation must render (docs/DECISIONS.md, "The demo on a 114-cell city")."""
+    return FINISH_SAFETY * cost.least_s
 
 
 MIN_TRAIN_SHARE = 0.2
