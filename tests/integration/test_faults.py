@@ -183,9 +183,10 @@ def test_sigint_is_not_exit_0_for_any_command(monkeypatch, capsys) -> None:
         time.sleep(1)  # the handler raises before this ends
 
     monkeypatch.setattr(type(cli_module.app), "__call__", lambda self, **kw: interrupted())
+    before = signal.getsignal(signal.SIGINT)  # Python's default; SIG_IGN where a shell started the run in background
     code, err, _ = cli("check", "nowhere", capsys=capsys)
     assert code == 130 and one_line(err).startswith("Interrupted: SIGINT")
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored after main()
+    assert signal.getsignal(signal.SIGINT) is before  # restored after main()
 
 
 # --- outputs never destroy inputs ---------------------------------------------------------------------

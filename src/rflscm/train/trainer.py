@@ -92,6 +92,7 @@ class Trainable(Protocol):
         time_left: Callable[[], float] | None = None,
         clock: Callable[[], float] = ...,
         after_pair_s: float = 0.0,
+        extra_left: Callable[[], float] | None = None,
     ) -> None: ...
 
     def finish_seconds(self, clock: Callable[[], float] = ...) -> PassCost: ...
@@ -150,6 +151,7 @@ def fit(
         trainer.check_budget(state, checkpoint_path)
         trainer.load_state_dict(state)
     time_left, after, least, per_corrected = None, 0.0, 0.0, 0.0
+    charge: dict[str, Any] = {}
     if budget_s is not None:
         cost = model.finish_seconds(clock)
         after, kept = budget_split(cost, budget_s, model.train_config.finish_share, after_pairs, after_s, after_fresh)
@@ -171,10 +173,14 @@ def fit(
     if budget_s is not None:
         saving = SAVE_SAFETY * trainer.save_s if checkpoint_path else 0.0
         # the least pass always runs (WNOMP's APS for the pairs it cannot reach): a budget too small for the data
-        # overruns by it rather than leave pairs with an untrained field
-        end = max(finish0 + budget_s - after - trainer.elapsed_s - saving, finish0 + least)
+        # overruns by it rather than leave pairs with an untrained field, and then corrects no pair beyond its least
+        budget_end = finish0 + budget_s - after - trainer.elapsed_s - saving
+        end = max(budget_end, finish0 + least)
         time_left = lambda: end - clock()  # noqa: E731
-    charge = {"after_pair_s": per_corrected} if per_corrected else {}
+        if end > budget_end:
+            charge["extra_left"] = lambda: budget_end - clock()
+    if per_corrected:
+        charge["after_pair_s"] = per_corrected
     model.finish_training(progress=progress, time_left=time_left, clock=clock, **charge)
     summary["finish_s"] = clock() - finish0
     summary.update(model.run_info.get("corrections", {}))  # how many training pairs the pass corrected

@@ -169,6 +169,22 @@ def test_a_pass_charged_for_the_callers_later_renders_corrects_fewer_pairs() -> 
         assert now[0] + charge * expected <= 1.7
 
 
+def test_a_pass_past_its_budget_corrects_no_pair_beyond_its_least() -> None:
+    """``extra_left`` is the time left for the pairs beyond the least (the levels' pairs and the fallback): a pass
+    that runs past its budget's end to keep its least (``extra_left`` ≤ 0) corrects the levels' pairs only, though its
+    ``time_left`` would fit another chunk; with time to spare there it corrects as without it."""
+    from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL, PAIR_CHUNK
+
+    rsrp, cells, costly, now = timed_problem(200, 2, seed=1)
+    args = (CorrectionsConfig(pair_posterior=False), data(rsrp, cells), 1, np.array([7, 8]), costly, columns)
+    for extra, expected in ((-1.0, 2 * LEVEL_PAIRS_PER_CELL), (1.7, 2 * LEVEL_PAIRS_PER_CELL + PAIR_CHUNK)):
+        now[0] = 0.0
+        cut = fit_corrections(
+            *args, seed=0, time_left=lambda: 1.7 - now[0], clock=lambda: now[0], extra_left=lambda e=extra: e - now[0]
+        )  # fmt: skip
+        assert cut.corrected_pairs() == expected
+
+
 def test_short_of_time_lambdas_pairs_shrink_before_the_levels_pairs(monkeypatch: pytest.MonkeyPatch) -> None:
     """The levels are measured on every cell's full share of pairs while λ's pairs shrink: a level measured on one
     pair per cell was off by 15 dB on CSI-RS in a tile of the 37-site network (DECISIONS)."""

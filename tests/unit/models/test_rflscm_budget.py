@@ -146,13 +146,20 @@ def test_the_pass_keeps_its_least_and_training_its_share_when_the_budget_is_shor
     progress bar that draws) and the pass its least: the fit runs over rather than leave the field one step."""
     from rflscm.train.trainer import MIN_TRAIN_SHARE
 
+    extras: list[float | None] = []  # the time the pass may correct pairs beyond its least (None: all it has)
+
     def run(cost: PassCost, share: float = 0.5, **after: float) -> tuple[dict[str, float], list[float]]:
         clock, seen, left = StepClock(10.0), [], []
         model = timed_model(clock, seen)
         train = dataclasses.replace(model.config.train, finish_share=share)
         model.config = dataclasses.replace(model.config, train=train)
         model.finish_seconds = lambda clock: cost  # type: ignore[method-assign]
-        model.finish_training = lambda progress=False, time_left=None, clock=None: left.append(time_left())  # type: ignore[method-assign]
+
+        def finish(progress=False, time_left=None, clock=None, extra_left=None):  # type: ignore[no-untyped-def]
+            left.append(time_left())
+            extras.append(None if extra_left is None else extra_left())
+
+        model.finish_training = finish  # type: ignore[method-assign]
         return fit(model, scenario, progress=False, budget_s=100.0, clock=clock, **after), left
 
     # 48 s kept for later work; half of the 52 s left (26 s) is less than the least pass, 1.2 × 25 = 30 s: training
@@ -160,17 +167,22 @@ def test_the_pass_keeps_its_least_and_training_its_share_when_the_budget_is_shor
     summary, left = run(PassCost(80.0, 0.5, 25.0), after_s=40.0)
     assert summary["train_budget_s"] == pytest.approx(22.0) and summary["steps"] == 3
     assert left == [pytest.approx(30.0)]
+    # pairs beyond the least only to the budget's end: 100 s less the 48 s kept and the 30 s trained
+    assert extras == [pytest.approx(22.0)]
     # the least is kept beyond the pass's share too: a network whose every pair's fallback outlasts that share
     # (1.2 × 50 s against 0.2 × 100 s) trains 40 s and gives the pass its least, 60 s, rather than leave pairs with
     # a barely trained field
     summary, left = run(PassCost(80.0, 0.5, 50.0), share=0.2)
     assert summary["train_budget_s"] == pytest.approx(40.0) and left == [pytest.approx(60.0)]
+    assert extras[-1] is None  # within the budget: every pair in the time it has
+    summary, left = run(PassCost(80.0, 0.5, 50.0), share=0.2, after_s=40.0)  # and with 48 s kept after it: past it
+    assert left[-1] == pytest.approx(60.0) and extras[-1] == pytest.approx(100.0 - 48.0 - summary["train_budget_s"])
     # the demo's evaluation of 200 pairs without training data (always rendered): 1.2 × 200 × 0.5 = 120 s of a 100 s
     # budget, nothing is left for the fit
     clock, seen, left = StepClock(10.0), [], []
     model = timed_model(clock, seen)
     model.finish_seconds = lambda clock: PassCost(50.0, 0.5, 20.0)  # type: ignore[method-assign]
-    model.finish_training = lambda progress=False, time_left=None, clock=None: left.append(time_left())  # type: ignore[method-assign]
+    model.finish_training = lambda progress=False, time_left=None, clock=None, extra_left=None: left.append(time_left())  # type: ignore[method-assign]
     summary = fit(model, scenario, progress=True, budget_s=100.0, clock=clock, after_fresh=200)
     assert summary["train_budget_s"] == pytest.approx(MIN_TRAIN_SHARE * 100.0) and summary["steps"] == 2
     assert left == [pytest.approx(1.2 * 20.0)]  # the least pass, past the budget's end

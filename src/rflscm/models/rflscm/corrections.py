@@ -261,6 +261,7 @@ def fit_corrections(
     clock: Callable[[], float] = time.perf_counter,
     visible: torch.Tensor | None = None,
     after_pair_s: float = 0.0,
+    extra_left: TimeLeftFn | None = None,
 ) -> PairCorrections:
     """Fit the switched-on corrections of the training ``data`` (``num_ssb`` SSB beams first, ``cell_ids`` of its
     cell indices) from one render of its pairs with reports (``render``, ``columns`` at the final weights;
@@ -270,15 +271,22 @@ def fit_corrections(
     without it every pair with reports is corrected (the result does not depend on ``seed``'s order).
     ``after_pair_s``: what each pair the pass corrects costs the caller later, within the same deadline (the demo's
     evaluation renders a corrected pair, not one answered by the fallback): the time left is charged for the pairs
-    corrected so far and the next chunk's."""
+    corrected so far and the next chunk's.  ``extra_left``: the time left for the pairs corrected beyond the least
+    (the levels' and λ's pairs and the fallback), where ``time_left`` runs past the budget's end to keep that least:
+    a pass over its budget corrects no more pairs than its least needs (each would cost its render twice more)."""
     from tqdm.auto import tqdm
 
     corrected = [0]
     if time_left is not None and after_pair_s > 0:
-        deadline = time_left
+        deadline, extra_deadline = time_left, extra_left
 
         def time_left() -> float:  # the pairs corrected so far, and the next chunk's
             return deadline() - after_pair_s * (corrected[0] + PAIR_CHUNK)
+
+        if extra_deadline is not None:
+
+            def extra_left() -> float:
+                return extra_deadline() - after_pair_s * (corrected[0] + PAIR_CHUNK)
 
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
         return PairCorrections()
@@ -313,7 +321,8 @@ def fit_corrections(
         on = subset if cfg.pair_posterior else first
         left_over = _left_over(fit, rendered, on, later, cell_ids, levels, seed, time_left, clock)
     yielded = 0
-    for chunk in fit.corrected_chunks(rendered, later, levels, fitting, time_left, clock, bar, PAIR_CHUNK * render_s):
+    beyond = extra_left if extra_left is not None else time_left  # the pairs past the least: within the budget only
+    for chunk in fit.corrected_chunks(rendered, later, levels, fitting, beyond, clock, bar, PAIR_CHUNK * render_s):
         done.append(chunk.pairs)
         yielded += chunk.pairs.numel()
         corrected[0] = max(corrected[0], yielded)  # the first pairs were counted when they were rendered

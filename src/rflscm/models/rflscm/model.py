@@ -565,11 +565,13 @@ class RFLSCM(LSCMModel):
         time_left: TimeLeftFn | None = None,
         clock: Callable[[], float] = time.perf_counter,
         after_pair_s: float = 0.0,
+        extra_left: TimeLeftFn | None = None,
     ) -> None:
         """After the last step: fit the pair corrections that predictions and the checkpoint carry, once (one
         render of every training pair; ``progress``: a bar).  With ``time_left`` (seconds left on ``clock``, a budget
         run's) the pass is sized to the time left, each pair it corrects charged ``after_pair_s`` more for the
-        caller's later render of it (:func:`~rflscm.models.rflscm.corrections.fit_corrections`)."""
+        caller's later render of it, and the pairs beyond its least corrected only within ``extra_left`` where that is
+        given (:func:`~rflscm.models.rflscm.corrections.fit_corrections`)."""
         train = self._training()
         assert self.scene is not None
         self.corrections = fit_corrections(
@@ -585,6 +587,7 @@ class RFLSCM(LSCMModel):
             clock,
             visible=torch.as_tensor(self.scene.visible, device=self.device),
             after_pair_s=after_pair_s,
+            extra_left=extra_left,
         )
         if self._silence_dbm is not None:
             reported = train.data.observed.any(1).cpu().numpy()
