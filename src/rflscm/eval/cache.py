@@ -126,8 +126,8 @@ class APSCache(Predicts):
     ) -> np.ndarray | None:
         return self.inner.level_offset_db(cell_ids, beam_type, grid_ids)
 
-    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
-        return rsrp_mix_of(self.inner, cell_ids, grid_ids)  # no render: the wrapped source's stored table
+    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray, beam_type: str) -> RsrpMix | None:
+        return rsrp_mix_of(self.inner, cell_ids, grid_ids, beam_type)  # no render: the wrapped source's stored table
 
     def round1_caps(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray | None:
         caps = getattr(self.inner, "round1_caps", None)
@@ -242,8 +242,9 @@ class ScenarioAPS:
     pairs: str = ""
     """Which pairs :attr:`known` holds, in words (for reports)."""
     mix_aps: list[torch.Tensor] | None = None
-    """Per cell, the source's second APS (:meth:`~rflscm.models.source.APSSource.rsrp_mix`) on the kept bins
-    ``[num_known, num_kept]``, or ``[0, num_kept]`` where none of the cell's pairs has one; None: no cell has one."""
+    """Per cell, the source's second APS of its SSB predictions (:meth:`~rflscm.models.source.APSSource.rsrp_mix`: the
+    search's beams are SSB) on the kept bins ``[num_known, num_kept]``, or ``[0, num_kept]`` where none of the cell's
+    pairs has one; None: no cell has one."""
     mix_weight: list[torch.Tensor] | None = None
     """Per cell, each known pair's weight of :attr:`mix_aps` ``[num_known]`` (``[0]`` where the cell has none)."""
 
@@ -284,7 +285,7 @@ class ScenarioAPS:
                 sel = rows[start : start + chunk]
                 with torch.no_grad():
                     x = checked_aps(source, np.full(len(sel), cell), grid_ids[sel], xyz_all[sel], scenario)
-                    mix = rsrp_mix_of(source, np.full(len(sel), cell), grid_ids[sel])
+                    mix = rsrp_mix_of(source, np.full(len(sel), cell), grid_ids[sel], "ssb")  # the search's beams
                 dense[start : start + len(sel)] = x.detach().float().cpu()
                 if mix is not None:
                     if not len(weight):

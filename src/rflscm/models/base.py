@@ -172,9 +172,9 @@ class LSCMModel(abc.ABC):
         types), or None (the default: nothing)."""
         return None
 
-    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
-        """A second APS averaged in dB into the pairs' predictions (:class:`~rflscm.models.source.RsrpMix`), or
-        None (the default: the model's own APS alone)."""
+    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray, beam_type: str) -> RsrpMix | None:
+        """A second APS averaged in dB into the pairs' ``beam_type`` predictions
+        (:class:`~rflscm.models.source.RsrpMix`), or None (the default: the model's own APS alone)."""
         return None
 
     def round1_caps(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray | None:

@@ -46,10 +46,11 @@ def mixed_db(own_db: torch.Tensor, other_mw: torch.Tensor, weight: torch.Tensor)
     return torch.where(w > 0, (1.0 - w) * own_db + w * other_db, own_db)
 
 
-def rsrp_mix_of(source: object, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
-    """``source.rsrp_mix(cell_ids, grid_ids)`` (:class:`RsrpMix`) where the source has that optional member, else None."""
+def rsrp_mix_of(source: object, cell_ids: np.ndarray, grid_ids: np.ndarray, beam_type: str) -> RsrpMix | None:
+    """``source.rsrp_mix(cell_ids, grid_ids, beam_type)`` (:class:`RsrpMix`) where the source has that optional member,
+    else None."""
     mix = getattr(source, "rsrp_mix", None)
-    return None if mix is None else cast("RsrpMix | None", mix(cell_ids, grid_ids))
+    return None if mix is None else cast("RsrpMix | None", mix(cell_ids, grid_ids, beam_type))
 
 
 @runtime_checkable
@@ -57,8 +58,8 @@ class APSSource(Protocol):
     """Anything that answers the APS of (cell, grid) pairs (a fitted model, the oracle, an APS cache).
 
     Read-only members, so a model's class attributes (``name``, ``supports_unseen_grids``) satisfy them.  One
-    optional member: ``rsrp_mix(cell_ids, grid_ids) -> RsrpMix | None``, a second APS averaged in dB into the
-    pairs' predictions (:func:`rsrp_mix_of`; models have it, returning None unless they mix).
+    optional member: ``rsrp_mix(cell_ids, grid_ids, beam_type) -> RsrpMix | None``, a second APS averaged in dB into
+    the pairs' predictions of that beam type (:func:`rsrp_mix_of`; models have it, returning None unless they mix).
     """
 
     @property
@@ -181,7 +182,7 @@ def predict_rsrp(
                 own = 10.0 * torch.log10((x.to(a.dtype) @ a.T).clamp_min(MIN_POWER_MW).double())
                 if offset is not None:  # the offset belongs to the source's own APS, not to a mixed-in one
                     own = own + torch.as_tensor(offset[sel], dtype=own.dtype, device=own.device)[:, None]
-                mix = rsrp_mix_of(source, cell_ids[sel], grid_ids[sel])
+                mix = rsrp_mix_of(source, cell_ids[sel], grid_ids[sel], beam_type)
                 if mix is not None:
                     own = mixed_db(own, mix.aps.to(a.device, a.dtype) @ a.T, mix.weight.to(a.device))
             out[sel, : a.shape[0]] = own.cpu().numpy()

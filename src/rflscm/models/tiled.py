@@ -154,7 +154,7 @@ class TiledModel(LSCMModel):
                 out[rows], any_offset = np.asarray(offset, np.float64), True
         return out if any_offset else None
 
-    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
+    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray, beam_type: str) -> RsrpMix | None:
         """Each pair's mix from its cell's tile (weight 0 where a tile has none); None when no tile has one."""
         from rflscm.models.source import RsrpMix, rsrp_mix_of
 
@@ -166,7 +166,7 @@ class TiledModel(LSCMModel):
         found = False
         for t in np.unique(owner):
             rows = np.flatnonzero(owner == t)
-            mix = rsrp_mix_of(self.tiles[int(t)], cell_ids[rows], grid_ids[rows])
+            mix = rsrp_mix_of(self.tiles[int(t)], cell_ids[rows], grid_ids[rows], beam_type)
             if mix is not None:
                 at = torch.as_tensor(rows, device=self.device)
                 aps[at] = mix.aps.to(self.device, torch.float32)

@@ -284,7 +284,7 @@ class _Mixed(APSCache):
     def other(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> torch.Tensor:
         return 4.0 * torch.roll(self.aps(cell_ids, grid_ids), 5, dims=1)
 
-    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
+    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray, beam_type: str) -> RsrpMix | None:
         weight = torch.as_tensor(np.asarray(grid_ids) % 2 == 1, dtype=torch.float32) * 0.3
         return RsrpMix(self.other(cell_ids, grid_ids), weight)
 

@@ -652,6 +652,41 @@ def test_posterior_pairs_get_wnomps_aps_of_their_reports_for_the_db_mix(monkeypa
     assert off.mix is None and off.posterior is not None
 
 
+def test_each_beam_type_has_its_own_mix_chosen_on_its_own_held_aside_reports(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The mix is chosen per beam type (``MIX_BEAM_TYPES``): SSB's on its held-aside SSB reports, CSI-RS's on its
+    CSI-RS ones (the atom count with the least error of each, scored on that type alone); ``mix_for`` hands each beam
+    type its own, a checkpoint keeps both, and one written before (a single ``mix``) serves both beam types with it."""
+    from rflscm.models.rflscm import corrections as module
+
+    fitted, _ = fit_atoms(True)
+    ssb, csi = fitted.mix_for("ssb"), fitted.mix_for("csi")
+    assert ssb is fitted.mix and csi is fitted.mix_csi and ssb is not None and csi is not None
+    assert ssb.scores != csi.scores  # each scored on its own reports
+    for mix in (ssb, csi):
+        chosen = min(module.MIX_ATOMS, key=lambda k: (mix.scores[f"k{k}"], k))
+        assert int((mix.bins >= 0).sum(1).max()) <= chosen
+    buffer = io.BytesIO()
+    torch.save(fitted.to_state(), buffer)
+    buffer.seek(0)
+    loaded = PairCorrections.from_state(torch.load(buffer, weights_only=True), num_bins=40)
+    assert loaded.mix_csi is not None and torch.equal(loaded.mix_csi.gains, csi.gains)
+    state = fitted.to_state()
+    del state["mix_csi"]
+    old = PairCorrections.from_state(state, num_bins=40)
+    assert old.mix_csi is None and old.mix_for("csi") is old.mix and old.mix is not None
+    # a beam type whose reports chose no mix keeps its posterior unmixed, though the other's chose one
+    monkeypatch.setattr(module, "MIX_BEAM_TYPES", ("ssb",))
+    ssb_only, _ = fit_atoms(True)
+    assert ssb_only.mix is not None and len(ssb_only.mix.index) > 0
+    none = ssb_only.mix_for("csi")
+    assert none is not None and len(none.index) == 0 and (none.rows(np.array([7]), np.array([0])) < 0).all()
+    buffer = io.BytesIO()
+    torch.save(ssb_only.to_state(), buffer)
+    buffer.seek(0)
+    again = PairCorrections.from_state(torch.load(buffer, weights_only=True), num_bins=40).mix_for("csi")
+    assert again is not None and len(again.index) == 0
+
+
 def test_the_mix_weight_follows_which_of_the_two_predicts_held_aside_reports_better() -> None:
     """A dB average's error is the same average of the two errors: with WNOMP's held-aside errors zero the largest
     weight wins, with them far larger than the posterior's none does (the choice reads the errors, nothing else)."""

@@ -97,17 +97,21 @@ def test_level_offsets_come_from_each_tile_and_none_when_no_tile_has_one() -> No
 class Mixing(Fake):
     """A tile that mixes a second APS (its own, doubled) into its even grids' predictions with weight 0.25."""
 
-    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
-        weight = torch.as_tensor(np.asarray(grid_ids) % 20 == 0, dtype=torch.float32) * 0.25
+    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray, beam_type: str) -> RsrpMix | None:
+        weight = torch.as_tensor(np.asarray(grid_ids) % 20 == 0, dtype=torch.float32) * (
+            0.25 if beam_type == "ssb" else 0.5
+        )
         return RsrpMix(2.0 * self.aps(cell_ids, grid_ids), weight)
 
 
 def test_the_db_mix_comes_from_each_tile_and_none_when_no_tile_has_one() -> None:
-    assert tiled(Fake(1.0), Fake(2.0)).rsrp_mix(np.array([5, 6]), np.array([10, 20])) is None
+    assert tiled(Fake(1.0), Fake(2.0)).rsrp_mix(np.array([5, 6]), np.array([10, 20]), "ssb") is None
     cells, grids = np.array([6, 5, 7, 5]), np.array([20, 20, 30, 10])
-    mix = tiled(Mixing(1.0), Fake(2.0)).rsrp_mix(cells, grids)
+    mix = tiled(Mixing(1.0), Fake(2.0)).rsrp_mix(cells, grids, "ssb")
     assert mix is not None
     assert mix.weight.tolist() == [0.0, 0.25, 0.0, 0.0]  # cell 6 is tile b's (no mix); grid 20 of tile a mixes
+    csi = tiled(Mixing(1.0), Fake(2.0)).rsrp_mix(cells, grids, "csi")
+    assert csi is not None and csi.weight.tolist() == [0.0, 0.5, 0.0, 0.0]  # each beam type's own weight
     assert mix.aps[1, 0] == 2.0 and mix.aps[1, 1] == 10.0 and float(mix.aps[0].abs().sum()) == 0.0
 
 

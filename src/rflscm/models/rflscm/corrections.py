@@ -158,11 +158,19 @@ class PairCorrections:
     """At a grid without an anchor, the weight of the model's APS at the cell's nearest anchored grid in the
     prediction (``corrections.unseen_blend_grids``, :func:`choose_blend`); 0: the grid's own APS alone."""
     mix: PairFallback | None = None
-    """WNOMP's APS of posterior pairs' reports, averaged in dB into their predictions with each row's weight (its
-    group's, chosen on held-aside reports: :func:`_mix_plan`; the model's ``rsrp_mix``), or None."""
+    """WNOMP's APS of posterior pairs' reports, averaged in dB into their SSB predictions (and their CSI-RS ones where
+    :attr:`mix_csi` is None) with each row's weight (its group's, chosen on held-aside reports: :func:`_mix_plan`; the
+    model's ``rsrp_mix``), or None."""
     censor: RoundOneCensor | None = None
     """The pairs round 1 was silent about at the grids it visited, capped at its threshold (the model's
     ``round1_caps``), or None (a reporting rule whose silence bound depends on interference: ``sinr``)."""
+    mix_csi: PairFallback | None = None
+    """The CSI-RS predictions' own dB mix (WNOMP's atoms and weights chosen on CSI-RS held-aside reports; no pair where
+    they chose none), or None: :attr:`mix` serves both beam types (checkpoints written before the mix per beam type)."""
+
+    def mix_for(self, beam_type: str) -> PairFallback | None:
+        """The dB mix of ``beam_type``'s predictions (:attr:`mix_csi` for CSI-RS where there is one, else :attr:`mix`)."""
+        return self.mix_csi if beam_type == "csi" and self.mix_csi is not None else self.mix
 
     def apply(
         self, aps: torch.Tensor, cell_index: np.ndarray, cell_ids: np.ndarray, grid_ids: np.ndarray
@@ -214,6 +222,7 @@ class PairCorrections:
             "unseen_weight": torch.tensor(float(self.unseen_weight), dtype=torch.float64),
             "mix": self.mix.to_state() if self.mix is not None else None,
             "censor": self.censor.to_state() if self.censor is not None else None,
+            "mix_csi": self.mix_csi.to_state() if self.mix_csi is not None else None,
         }
 
     @classmethod
@@ -234,7 +243,8 @@ class PairCorrections:
         if not 0.0 <= unseen_weight <= 1.0:
             raise CheckpointError("the checkpoint's pair corrections are damaged (the unseen-grid blend weight).")
         mix = PairFallback.from_state(state.get("mix"), num_bins, "dB mix of WNOMP's APS")  # absent before it: none
-        if mix is not None and mix.weight is None:
+        mix_csi = PairFallback.from_state(state.get("mix_csi"), num_bins, "CSI-RS dB mix of WNOMP's APS")
+        if any(m is not None and m.weight is None for m in (mix, mix_csi)):
             raise CheckpointError("the checkpoint's pair corrections are damaged (the dB mix has no weights).")
         return cls(
             torch.as_tensor(levels, dtype=torch.float32, device=device) if levels is not None else None,
@@ -244,6 +254,7 @@ class PairCorrections:
             unseen_weight,
             mix,
             RoundOneCensor.from_state(state.get("censor")),
+            mix_csi,
         )
 
 
@@ -365,22 +376,35 @@ def fit_corrections(
     base = _widened(with_base) if any(b is not None for b in bases) else None
     lam, scores = plan.summary()
     posterior = PairPosterior(index, _widened(bins_of), gain_db, lam, scores, base, plan.atom_scores, plan.groups)
-    mix = None
-    with_mix = torch.cat(mixed).sort().values if mixed else torch.zeros(0, dtype=torch.long)
-    if cfg.wnomp_atoms and visible is not None and with_mix.numel():
-        # no render: WNOMP's solve of the posterior pairs' own reports (~0.3 ms a pair), sized to the time left; its
-        # atoms and each group's weight in the dB mix chosen on the λ pairs' held-aside reports
-        solver, weights, mix_scores = _mix_plan(fit, rendered, rendered.rows_of(subset.unique()), levels, held, plan)
-        weight = torch.tensor(weights, dtype=torch.float32)[group_of(data.observed[with_mix].sum(1), plan.edges).cpu()]
-        with_mix = with_mix[(weight > 0).to(with_mix.device)]
-        if with_mix.numel():
+    mixes: dict[str, PairFallback | None] = {bt: None for bt in MIX_BEAM_TYPES}
+    candidates = torch.cat(mixed).sort().values if mixed else torch.zeros(0, dtype=torch.long)
+    if cfg.wnomp_atoms and visible is not None and candidates.numel():
+        # no render: WNOMP's solve of the posterior pairs' own reports (~0.3 ms a pair), sized to the time left; per
+        # beam type its atoms and each group's weight in the dB mix chosen on the λ pairs' held-aside reports
+        plans = _mix_plan(fit, rendered, rendered.rows_of(subset.unique()), levels, held, plan)
+        groups = group_of(data.observed[candidates].sum(1), plan.edges).cpu()
+        for bt, (solver, weights, mix_scores) in plans.items():
+            weight = torch.tensor(weights, dtype=torch.float32)[groups]
+            with_mix = candidates[(weight > 0).to(candidates.device)]
+            if not with_mix.numel():
+                continue
             mix = fit.fallback(with_mix, cell_ids, levels, mix_scores, time_left, clock, solver)
             mixed_index = pd.MultiIndex.from_arrays(
                 [np.asarray(cell_ids, np.int64)[data.cell_index[with_mix].cpu().numpy()], data.grid_ids[with_mix.cpu()]]
             )
             mix = _with_solved(mix, solved, mixed_index)
             mix.weight = weight[weight > 0][torch.as_tensor(mixed_index.get_indexer(mix.index), dtype=torch.long)]
-    return PairCorrections(levels, anchor_series, posterior, left_over, mix=mix)
+            mixes[bt] = mix
+    mix_csi = mixes.get("csi")
+    if mix_csi is None and mixes.get("ssb") is not None:  # CSI-RS chose no mix: not SSB's either
+        mix_csi = _no_mix()
+    return PairCorrections(levels, anchor_series, posterior, left_over, mix=mixes.get("ssb"), mix_csi=mix_csi)
+
+
+def _no_mix() -> PairFallback:
+    """A dB mix of no pair (a beam type whose held-aside reports chose none while the other's chose one)."""
+    empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
+    return PairFallback(empty, torch.zeros(0, 1, dtype=torch.long), torch.zeros(0, 1), {}, torch.zeros(0))
 
 
 UNSEEN_WEIGHT = 0.5
@@ -1042,19 +1066,25 @@ w × WNOMP's fit of the pair's own reports (:class:`~rflscm.models.source.RsrpMi
 not a candidate (it would drop the field wherever a group chose a posterior)."""
 
 
+MIX_BEAM_TYPES = ("ssb", "csi")
+"""The dB mix is chosen per beam type: on the 800-grid city's held-aside reports WNOMP's 8 atoms predicted SSB best
+(2.68 dB against 2.86 with 2) and its 2 atoms CSI-RS (2.68 against 3.62 with 8); a choice pooled over both, 3 CSI-RS
+reports to 1 SSB, took CSI-RS's for both (docs/DECISIONS.md, "The dB mix per beam type")."""
+
+
 def _mix_plan(
     fit: _Fit, rendered: _Rendered, rows: torch.Tensor, levels: torch.Tensor | None, held: torch.Tensor, plan: _Plan
-) -> tuple[WNOMPConfig, tuple[float, ...], dict[str, float]]:
-    """The dB mix of the posterior pairs, chosen on the ``held``-aside reports of the λ pairs ``rows`` of ``rendered``
-    under the posterior's ``plan``: WNOMP's atoms (the :data:`MIX_ATOMS` count whose fit without the held-aside
-    reports predicts them best) and, per group of ``plan``, the :data:`MIX_WEIGHTS` weight whose dB average of the
-    posterior's and WNOMP's held-aside predictions errs least (a dB average's error is the same average of the two
-    errors; each report's error counts at most ``CLIP_DB``; the smaller on a tie; 0 in a group that keeps the
-    field).  Returns the settings, the weight per group and the scores (``k2``…: WNOMP alone; ``w0``…: each
-    group's weight)."""
+) -> dict[str, tuple[WNOMPConfig, tuple[float, ...], dict[str, float]]]:
+    """The dB mix of the posterior pairs per beam type (:data:`MIX_BEAM_TYPES`), chosen on that type's ``held``-aside
+    reports of the λ pairs ``rows`` of ``rendered`` under the posterior's ``plan``: WNOMP's atoms (the
+    :data:`MIX_ATOMS` count whose fit without the held-aside reports predicts them best) and, per group of ``plan``,
+    the :data:`MIX_WEIGHTS` weight whose dB average of the posterior's and WNOMP's held-aside predictions errs least (a
+    dB average's error is the same average of the two errors; each report's error counts at most ``CLIP_DB``; the
+    smaller on a tie; 0 in a group that keeps the field or holds none of the type's reports).  Returns per beam type
+    the settings, the weight per group and the scores (``k2``…: WNOMP alone; ``w0``…: each group's weight)."""
     d = fit.data
     fit.plan = plan
-    post, group_of_report = [], []
+    post, group_of_report, csi_report = [], [], []
     wnomp: dict[int, list[torch.Tensor]] = {k: [] for k in MIX_ATOMS}
     for chunk in fit.chunks(rendered, rows, levels, held=held):
         assert chunk.lam is not None
@@ -1068,6 +1098,8 @@ def _mix_plan(
         post.append((chunk.resid - predicted_change_db(*chunk.fit_inputs(), v))[score].cpu())
         group = group_of(d.observed[chunk.pairs].sum(1), plan.edges)
         group_of_report.append(group[:, None].expand_as(score)[score].cpu())
+        column = torch.arange(score.shape[1], device=score.device)[None, :].expand_as(score)
+        csi_report.append((column[score] >= fit.num_ssb).cpu())
         cells = d.cell_index[chunk.pairs]
         for k in MIX_ATOMS:
             bins, gains = fit.solve(chunk.pairs, chunk.mask & ~held_here, None, dataclasses.replace(SOLVER, k_max=k))
@@ -1075,24 +1107,30 @@ def _mix_plan(
             wnomp[k].append((10.0 * torch.log10(d.rsrp[chunk.pairs] / pred))[score].cpu())
     num_groups = len(plan.lam)
     if not post:
-        return SOLVER, (0.0,) * num_groups, {}
-    e_post, groups = torch.cat(post).double(), torch.cat(group_of_report)
-    alone = {k: float(torch.cat(v).double().abs().clamp_max(CLIP_DB).mean()) for k, v in wnomp.items()}
-    k_best = min(MIX_ATOMS, key=lambda k: (alone[k], k))
-    e_wnomp = torch.cat(wnomp[k_best]).double()
-    scores = {f"k{k}": alone[k] for k in MIX_ATOMS}
-    weights = []
-    for g in range(num_groups):
-        mine = groups == g
-        if not bool(mine.any()):
-            weights.append(0.0)
+        return {bt: (SOLVER, (0.0,) * num_groups, {}) for bt in MIX_BEAM_TYPES}
+    e_post, groups, is_csi = torch.cat(post).double(), torch.cat(group_of_report), torch.cat(csi_report)
+    e_alone = {k: torch.cat(v).double() for k, v in wnomp.items()}
+    out: dict[str, tuple[WNOMPConfig, tuple[float, ...], dict[str, float]]] = {}
+    for bt in MIX_BEAM_TYPES:
+        mine_bt = is_csi if bt == "csi" else ~is_csi
+        if not bool(mine_bt.any()):
+            out[bt] = (SOLVER, (0.0,) * num_groups, {})
             continue
-        mix_err = {
-            w: float(((1 - w) * e_post[mine] + w * e_wnomp[mine]).abs().clamp_max(CLIP_DB).mean()) for w in MIX_WEIGHTS
-        }
-        weights.append(min(MIX_WEIGHTS, key=lambda w: (mix_err[w], w)))
-        scores[f"w{g}"] = weights[-1]
-    return dataclasses.replace(SOLVER, k_max=k_best), tuple(weights), scores
+        alone = {k: float(e[mine_bt].abs().clamp_max(CLIP_DB).mean()) for k, e in e_alone.items()}
+        k_best = min(MIX_ATOMS, key=lambda k: (alone[k], k))
+        scores: dict[str, float] = {f"k{k}": alone[k] for k in MIX_ATOMS}
+        weights = []
+        for g in range(num_groups):
+            mine = mine_bt & (groups == g)
+            if not bool(mine.any()):
+                weights.append(0.0)
+                continue
+            e_p, e_w = e_post[mine], e_alone[k_best][mine]
+            mix_err = {w: float(((1 - w) * e_p + w * e_w).abs().clamp_max(CLIP_DB).mean()) for w in MIX_WEIGHTS}
+            weights.append(min(MIX_WEIGHTS, key=lambda w: (mix_err[w], w)))
+            scores[f"w{g}"] = weights[-1]
+        out[bt] = (dataclasses.replace(SOLVER, k_max=k_best), tuple(weights), scores)
+    return out
 
 
 def _widened(parts: list[torch.Tensor], none: int | None = None) -> torch.Tensor:

@@ -521,11 +521,11 @@ class RFLSCM(LSCMModel):
             out[rows] = mine[cKDTree(self.scene.grid_positions(mine)).query(xyz[rows], k=1)[1]]
         return out
 
-    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> RsrpMix | None:
-        """WNOMP's APS of the posterior pairs' own reports, averaged in dB into their predictions with each pair's
-        weight (its group's, chosen on held-aside reports; :class:`~rflscm.models.source.RsrpMix`); None where no
-        pair asked has one."""
-        mix = self.corrections.mix
+    def rsrp_mix(self, cell_ids: np.ndarray, grid_ids: np.ndarray, beam_type: str) -> RsrpMix | None:
+        """WNOMP's APS of the posterior pairs' own reports, averaged in dB into their ``beam_type`` predictions with
+        each pair's weight (its group's, chosen per beam type on held-aside reports;
+        :class:`~rflscm.models.source.RsrpMix`); None where no pair asked has one."""
+        mix = self.corrections.mix_for(beam_type)
         if mix is None or mix.weight is None or self.scene is None:
             return None
         rows = mix.rows(cell_ids, grid_ids)
