@@ -1,8 +1,8 @@
 """RF-LSCM's posterior pairs against a WNOMP checkpoint, per beam type: what a dB mix with that WNOMP would score (issue 28).
 
 RF-LSCM's posterior pairs are predicted as a dB average of the posterior's and WNOMP's APS of the pair's own reports
-(``corrections.mix``: WNOMP's atom count and each report-count group's weight chosen on held-aside round-1 reports,
-SSB and CSI-RS pooled).  This scores, on the round-2 reported beams of those pairs, per beam type and all / changed
+(``corrections.mix`` and ``mix_csi``: WNOMP's atom count and each report-count group's weight chosen on held-aside
+round-1 reports, per beam type since issue 28's last change; pooled over both before).  This scores, on the round-2 reported beams of those pairs, per beam type and all / changed
 cells: RF-LSCM as it is (``cur``), the given WNOMP checkpoint alone (``wn``), and (1 − w) × the posterior alone (the
 mix switched off) + w × that WNOMP, in dB, for w = 0, 0.25, 0.5, 0.75, 1.  It reads round 2 to *measure* what a
 choice would give; nothing here is a choice a model could make.
@@ -41,7 +41,7 @@ def main(scenario_path: str, rflscm_path: str, wnomp_path: str) -> None:
     for tile, bare in zip(getattr(rf, "tiles", [rf]), getattr(alone, "tiles", [alone]), strict=True):
         if tile.corrections.posterior is not None:
             posterior.update((int(c), int(g)) for c, g in tile.corrections.posterior.index)
-        bare.corrections.mix = None  # the posterior alone
+        bare.corrections.mix = bare.corrections.mix_csi = None  # the posterior alone
     both = scen.cells[2].merge(scen.cells[1], on="cell_id", suffixes=("", "_1"))
     changed = set(both.query(CHANGED)["cell_id"].astype(int))
     meas = scen.measurements
