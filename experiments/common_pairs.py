@@ -52,7 +52,9 @@ def main(scenario_path: str, rflscm_path: str, wnomp_path: str) -> None:
         pairs = r[["cell_id", "grid_id"]].drop_duplicates().reset_index(drop=True)
         at = pd.MultiIndex.from_frame(pairs).get_indexer(pd.MultiIndex.from_frame(r[["cell_id", "grid_id"]]))
         beam, true = r["beam_id"].to_numpy(), r["rsrp_dbm"].to_numpy()
-        err = {name: np.abs(true - predict_rsrp(m, scen, 2, bt, pairs)[at, beam]) for name, m in (("rf", rf), ("wn", wn))}
+        err = {
+            name: np.abs(true - predict_rsrp(m, scen, 2, bt, pairs)[at, beam]) for name, m in (("rf", rf), ("wn", wn))
+        }
         cat = np.array([category.get((int(c), int(g)), "none") for c, g in zip(r["cell_id"], r["grid_id"])])
         is_changed = r["cell_id"].isin(changed).to_numpy()
         for cells, sel in (("all", np.ones(len(r), bool)), ("changed", is_changed)):
@@ -60,7 +62,9 @@ def main(scenario_path: str, rflscm_path: str, wnomp_path: str) -> None:
                 ok = sel & (True if name == "all" else cat == name) & np.isfinite(err["rf"]) & np.isfinite(err["wn"])
                 if ok.any():
                     a, b = err["rf"][ok].mean(), err["wn"][ok].mean()
-                    print(f"{bt} {cells:8s} {name:10s} reports {int(ok.sum()):8d}  RF-LSCM {a:.3f}  WNOMP {b:.3f}  {a - b:+.3f}")
+                    print(
+                        f"{bt} {cells:8s} {name:10s} reports {int(ok.sum()):8d}  RF-LSCM {a:.3f}  WNOMP {b:.3f}  {a - b:+.3f}"
+                    )
 
 
 if __name__ == "__main__":

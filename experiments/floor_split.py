@@ -57,15 +57,24 @@ def main(checkpoint: str, scenario: str) -> None:
         both = np.isfinite(res.measured) & np.isfinite(res.model) & np.isfinite(res.oracle)
         for which, rows in (("all", np.ones(len(res.pairs), bool)), ("changed", res.changed)):
             ok = both & rows[:, None]
-            out = {name: _split(pred - res.measured, ok) for name, pred in (("model", res.model), ("oracle", res.oracle))}
+            out = {
+                name: _split(pred - res.measured, ok) for name, pred in (("model", res.model), ("oracle", res.oracle))
+            }
             out["beams"] = int(ok.sum())
             print("SPLIT", bt, which, json.dumps(out), flush=True)
         cells = res.pairs["cell_id"].to_numpy()
         for cell in np.unique(cells[res.changed]):
             ok = both & (cells == cell)[:, None]
             err_m, err_o = (res.model - res.measured)[ok], (res.oracle - res.measured)[ok]
-            row = {"beams": int(ok.sum()), "model_bias": round(float(err_m.mean()), 2), "oracle_bias": round(float(err_o.mean()), 2)}
-            row |= {"model_mae": round(float(np.abs(err_m).mean()), 2), "oracle_mae": round(float(np.abs(err_o).mean()), 2)}
+            row = {
+                "beams": int(ok.sum()),
+                "model_bias": round(float(err_m.mean()), 2),
+                "oracle_bias": round(float(err_o.mean()), 2),
+            }
+            row |= {
+                "model_mae": round(float(np.abs(err_m).mean()), 2),
+                "oracle_mae": round(float(np.abs(err_o).mean()), 2),
+            }
             print("CELL", bt, int(cell), json.dumps(row), flush=True)
         width = res.measured.shape[1]
         wide = first[first["beam_type"] == bt].pivot_table(
@@ -76,8 +85,8 @@ def main(checkpoint: str, scenario: str) -> None:
         for which, rows in (("unchanged", ~res.changed), ("changed", res.changed)):
             ok = both & np.isfinite(rep) & rows[:, None]
 
-            def mae(pred: np.ndarray, ok: np.ndarray = ok) -> float:
-                return round(float(np.abs(pred - res.measured)[ok].mean()), 3)
+            def mae(pred: np.ndarray, ok: np.ndarray = ok, measured: np.ndarray = res.measured) -> float:
+                return round(float(np.abs(pred - measured)[ok].mean()), 3)
 
             out = {
                 "beams": int(ok.sum()),
