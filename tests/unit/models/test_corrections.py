@@ -687,6 +687,32 @@ def test_each_beam_type_has_its_own_mix_chosen_on_its_own_held_aside_reports(mon
     assert again is not None and len(again.index) == 0
 
 
+def test_beam_types_that_choose_the_same_atoms_share_one_solve_and_keep_their_own_weights(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With one atom count to choose from, both beam types' mixes come from a single WNOMP solve of their pairs, each
+    restricted to its own pairs, with its own weights and scores (not one shared object)."""
+    from rflscm.models.rflscm import corrections as module
+
+    calls: list[int] = []
+    fallback = module._Fit.fallback
+
+    def spy(self, pairs, *args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append(int(pairs.numel()))
+        return fallback(self, pairs, *args, **kwargs)
+
+    monkeypatch.setattr(module, "MIX_ATOMS", (4,))
+    monkeypatch.setattr(module._Fit, "fallback", spy)
+    fitted, _ = fit_atoms(True)
+    ssb, csi = fitted.mix_for("ssb"), fitted.mix_for("csi")
+    assert ssb is not None and csi is not None and len(ssb.index) and len(csi.index)
+    assert len(calls) == 1 and calls[0] == len(set(ssb.index) | set(csi.index))  # no left-over pairs: no budget
+    assert ssb is not csi and ssb.weight is not csi.weight and ssb.scores is not csi.scores
+    common = sorted(set(ssb.index) & set(csi.index))
+    at_s, at_c = ssb.index.get_indexer(common), csi.index.get_indexer(common)
+    assert torch.equal(ssb.bins[at_s], csi.bins[at_c]) and torch.equal(ssb.gains[at_s], csi.gains[at_c])
+
+
 def test_the_mix_weight_follows_which_of_the_two_predicts_held_aside_reports_better() -> None:
     """A dB average's error is the same average of the two errors: with WNOMP's held-aside errors zero the largest
     weight wins, with them far larger than the posterior's none does (the choice reads the errors, nothing else)."""

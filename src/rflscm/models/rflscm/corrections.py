@@ -383,18 +383,26 @@ def fit_corrections(
         # beam type its atoms and each group's weight in the dB mix chosen on the λ pairs' held-aside reports
         plans = _mix_plan(fit, rendered, rendered.rows_of(subset.unique()), levels, held, plan)
         groups = group_of(data.observed[candidates].sum(1), plan.edges).cpu()
-        for bt, (solver, weights, mix_scores) in plans.items():
-            weight = torch.tensor(weights, dtype=torch.float32)[groups]
+        weights = {bt: torch.tensor(w, dtype=torch.float32)[groups] for bt, (_, w, _) in plans.items()}
+        solves: dict[WNOMPConfig, PairFallback] = {}  # one solve per setting: the beam types often choose the same
+        for solver in dict.fromkeys(s for s, _, _ in plans.values()):
+            wanted = torch.zeros(candidates.numel(), dtype=torch.bool)
+            for bt, (s, _, _) in plans.items():
+                wanted |= (weights[bt] > 0) if s == solver else torch.zeros_like(wanted)
+            if bool(wanted.any()):
+                pairs_ = candidates[wanted.to(candidates.device)]
+                solves[solver] = fit.fallback(pairs_, cell_ids, levels, {}, time_left, clock, solver)
+        for bt, (solver, _, mix_scores) in plans.items():
+            weight = weights[bt]
             with_mix = candidates[(weight > 0).to(candidates.device)]
             if not with_mix.numel():
                 continue
-            mix = fit.fallback(with_mix, cell_ids, levels, mix_scores, time_left, clock, solver)
             mixed_index = pd.MultiIndex.from_arrays(
                 [np.asarray(cell_ids, np.int64)[data.cell_index[with_mix].cpu().numpy()], data.grid_ids[with_mix.cpu()]]
             )
-            mix = _with_solved(mix, solved, mixed_index)
-            mix.weight = weight[weight > 0][torch.as_tensor(mixed_index.get_indexer(mix.index), dtype=torch.long)]
-            mixes[bt] = mix
+            mix = _with_solved(solves[solver].only(mixed_index), solved, mixed_index)
+            rows = torch.as_tensor(mixed_index.get_indexer(mix.index), dtype=torch.long)
+            mixes[bt] = dataclasses.replace(mix, scores=mix_scores, weight=weight[weight > 0][rows])  # not shared
     mix_csi = mixes.get("csi")
     if mix_csi is None and mixes.get("ssb") is not None:  # CSI-RS chose no mix: not SSB's either
         mix_csi = _no_mix()

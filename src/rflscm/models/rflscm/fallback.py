@@ -142,6 +142,10 @@ class PairFallback:
         weight = None if self.weight is None else self.weight[rows]
         return PairFallback(self.index[keep], self.bins[rows], self.gains[rows], self.scores, weight)
 
+    def only(self, index: pd.MultiIndex) -> PairFallback:
+        """The same restricted to the pairs of ``index`` it holds (in its own order)."""
+        return self.without(self.index[~self.index.isin(index)])
+
     def to_state(self) -> dict[str, object]:
         return {
             "cell_id": torch.as_tensor(self.index.get_level_values(0).to_numpy(np.int64, copy=True)),
