@@ -169,6 +169,19 @@ def test_a_pass_charged_for_the_callers_later_renders_corrects_fewer_pairs() -> 
         assert now[0] + charge * expected <= 1.7
 
 
+def test_without_a_fallback_the_pass_is_charged_for_every_pair_the_caller_will_render() -> None:
+    """Where no WNOMP fallback answers the pairs the pass leaves (here: none, no visible bins), the caller renders
+    every pair with reports, corrected or not: the pass is charged for all of them, so its time plus those renders
+    stays within the deadline (charged only for the pairs it corrected, 400 pairs at 4 ms overran it by 0.7 s)."""
+    from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL
+
+    rsrp, cells, costly, now = timed_problem(400, 2, seed=1)
+    args = (CorrectionsConfig(pair_posterior=False), data(rsrp, cells), 1, np.array([7, 8]), costly, columns)
+    cut = fit_corrections(*args, seed=0, time_left=lambda: 2.5 - now[0], clock=lambda: now[0], after_pair_s=0.004)
+    assert cut.fallback is None and cut.corrected_pairs() >= 2 * LEVEL_PAIRS_PER_CELL
+    assert now[0] + 0.004 * 400 <= 2.5
+
+
 def test_a_pass_past_its_budget_corrects_no_pair_beyond_its_least() -> None:
     """``extra_left`` is the time left for the pairs beyond the least (the levels' pairs and the fallback): a pass
     that runs past its budget's end to keep its least (``extra_left`` ≤ 0) corrects the levels' pairs only, though its

@@ -282,22 +282,24 @@ def fit_corrections(
     without it every pair with reports is corrected (the result does not depend on ``seed``'s order).
     ``after_pair_s``: what each pair the pass corrects costs the caller later, within the same deadline (the demo's
     evaluation renders a corrected pair, not one answered by the fallback): the time left is charged for the pairs
-    corrected so far and the next chunk's.  ``extra_left``: the time left for the pairs corrected beyond the least
+    corrected so far and the next chunk's, or for every pair where no fallback answers the pairs left (the field's
+    level won the held-aside choice, or the fallback is off): the caller renders them all then.  ``extra_left``: the time left for the pairs corrected beyond the least
     (the levels' and λ's pairs and the fallback), where ``time_left`` runs past the budget's end to keep that least:
     a pass over its budget corrects no more pairs than its least needs (each would cost its render twice more)."""
     from tqdm.auto import tqdm
 
     corrected = [0]
+    charged = [0]  # pairs charged whatever the pass does: every pair, once no fallback answers the pairs left
     if time_left is not None and after_pair_s > 0:
         deadline, extra_deadline = time_left, extra_left
 
         def time_left() -> float:  # the pairs corrected so far, and the next chunk's
-            return deadline() - after_pair_s * (corrected[0] + PAIR_CHUNK)
+            return deadline() - after_pair_s * max(corrected[0] + PAIR_CHUNK, charged[0])
 
         if extra_deadline is not None:
 
             def extra_left() -> float:
-                return extra_deadline() - after_pair_s * (corrected[0] + PAIR_CHUNK)
+                return extra_deadline() - after_pair_s * max(corrected[0] + PAIR_CHUNK, charged[0])
 
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
         return PairCorrections()
@@ -331,6 +333,8 @@ def fit_corrections(
         # solved now for every later pair (no render: ~0.3 ms a pair), dropped below for the pairs the pass reaches
         on = subset if cfg.pair_posterior else first
         left_over = _left_over(fit, rendered, on, later, cell_ids, levels, seed, time_left, clock)
+    if left_over is None or not len(left_over.index):
+        charged[0] = pairs.numel()  # no fallback answers the pairs left: the caller renders every pair
     yielded = 0
     beyond = extra_left if extra_left is not None else time_left  # the pairs past the least: within the budget only
     for chunk in fit.corrected_chunks(rendered, later, levels, fitting, beyond, clock, bar, PAIR_CHUNK * render_s):
