@@ -13,10 +13,11 @@ The schedule (learning-rate decay, and through the model HiTAM's warm-up and ram
 upsampling) follows a *progress* fraction p ∈ [0, 1]: p = step / ``train.steps`` (step mode), or
 p = min(1, elapsed / training time) when :func:`fit` is given a time budget (budget mode).  A budget is a
 promise for the whole fit: the training time is the budget less the time kept for the model's pass after
-training (``finish_training``), which the model estimates (``finish_seconds``, measured on one chunk) and which
-may take at most ``train.finish_share`` of what the budget leaves after a caller's later work, but never less than
-its least (the levels and WNOMP's APS of every pair, :attr:`PassCost.least_s`, past the budget's end if need be); training keeps at least ``MIN_TRAIN_SHARE`` of the budget; that pass is then given the time left, to the
-budget's end.  The learning-rate factor is ``lr_decay ** p``; the model sees the *schedule position*
+training (``finish_training``), which the model estimates (``finish_seconds``, measured on two chunks, before the
+first step and again halfway, ``REPLAN_AT``) and which may take at most ``train.finish_share`` of what the budget
+leaves after a caller's later work, but never less than its least (the levels and WNOMP's APS of every pair,
+:attr:`PassCost.least_s`, past the budget's end if need be); training keeps at least ``MIN_TRAIN_SHARE`` of the
+budget; that pass is then given the time left, to the budget's end.  The learning-rate factor is ``lr_decay ** p``; the model sees the *schedule position*
 p · ``train.steps`` (in units of the nominal schedule's steps; exactly the step in step mode), so ``train.steps``
 is the length of the nominal schedule in both modes.  In step mode everything is a pure function of the step, so a
 checkpoint holding parameters, optimizer state, step and generator state resumes *exactly*; a budget
@@ -28,6 +29,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
@@ -129,9 +131,11 @@ def fit(
     fraction of that share instead of the step count (``train.steps`` is then only the length of the nominal
     schedule), and the pass after training gets the time left.  A caller with work of its own after the fit inside
     the same budget (the demo's evaluation) names it: ``after_pairs`` pairs it will ask for that have training
-    reports (rendered only where the pass corrects them: the others are answered by the pass's WNOMP fallback),
-    ``after_fresh`` pairs without any (always rendered), each at the model's measured cost per pair, and ``after_s``
-    seconds of other work; the fit keeps that time free too (:func:`budget_split`).
+    reports (none of them rendered after the fit: the pass keeps the render of each pair it corrects, answers the
+    others with its WNOMP fallback or, where the field's level wins, renders and keeps them too), ``after_fresh``
+    pairs without any (always rendered), each at the model's measured cost per pair, and ``after_s`` seconds of other
+    work; the fit keeps that time free too (:func:`budget_split`).  Halfway through training (``REPLAN_AT``) the
+    budget is dealt again from the pass's cost measured on the weights trained so far.
     """
     started = clock() if started is None else started
     checked_budget(budget_s)  # before minutes of data preparation
@@ -150,17 +154,14 @@ def fit(
             raise CheckpointError(f"{checkpoint_path}: cannot resume: the checkpoint holds no optimizer state.")
         trainer.check_budget(state, checkpoint_path)
         trainer.load_state_dict(state)
-    time_left, after, least, per_corrected = None, 0.0, 0.0, 0.0
-    charge: dict[str, Any] = {}
+    deal = None
     if budget_s is not None:
-        cost = model.finish_seconds(clock)
-        after, kept = budget_split(cost, budget_s, model.train_config.finish_share, after_pairs, after_s, after_fresh)
-        least = least_pass_s(cost)
-        trainer.stop_s = max(budget_s - after - kept, MIN_TRAIN_SHARE * budget_s)
-        if after_pairs:  # the caller's renders of the pairs the pass corrects: charged by the pass as it goes
-            pairs = max(int(plan.pairs.numel()), 1)
-            per_corrected = FINISH_SAFETY * cost.per_pair_s * after_pairs / pairs
-            after = FINISH_SAFETY * (after_fresh * cost.per_pair_s + after_s)
+        share = model.train_config.finish_share
+        deal = BudgetDeal(budget_s, share, after_s, after_fresh, render_rest=after_pairs > 0)
+        stop_s = deal.stop_s(model.finish_seconds(clock))
+        if not trainer.replanned:  # a resumed run that re-dealt its budget before keeps that deal
+            trainer.stop_s = stop_s
+        trainer.replan = lambda: deal.stop_s(model.finish_seconds(clock))
     evals0, time0 = model.decoder_evals(), clock()
     summary = trainer.run(
         progress=progress,
@@ -170,17 +171,19 @@ def fit(
     )
     summary["decoder_evals_per_s"] = (model.decoder_evals() - evals0) / max(clock() - time0, 1e-9)
     finish0 = clock()
-    if budget_s is not None:
+    time_left = None
+    charge: dict[str, Any] = {}
+    if deal is not None and deal.cost is not None:
         saving = SAVE_SAFETY * trainer.save_s if checkpoint_path else 0.0
         # the least pass always runs (WNOMP's APS for the pairs it cannot reach): a budget too small for the data
         # overruns by it rather than leave pairs with an untrained field, and then corrects no pair beyond its least
-        budget_end = finish0 + budget_s - after - trainer.elapsed_s - saving
-        end = max(budget_end, finish0 + least)
+        budget_end = finish0 + deal.budget_s - deal.fixed_after_s() - trainer.elapsed_s - saving
+        end = max(budget_end, finish0 + deal.least_s())
         time_left = lambda: end - clock()  # noqa: E731
         if end > budget_end:
             charge["extra_left"] = lambda: budget_end - clock()
-    if per_corrected:
-        charge["after_pair_s"] = per_corrected
+        if deal.render_rest:  # the pairs the pass leaves to the field's level: rendered by the pass, not the caller
+            charge["render_rest"] = True
     model.finish_training(progress=progress, time_left=time_left, clock=clock, **charge)
     summary["finish_s"] = clock() - finish0
     summary.update(model.run_info.get("corrections", {}))  # how many training pairs the pass corrected
@@ -194,36 +197,59 @@ def fit(
 
 
 def budget_split(
-    cost: PassCost, budget_s: float, share: float, after_pairs: int = 0, after_s: float = 0.0, after_fresh: int = 0
+    cost: PassCost, budget_s: float, share: float, after_s: float = 0.0, after_fresh: int = 0, render_rest: bool = False
 ) -> tuple[float, float]:
     """``(after, kept)`` [s] of a ``budget_s`` fit: the time kept for a caller's work after it and for the pass after
-    training, each with ``FINISH_SAFETY``.  The pass keeps ``share`` of what the caller leaves, at least its least
-    (:func:`least_pass_s`) and at most the whole pass.  The caller renders its ``after_fresh`` pairs, and of its
-    ``after_pairs`` the share the pass will have corrected (estimated from the time the pass is kept: the pairs it
-    cannot reach are answered without a render), which depends on ``kept`` in turn: the fraction is the fixed point,
-    found by bisection."""
-    least = least_pass_s(cost)
-
-    def split(fraction: float) -> tuple[float, float]:
-        after = FINISH_SAFETY * ((after_pairs * fraction + after_fresh) * cost.per_pair_s + after_s)
-        return after, min(FINISH_SAFETY * cost.total_s, max(share * (budget_s - after), least))
-
-    def corrected(kept: float) -> float:  # the pass's share of its pairs beyond its least
-        spare = cost.total_s - cost.least_s
-        return 1.0 if spare <= 0 else min(max((kept / FINISH_SAFETY - cost.least_s) / spare, 0.0), 1.0)
-
-    low, high = 0.0, 1.0  # corrected(split(f)[1]) falls as f rises: one crossing
-    for _ in range(30):
-        mid = 0.5 * (low + high)
-        low, high = (mid, high) if corrected(split(mid)[1]) > mid else (low, mid)
-    return split(high)
+    training, each with ``FINISH_SAFETY``.  The caller renders its ``after_fresh`` pairs (without training reports)
+    and spends ``after_s`` seconds on other work; it renders no training pair, as the pass keeps the render of each
+    pair it corrects and, with ``render_rest``, renders the pairs it leaves to the field's level itself.  The pass
+    keeps ``share`` of what the caller leaves, at least its least (:func:`least_pass_s`) and at most the whole pass."""
+    after = FINISH_SAFETY * (after_fresh * cost.per_pair_s + after_s)
+    least = least_pass_s(cost, render_rest)
+    return after, min(max(FINISH_SAFETY * cost.total_s, least), max(share * (budget_s - after), least))
 
 
-def least_pass_s(cost: PassCost) -> float:
+@dataclass
+class BudgetDeal:
+    """How a budget run's ``budget_s`` seconds are dealt between training, the pass after it and a caller's later
+    work (:func:`budget_split`), from the pass's measured cost; dealt before the first step and again halfway
+    (``REPLAN_AT``), each time from a fresh measurement (:attr:`cost`, the latest)."""
+
+    budget_s: float
+    share: float
+    after_s: float = 0.0
+    after_fresh: int = 0
+    render_rest: bool = False
+    """A caller renders the training pairs the pass leaves (the pass then renders them itself)."""
+    cost: PassCost | None = None
+
+    def stop_s(self, cost: PassCost) -> float:
+        """The training's share [s] under ``cost`` (kept as :attr:`cost`): the budget less the caller's later work and
+        the pass's time, at least ``MIN_TRAIN_SHARE`` of it."""
+        self.cost = cost
+        after, kept = budget_split(cost, self.budget_s, self.share, self.after_s, self.after_fresh, self.render_rest)
+        return max(self.budget_s - after - kept, MIN_TRAIN_SHARE * self.budget_s)
+
+    def fixed_after_s(self) -> float:
+        """The caller's later work: its fresh pairs' renders and its other seconds."""
+        assert self.cost is not None
+        return FINISH_SAFETY * (self.after_fresh * self.cost.per_pair_s + self.after_s)
+
+    def least_s(self) -> float:
+        """The least pass (:func:`least_pass_s`) under the latest cost."""
+        assert self.cost is not None
+        return least_pass_s(self.cost, self.render_rest)
+
+
+def least_pass_s(cost: PassCost, render_rest: bool = False) -> float:
     """The least time [s] a budget's fit keeps for its pass after training: ``FINISH_SAFETY`` × the model's least
-    pass (the levels and WNOMP's APS of every pair it cannot reach), whatever the budget: where that does not fit,
-    the fit runs past the budget's end rather than leave pairs with a barely trained field, which is worse than
-    trivial and which a later evaluation must render (docs/DECISIONS.md, "The demo on a 114-cell city")."""
+    pass (the levels and WNOMP's APS of every pair it cannot reach; where the pairs it leaves are expected to keep the
+    field's level and a caller would render them, ``render_rest``, their render instead), whatever the budget: where
+    that does not fit, the fit runs past the budget's end rather than leave pairs with a barely trained field, which
+    is worse than trivial and which a later evaluation must render (docs/DECISIONS.md, "The demo on a 114-cell
+    city")."""
+    if render_rest and cost.renders_all:
+        return FINISH_SAFETY * max(cost.least_s, cost.render_all_s)
     return FINISH_SAFETY * cost.least_s
 
 
@@ -234,6 +260,12 @@ its least, see :attr:`~rflscm.models.base.PassCost.least_s`) instead of leaving 
 FINISH_SAFETY = 1.2
 """The time kept for the pass after training is this many times the model's estimate (its measurement is of one
 chunk, and the pass also takes its residuals and λ choice); ``train.finish_share`` caps it."""
+REPLAN_AT = 0.5
+"""A budget run deals its budget again when training has spent this share of its time, from the pass's cost measured
+on the weights trained so far: a render's cost follows HiTAM's refined directions, which follow the trained coarse
+APS (114-cell city, field regime: 3.6 ms a pair measured before the first step, 6.6 ms after training), and whether
+the field with its level already predicts held-aside reports better than WNOMP decides which pairs a caller renders
+(docs/DECISIONS.md, "The pass keeps its renders")."""
 SAVE_SAFETY = 1.5
 """The pass after training leaves this many times the latest checkpoint's writing time for the final checkpoint."""
 
@@ -267,6 +299,11 @@ class Trainer:
         self.budget_s, self.clock = checked_budget(budget_s), clock
         self.stop_s = budget_s
         """Budget mode: the training's share of the budget [s] (the schedule and the stop follow it)."""
+        self.replan: Callable[[], float] | None = None
+        """Budget mode: a new :attr:`stop_s`, dealt once when the progress reaches ``REPLAN_AT`` (:func:`fit`'s)."""
+        self.replanned = False
+        self.rebased = (0.0, 0.0)
+        """``(progress, elapsed_s)`` where the schedule was re-dealt: it goes on from there to 1 at the new stop."""
         self.save_s = 0.0
         """Seconds the latest checkpoint took to write."""
         self.train_pairs = train_pairs.cpu()
@@ -294,10 +331,14 @@ class Trainer:
 
     def progress(self) -> float:
         """Schedule progress p ∈ [0, 1] of the next step: ``step / steps`` (step mode) or the spent fraction of
-        the training's share of the budget, ``min(1, elapsed_s / stop_s)`` (budget mode)."""
+        the training's share of the budget, ``min(1, elapsed_s / stop_s)`` (budget mode; once re-dealt at
+        ``(p0, e0)``, it goes on linearly from p0 to 1 at the new ``stop_s``, so that it never jumps back)."""
         if self.stop_s is None:
             return self.step / max(self.cfg.steps, 1)
-        return min(1.0, self.elapsed_s / max(self.stop_s, 1e-9))
+        p0, e0 = self.rebased
+        if self.elapsed_s >= self.stop_s:
+            return 1.0
+        return min(1.0, p0 + (1.0 - p0) * (self.elapsed_s - e0) / max(self.stop_s - e0, 1e-9))
 
     def position(self) -> float:
         """Schedule position of the next step, p · ``cfg.steps`` in units of the nominal schedule's steps
@@ -361,6 +402,9 @@ class Trainer:
             "last_val_mae": self.last_val_mae,
             "elapsed_s": self.elapsed_s,
             "budget_s": self.budget_s,
+            "replanned": self.replanned,
+            "stop_s": self.stop_s,
+            "rebased": list(self.rebased),
         }
 
     def check_budget(self, state: dict[str, Any], path: str | Path) -> None:
@@ -387,6 +431,11 @@ class Trainer:
         self.perm, self.pos = state["perm"].clone(), int(state["pos"])
         self.last_val_mae = float(state["last_val_mae"])
         self.elapsed_s = float(state.get("elapsed_s", 0.0))
+        self.replanned = bool(state.get("replanned", False))
+        if self.replanned:  # the budget was re-dealt before the checkpoint: its deal and schedule go on
+            self.stop_s = float(state["stop_s"])
+            p0, e0 = state["rebased"]
+            self.rebased = (float(p0), float(e0))
 
     def save(self, path: str | Path) -> None:
         begun = self.clock()
@@ -433,6 +482,8 @@ class Trainer:
             if validated:
                 self.last_val_mae = float(self.model.validation_mae())
             self.elapsed_s = self.clock() - start
+            if self.replan is not None and not self.replanned and self.progress() >= REPLAN_AT:
+                self._redeal(start, bar)
             last = self.finished()
             if last and not validated:  # budget mode: the budget ran out between validations
                 self.last_val_mae = float(self.model.validation_mae())
@@ -441,7 +492,7 @@ class Trainer:
                 self.save(checkpoint_path)
             val = f"{self.last_val_mae:.2f} dB" if math.isfinite(self.last_val_mae) else "pending"
             bar.set_postfix(loss=f"{losses['total']:.4g}", val_mae=val, refresh=False)
-            bar.update(1 if budget is None else min(self.elapsed_s, budget) - bar.n)
+            bar.update(1 if self.stop_s is None else min(self.elapsed_s, self.stop_s) - bar.n)
             if callback is not None:
                 callback(metrics)
         bar.close()
@@ -452,11 +503,20 @@ class Trainer:
             "final_loss": losses.get("total", float("nan")),
             "val_mae_db": self.last_val_mae,
         }
-        if budget is not None and self.budget_s is not None:
-            summary.update(
-                budget_s=self.budget_s, train_budget_s=budget, stopped_by_budget=float(self.elapsed_s >= budget)
-            )
+        if self.stop_s is not None and self.budget_s is not None:
+            stop = self.stop_s
+            summary.update(budget_s=self.budget_s, train_budget_s=stop, stopped_by_budget=float(self.elapsed_s >= stop))
         return summary
+
+    def _redeal(self, start: float, bar: Any) -> None:
+        """Deal the budget again (:attr:`replan`): the schedule goes on from where it is to 1 at the new stop."""
+        assert self.replan is not None
+        at = (self.progress(), self.elapsed_s)
+        stop_s = self.replan()
+        self.elapsed_s = self.clock() - start
+        self.stop_s, self.rebased, self.replanned = stop_s, at, True
+        bar.total = stop_s
+        bar.refresh()
 
     def _progress_bar(self, progress: bool) -> Any:
         """Steps of ``cfg.steps`` (step mode) or seconds of the budget (budget mode)."""

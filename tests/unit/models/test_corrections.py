@@ -151,35 +151,66 @@ def test_within_a_deadline_the_pass_corrects_the_pairs_that_fit_and_the_rest_kee
     pd.testing.assert_series_equal(ample.anchors.sort_index(), full.anchors.sort_index(), atol=1e-5)
 
 
-def test_a_pass_charged_for_the_callers_later_renders_corrects_fewer_pairs() -> None:
-    """With ``after_pair_s`` each corrected pair also costs the caller's later render of it: the deadline that fitted
-    the levels' pairs and one chunk of 64 (10 ms a render) at no charge fits the levels' pairs only at 10 ms a pair
-    (the next chunk's charge counts before it starts), so the pass's time plus the charge for what it corrected
-    stays within the deadline."""
-    from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL, PAIR_CHUNK
-
-    rsrp, cells, costly, now = timed_problem(200, 2, seed=1)
-    args = (CorrectionsConfig(pair_posterior=False), data(rsrp, cells), 1, np.array([7, 8]), costly, columns)
-    for charge, expected in ((0.0, 2 * LEVEL_PAIRS_PER_CELL + PAIR_CHUNK), (0.01, 2 * LEVEL_PAIRS_PER_CELL)):
-        now[0] = 0.0
-        cut = fit_corrections(
-            *args, seed=0, time_left=lambda: 1.7 - now[0], clock=lambda: now[0], after_pair_s=charge
-        )  # fmt: skip
-        assert cut.corrected_pairs() == expected
-        assert now[0] + charge * expected <= 1.7
-
-
-def test_without_a_fallback_the_pass_is_charged_for_every_pair_the_caller_will_render() -> None:
-    """Where no WNOMP fallback answers the pairs the pass leaves (here: none, no visible bins), the caller renders
-    every pair with reports, corrected or not: the pass is charged for all of them, so its time plus those renders
-    stays within the deadline (charged only for the pairs it corrected, 400 pairs at 4 ms overran it by 0.7 s)."""
+def test_a_pass_that_renders_what_it_leaves_corrects_while_the_rest_still_fits_and_renders_the_rest() -> None:
+    """With ``render_rest`` (a caller would render the pairs the pass leaves) and no fallback to answer them (no
+    visible bins), the pass corrects a chunk only while the time left still renders every pair left after it, then
+    renders and keeps the rest with their level only, all within its deadline: every pair then has a kept render and
+    the corrected ones their anchors. Without it, the pass corrects what fits and renders nothing more; with a
+    deadline too short to render them all it renders what fits."""
     from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL
 
     rsrp, cells, costly, now = timed_problem(400, 2, seed=1)
     args = (CorrectionsConfig(pair_posterior=False), data(rsrp, cells), 1, np.array([7, 8]), costly, columns)
-    cut = fit_corrections(*args, seed=0, time_left=lambda: 2.5 - now[0], clock=lambda: now[0], after_pair_s=0.004)
-    assert cut.fallback is None and cut.corrected_pairs() >= 2 * LEVEL_PAIRS_PER_CELL
-    assert now[0] + 0.004 * 400 <= 2.5
+
+    def run(deadline: float, rest: bool) -> PairCorrections:
+        now[0] = 0.0
+        return fit_corrections(
+            *args, seed=0, time_left=lambda: deadline - now[0], clock=lambda: now[0], render_rest=rest
+        )  # fmt: skip
+
+    every = run(5.0, True)  # 400 renders of 10 ms fit
+    assert every.fallback is None and every.anchors is not None and every.rendered is not None
+    assert len(every.rendered.index) == 400 and set(every.anchors.index) <= set(every.rendered.index)
+    assert now[0] <= 5.0
+    short = run(2.5, True)  # 224 renders fit: the levels' 32 pairs corrected, the rest rendered with the level only
+    assert short.rendered is not None and short.anchors is not None and now[0] <= 2.5
+    assert short.corrected_pairs() == 2 * LEVEL_PAIRS_PER_CELL < len(short.rendered.index) < 400
+    assert set(short.anchors.index) < set(short.rendered.index)
+    alone = run(2.5, False)  # the same deadline spent on corrections only: nothing rendered beyond them
+    assert alone.rendered is not None and len(alone.rendered.index) == alone.corrected_pairs()
+    assert alone.corrected_pairs() > short.corrected_pairs()
+
+
+def test_the_pass_keeps_the_render_of_every_pair_it_corrects_and_a_save_keeps_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Each corrected pair's render is kept whole (bins and values as the render gave them), for those pairs only;
+    none where the render is wider than ``KEPT_BINS`` (HiTAM's warm-up spreads the coarse APS over every bin)."""
+    from rflscm.models.rflscm import corrections as C
+
+    rsrp, cells, costly, now = timed_problem(200, 2, seed=1)
+    args = (CorrectionsConfig(pair_posterior=False), data(rsrp, cells), 1, np.array([7, 8]), costly, columns)
+    cut = fit_corrections(*args, seed=0, time_left=lambda: 1.7 - now[0], clock=lambda: now[0])
+    kept = cut.rendered
+    assert kept is not None and cut.anchors is not None
+    assert set(kept.index) == set(cut.anchors.index) and len(kept.index) < 200
+    rows = np.array([g for _, g in kept.index]) - 100
+    gen = torch.Generator().manual_seed(1)  # timed_problem's APS, drawn again
+    aps = torch.rand(200, K, generator=gen) + 0.1
+    torch.testing.assert_close(kept.gains, aps[torch.as_tensor(rows)])
+    assert (kept.bins == torch.arange(K)).all()
+    ids, grids = np.array([c for c, _ in kept.index]), np.array([g for _, g in kept.index])
+    assert (cut.stored_rows(ids, grids) == np.arange(len(rows))).all()
+    assert (cut.stored_rows(np.array([7]), np.array([99999])) == -1).all()
+    buffer = io.BytesIO()
+    torch.save(cut.to_state(), buffer)
+    buffer.seek(0)
+    loaded = PairCorrections.from_state(torch.load(buffer, weights_only=True), K)
+    assert loaded.rendered is not None and loaded.rendered.index.equals(kept.index)
+    torch.testing.assert_close(loaded.rendered.gains, kept.gains)
+    monkeypatch.setattr(C, "KEPT_BINS", K - 1)
+    now[0] = 0.0
+    assert fit_corrections(*args, seed=0, time_left=lambda: 1.7 - now[0], clock=lambda: now[0]).rendered is None
 
 
 def test_a_pass_past_its_budget_corrects_no_pair_beyond_its_least() -> None:
@@ -452,6 +483,40 @@ def test_pairs_the_pass_cannot_reach_get_wnomps_aps_when_it_predicts_held_report
     buffer.seek(0)
     loaded = PairCorrections.from_state(torch.load(buffer, weights_only=True), truth.shape[1])
     torch.testing.assert_close(loaded.apply(field, c, ids[c], rows), out)
+
+
+def test_where_the_budget_cannot_render_the_pairs_left_wnomps_aps_answers_them_though_the_field_predicts_better() -> (
+    None
+):
+    """The field here is the truth, so the held-aside choice keeps its level for the pairs the pass leaves, which the
+    pass then renders (``render_rest``). Where the time left cannot render them all, WNOMP's APS answers them instead
+    (the budget's choice, ``scores["budget"]``); where it can, the pass renders them; without ``render_rest`` the
+    choice is the held-aside one whatever the time."""
+    pair_data, _, columns_, truth, _, cells, now = fallback_problem()
+
+    def exact(p: torch.Tensor):  # the true APS, 10 ms a pair
+        now[0] += 0.01 * p.numel()
+        bins = torch.arange(truth.shape[1]).expand(len(p), -1)
+        return bins, truth[p], torch.einsum("bmk,bk->bm", columns_(cells[p], bins), truth[p])
+
+    visible = torch.ones(2, truth.shape[1], dtype=torch.bool)
+
+    def run(deadline: float, rest: bool = True) -> PairCorrections:
+        now[0] = 0.0
+        return fit_corrections(
+            CorrectionsConfig(pair_posterior=False), pair_data, 8, np.array([7, 8]), exact, columns_, 0,
+            time_left=lambda: deadline - now[0], clock=lambda: now[0], visible=visible, render_rest=rest,
+        )  # fmt: skip
+
+    ample, short, alone = run(6.0), run(2.0), run(2.0, rest=False)
+    assert ample.fallback is not None and not len(ample.fallback.index) and "budget" not in ample.fallback.scores
+    assert ample.fallback.scores["level"] < ample.fallback.scores["wnomp"]
+    assert ample.rendered is not None and len(ample.rendered.index) == len(cells)
+    fb = short.fallback
+    assert fb is not None and fb.scores["budget"] == 1.0 and fb.scores["level"] < fb.scores["wnomp"]
+    assert short.anchors is not None and len(fb.index) + len(short.anchors) == len(cells)
+    assert not set(fb.index) & set(short.anchors.index)
+    assert alone.fallback is not None and not len(alone.fallback.index)
 
 
 def test_the_left_over_pairs_are_solved_with_the_wnomp_settings_the_config_gives() -> None:

@@ -188,26 +188,47 @@ def test_the_pass_keeps_its_least_and_training_its_share_when_the_budget_is_shor
     assert left == [pytest.approx(1.2 * 20.0)]  # the least pass, past the budget's end
 
 
-def test_the_evaluation_renders_only_the_pairs_the_pass_will_correct() -> None:
-    """Pairs with training reports cost the caller a render only where the pass corrects them (the others get WNOMP's
-    APS, unrendered): the reserve takes the fixed point between the pass's time and the share it corrects."""
-    from rflscm.train.trainer import FINISH_SAFETY, budget_split
+def test_the_caller_renders_no_training_pair_and_the_pass_keeps_time_to_render_those_it_leaves() -> None:
+    """A pair the pass corrects keeps its render, a pair it leaves is answered by WNOMP's APS or, where the field is
+    expected to win the held-aside choice (``renders_all``) and a caller would render it (``render_rest``), rendered by
+    the pass itself: so the caller's reserve counts only its pairs without training reports and its other work, and the
+    pass's least becomes the render of every pair where it must render those it leaves."""
+    from rflscm.train.trainer import FINISH_SAFETY, budget_split, least_pass_s
 
-    cost = PassCost(50.0, 0.5, 20.0)
+    cost = PassCost(50.0, 0.5, 20.0, render_all_s=40.0)
     # nothing after the fit: the pass keeps its share of the budget (half of 100 s: less than 1.2 × 50)
     assert budget_split(cost, 100.0, 0.5) == (0.0, pytest.approx(50.0))
-    # 200 such pairs: all rendered would be 120 s; the pass then corrects a share f of its 30 s beyond its least,
-    # f = ((50 − 60 f) / 1.2 − 20) / 30, so f = 0.2708 and the caller renders 54 pairs
-    after, kept = budget_split(cost, 100.0, 0.5, after_pairs=200)
-    f = (kept / FINISH_SAFETY - cost.least_s) / (cost.total_s - cost.least_s)
-    assert after == pytest.approx(FINISH_SAFETY * 200 * f * 0.5, rel=1e-6) and f == pytest.approx(0.2708, abs=1e-3)
-    assert kept == pytest.approx(0.5 * (100.0 - after))
-    # the same pairs without training data are always rendered
+    assert budget_split(cost, 100.0, 0.5, render_rest=True) == (0.0, pytest.approx(50.0))
+    # the field expected to win: a pass that renders what it leaves keeps at least every pair's render (1.2 × 40 s)
+    every = dataclasses.replace(cost, renders_all=True)
+    assert least_pass_s(every) == pytest.approx(FINISH_SAFETY * 20.0)
+    assert least_pass_s(every, render_rest=True) == pytest.approx(FINISH_SAFETY * 40.0)
+    after, kept = budget_split(every, 100.0, 0.5, after_s=30.0, render_rest=True)
+    assert after == pytest.approx(36.0) and kept == pytest.approx(48.0)  # half of the 64 s left is less than 48
+    # pairs without training data are always rendered by the caller: 1.2 × 200 × 0.5 = 120 s, the pass keeps its least
     after, kept = budget_split(cost, 100.0, 0.5, after_fresh=200)
     assert after == pytest.approx(120.0) and kept == pytest.approx(FINISH_SAFETY * cost.least_s)
-    # an ample budget: the whole pass, every pair corrected and rendered after it
-    after, kept = budget_split(cost, 1000.0, 0.5, after_pairs=200, after_s=5.0)
+    # an ample budget: the whole pass, and the caller's renders and other work
+    after, kept = budget_split(every, 1000.0, 0.5, after_s=5.0, after_fresh=200, render_rest=True)
     assert kept == pytest.approx(60.0) and after == pytest.approx(FINISH_SAFETY * (100.0 + 5.0))
+
+
+def test_halfway_the_budget_is_dealt_again_from_a_fresh_measurement_and_the_schedule_goes_on(scenario) -> None:
+    """Before the first step the pass is measured cheap (12 s kept: training's share 88 s); halfway through that share
+    it is measured again, dearer (48 s kept): the share becomes 52 s and training stops at the first step past it. The
+    schedule never jumps back, and goes on from where it was; where the second measurement is cheaper, training gets
+    the time back."""
+    for second, stop, steps in ((PassCost(40.0, 0.5), 52.0, 6), (PassCost(0.0, 0.5), 100.0, 10)):
+        clock, seen, left = StepClock(10.0), [], []
+        model = timed_model(clock, seen)
+        costs = iter([PassCost(10.0, 0.5), second])
+        model.finish_seconds = lambda clock, c=costs: next(c)  # type: ignore[method-assign]
+        model.finish_training = lambda progress=False, time_left=None, clock=None, seen=left: seen.append(time_left())  # type: ignore[method-assign]
+        summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock)
+        assert summary["train_budget_s"] == pytest.approx(stop) and summary["steps"] == steps
+        positions = [p for _, p, _ in seen]
+        assert positions == sorted(positions) and positions[:5] == pytest.approx([k * 10.0 / 88 * 8 for k in range(5)])
+        assert left == [pytest.approx(100.0 - 10.0 * steps)]
 
 
 def test_finish_share_must_be_a_fraction() -> None:
@@ -257,26 +278,26 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
 
 
 def test_work_after_the_fit_is_kept_out_of_the_budget(scenario) -> None:
-    """``after_pairs`` renders at the measured cost per pair and ``after_s`` seconds are kept free as well (×1.2):
-    training's share counts them all; the pass is told the time left less ``after_s``, and charges itself each pair
-    it corrects at the caller's render of ``after_pairs`` per training pair."""
-    clock, seen, left, charged, planned = StepClock(10.0), [], [], [], []
+    """``after_s`` seconds and the renders of ``after_fresh`` pairs are kept free (×1.2) whatever the pass does; a
+    caller's ``after_pairs`` (with training reports) ask the pass to render the pairs it leaves itself
+    (``render_rest``), whose least is then every pair's render where the field is expected to answer them."""
+    clock, seen, left, rest = StepClock(10.0), [], [], []
     model = timed_model(clock, seen)
-    prepare = model.prepare
-    model.prepare = lambda sc: planned.append(prepare(sc)) or planned[-1]  # type: ignore[method-assign]
-    model.finish_seconds = lambda clock: PassCost(10.0, 0.5)  # type: ignore[method-assign]
 
-    def finish(progress=False, time_left=None, clock=None, after_pair_s=0.0) -> None:  # type: ignore[no-untyped-def]
+    def finish(progress=False, time_left=None, clock=None, render_rest=False, extra_left=None) -> None:  # type: ignore[no-untyped-def]
         left.append(time_left())
-        charged.append(after_pair_s)
+        rest.append(render_rest)
 
     model.finish_training = finish  # type: ignore[method-assign]
-    summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_pairs=20, after_s=5.0)
-    # kept after the fit: 1.2 × (20 × 0.5 + 5) = 18 s; for the pass 1.2 × 10 = 12 s; training stops at 70 s
-    assert summary["train_budget_s"] == pytest.approx(70.0) and summary["steps"] == 7
-    # the pass: 100 − 1.2 × 5 − 70 = 24 s, each corrected pair charged 1.2 × 0.5 × 20 / (training pairs)
-    assert left == [pytest.approx(100.0 - 6.0 - 70.0)]
-    assert charged == [pytest.approx(1.2 * 0.5 * 20 / planned[0].pairs.numel())]
+    for renders_all, stop, least in ((True, 46.0, 48.0), (False, 82.0, 1.2)):
+        model.finish_seconds = lambda clock, r=renders_all: PassCost(10.0, 0.5, 1.0, r, 40.0)  # type: ignore[method-assign]
+        left.clear()
+        clock.now = 0.0
+        summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_pairs=20, after_s=5.0)
+        # kept after the fit: 1.2 × 5 = 6 s; for the pass 1.2 × 10 = 12 s, or its least 1.2 × 40 = 48 s
+        assert summary["train_budget_s"] == pytest.approx(stop) and rest[-1] is True
+        assert left == [pytest.approx(max(100.0 - 6.0 - summary["train_time_s"], least))]
     left.clear()
+    clock.now = 0.0
     fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_fresh=20, after_s=5.0)
-    assert left == [pytest.approx(100.0 - 18.0 - 70.0)]  # pairs without training data: all kept up front
+    assert left == [pytest.approx(100.0 - 18.0 - 70.0)] and rest[-1] is False  # fresh pairs: all kept up front

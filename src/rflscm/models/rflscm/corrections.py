@@ -92,6 +92,10 @@ the pass is cut) this many at a time, each block sorted by pair (so by cell): a 
 cells it spans (800-grid city: 5.5 ms a pair for a chunk of 64 pairs over 42 cells, 3.5 ms for chunks of a few)."""
 CHUNK_MARGIN = 1.25
 """A further chunk is started only when the time left exceeds this many times the slowest chunk so far."""
+KEPT_BINS = 1024
+"""A corrected pair's render is kept (:attr:`PairCorrections.rendered`) when it holds at most this many bins: HiTAM's
+refined APS (β² K_C: 144 at the quick preset, 288 at the default, 8 bytes a bin), not the warm-up's coarse APS
+spread over every bin of the angle grid."""
 
 
 @dataclass
@@ -167,6 +171,10 @@ class PairCorrections:
     mix_csi: PairFallback | None = None
     """The CSI-RS predictions' own dB mix (WNOMP's atoms and weights chosen on CSI-RS held-aside reports; no pair where
     they chose none), or None: :attr:`mix` serves both beam types (checkpoints written before the mix per beam type)."""
+    rendered: PairFallback | None = None
+    """The field's own APS (normalised, before any correction) of the pairs the pass rendered and corrected, as it
+    rendered them at the final weights, so that no later prediction renders them again (:meth:`stored_rows`); None
+    where the render is too wide to keep (HiTAM's warm-up: every bin) and in checkpoints written before it."""
 
     def mix_for(self, beam_type: str) -> PairFallback | None:
         """The dB mix of ``beam_type``'s predictions (:attr:`mix_csi` for CSI-RS where there is one, else :attr:`mix`)."""
@@ -192,6 +200,12 @@ class PairCorrections:
         if self.fallback is not None:
             out = self.fallback.apply(out, cells, grids)
         return out
+
+    def stored_rows(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray:
+        """``[N]`` each pair's row in :attr:`rendered` (its APS as the pass rendered it), −1 where it has none."""
+        if self.rendered is None:
+            return np.full(len(np.asarray(cell_ids).reshape(-1)), -1)
+        return self.rendered.rows(cell_ids, grid_ids)
 
     def unrendered(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray:
         """bool ``[N]``: the pairs whose APS :meth:`apply` replaces whole (a model need not render them)."""
@@ -223,6 +237,7 @@ class PairCorrections:
             "mix": self.mix.to_state() if self.mix is not None else None,
             "censor": self.censor.to_state() if self.censor is not None else None,
             "mix_csi": self.mix_csi.to_state() if self.mix_csi is not None else None,
+            "rendered": self.rendered.to_state() if self.rendered is not None else None,
         }
 
     @classmethod
@@ -255,6 +270,7 @@ class PairCorrections:
             mix,
             RoundOneCensor.from_state(state.get("censor")),
             mix_csi,
+            PairFallback.from_state(state.get("rendered"), num_bins, "rendered APS of the corrected pairs"),
         )
 
 
@@ -271,7 +287,7 @@ def fit_corrections(
     time_left: TimeLeftFn | None = None,
     clock: Callable[[], float] = time.perf_counter,
     visible: torch.Tensor | None = None,
-    after_pair_s: float = 0.0,
+    render_rest: bool = False,
     extra_left: TimeLeftFn | None = None,
 ) -> PairCorrections:
     """Fit the switched-on corrections of the training ``data`` (``num_ssb`` SSB beams first, ``cell_ids`` of its
@@ -279,27 +295,16 @@ def fit_corrections(
     ``seed`` draws the posterior's held-aside reports and, within a budget, the order of the pairs; ``progress``: a
     bar; ``visible [C, N]``: the bins each cell's APS may hold, among which WNOMP's atoms are searched).  With
     ``time_left`` (seconds left, read on ``clock``'s time) the pass is sized to it: see the module's docstring;
-    without it every pair with reports is corrected (the result does not depend on ``seed``'s order).
-    ``after_pair_s``: what each pair the pass corrects costs the caller later, within the same deadline (the demo's
-    evaluation renders a corrected pair, not one answered by the fallback): the time left is charged for the pairs
-    corrected so far and the next chunk's, or for every pair where no fallback answers the pairs left (the field's
-    level won the held-aside choice, or the fallback is off): the caller renders them all then.  ``extra_left``: the time left for the pairs corrected beyond the least
-    (the levels' and λ's pairs and the fallback), where ``time_left`` runs past the budget's end to keep that least:
-    a pass over its budget corrects no more pairs than its least needs (each would cost its render twice more)."""
+    without it every pair with reports is corrected (the result does not depend on ``seed``'s order).  The pairs it
+    corrects keep their render (:attr:`PairCorrections.rendered`): no later prediction renders them again.
+    ``render_rest``: a caller within the same deadline would render the pairs the pass leaves where no fallback
+    answers them (the demo's evaluation): once the held-aside choice keeps the field's level for them (or the fallback
+    is off), the pass renders and keeps them itself, on its own clock, and corrects a pair only while the time left
+    still renders every pair left after it; where the time left cannot render them all, WNOMP's APS answers them
+    after all (the budget's choice, ``PairFallback.scores["budget"]``).  ``extra_left``: the time left for the pairs
+    corrected beyond the least (the levels' and λ's pairs and the fallback), where ``time_left`` runs past the
+    budget's end to keep that least: a pass over its budget corrects no more pairs than its least needs."""
     from tqdm.auto import tqdm
-
-    corrected = [0]
-    charged = [0]  # pairs charged whatever the pass does: every pair, once no fallback answers the pairs left
-    if time_left is not None and after_pair_s > 0:
-        deadline, extra_deadline = time_left, extra_left
-
-        def time_left() -> float:  # the pairs corrected so far, and the next chunk's
-            return deadline() - after_pair_s * max(corrected[0] + PAIR_CHUNK, charged[0])
-
-        if extra_deadline is not None:
-
-            def extra_left() -> float:
-                return extra_deadline() - after_pair_s * max(corrected[0] + PAIR_CHUNK, charged[0])
 
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
         return PairCorrections()
@@ -307,6 +312,27 @@ def fit_corrections(
     pairs = torch.nonzero(data.observed.any(1)).squeeze(1)
     if not (cfg.pair_anchors or cfg.pair_posterior):  # the level alone: a few pairs per cell
         return PairCorrections(fit.levels(fit.render_pairs(fit.level_picks(), top=False)))
+    fit.keep = True
+    corrected = [0]
+    owing = [False]  # the pass renders the pairs it leaves (``render_rest``, and no fallback answers them)
+    each = [0.0]  # seconds a pair's render takes (measured on the first pairs)
+    deadline = time_left
+    if time_left is not None and render_rest:
+        extra_deadline = extra_left
+
+        def owed() -> float:  # the renders of the pairs left, were the next chunk corrected
+            return each[0] * max(pairs.numel() - corrected[0] - PAIR_CHUNK, 0) if owing[0] else 0.0
+
+        def time_left() -> float:
+            assert deadline is not None
+            return deadline() - owed()
+
+        if extra_deadline is not None:
+
+            def extra_left() -> float:
+                assert extra_deadline is not None
+                return extra_deadline() - owed()
+
     per_pair = 2 if cfg.pair_posterior else 1  # a render, and a fit with the posterior
     bar = tqdm(total=pairs.numel() * per_pair, desc="pair corrections", unit="pair", disable=not progress, leave=False)
     subset = _spread(pairs, LAMBDA_PAIRS) if cfg.pair_posterior else pairs[:0]  # the pairs λ is chosen on
@@ -317,6 +343,7 @@ def fit_corrections(
     else:
         first, rendered, render_s, subset = _first_pairs(fit, subset, time_left, clock, bar)
         corrected[0] = first.numel()
+        each[0] = fit.render_s
     levels = fit.levels(rendered) if cfg.calibrate_levels else None
     plan = _Plan()
     if cfg.pair_posterior and pairs.numel():
@@ -326,19 +353,24 @@ def fit_corrections(
         plan = _choose(fit, rendered, rendered.rows_of(subset.unique()), levels, held)
     fit.plan = plan
     fitting = cfg.pair_posterior and plan.fits()
-    done, anchors, gains, bins_of, bases, mixed = [], [], [], [], [], []
+    done, anchors, gains, bins_of, bases, mixed, kept = [], [], [], [], [], [], []
     later = _later_pairs(pairs, first, seed)
     left_over = None
     if time_left is not None and cfg.wnomp_fallback and visible is not None and later.numel():
         # solved now for every later pair (no render: ~0.3 ms a pair), dropped below for the pairs the pass reaches
         on = subset if cfg.pair_posterior else first
-        left_over = _left_over(fit, rendered, on, later, cell_ids, levels, seed, time_left, clock)
-    if left_over is None or not len(left_over.index):
-        charged[0] = pairs.numel()  # no fallback answers the pairs left: the caller renders every pair
+        to_end = extra_left if extra_left is not None else time_left  # the budget's own end (nothing owed yet)
+
+        def affordable(count: int) -> bool:  # the pass can render ``count`` pairs left over within the budget
+            return not render_rest or each[0] * (count + CHUNK_MARGIN * PAIR_CHUNK) <= to_end()
+
+        left_over = _left_over(fit, rendered, on, later, cell_ids, levels, seed, time_left, clock, affordable)
+    owing[0] = render_rest and (left_over is None or not len(left_over.index))  # no fallback answers the pairs left
     yielded = 0
     beyond = extra_left if extra_left is not None else time_left  # the pairs past the least: within the budget only
     for chunk in fit.corrected_chunks(rendered, later, levels, fitting, beyond, clock, bar, PAIR_CHUNK * render_s):
         done.append(chunk.pairs)
+        kept.append((chunk.aps_bins, chunk.aps_x))
         yielded += chunk.pairs.numel()
         corrected[0] = max(corrected[0], yielded)  # the first pairs were counted when they were rendered
         anchors.append(chunk.anchor)
@@ -351,17 +383,22 @@ def fit_corrections(
             bins_of.append(chunk.top_bins.cpu())
             bases.append(chunk.stored_base().cpu() if chunk.base is not None else None)
         bar.update(chunk.pairs.numel() * (per_pair - 1))
+    reached = torch.cat(done) if done else pairs[:0]
+    index = _pair_index(data, cell_ids, reached)
+    if owing[0] and deadline is not None:  # the pairs left, rendered and kept with their level only
+        only = fit.render_only(later[~torch.isin(later, reached)], deadline, clock, bar, per_pair)
+        if only.pairs.numel():
+            reached = torch.cat([reached, only.pairs])
+            kept.append((only.aps_bins, only.aps_x))
     bar.close()
-    kept = torch.cat(done).cpu().numpy() if done else np.zeros(0, np.int64)
-    ids = np.asarray(cell_ids, np.int64)[data.cell_index.cpu().numpy()[kept]]
-    index = pd.MultiIndex.from_arrays([ids, data.grid_ids[kept]], names=["cell_id", "grid_id"])
+    renders = _kept_renders(_pair_index(data, cell_ids, reached), kept)
     median = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)
     anchor_series = pd.Series(median, index=index, name="anchor_db") if cfg.pair_anchors else None
     solved = left_over  # WNOMP's APS of every later pair, before the pass's own pairs leave it
     if left_over is not None:
         left_over = left_over.without(index)
     if not cfg.pair_posterior:
-        return PairCorrections(levels, anchor_series, None, left_over)
+        return PairCorrections(levels, anchor_series, None, left_over, rendered=renders)
     if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
         empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
         posterior = PairPosterior(
@@ -373,7 +410,7 @@ def fit_corrections(
             plan.atom_scores,
             plan.groups,
         )
-        return PairCorrections(levels, anchor_series, posterior, left_over)
+        return PairCorrections(levels, anchor_series, posterior, left_over, rendered=renders)
     # a chunk's width is the field's bins and the most WNOMP atoms of its pairs' groups: chunks differ
     gain_db = _widened(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
     with_base = [b if b is not None else torch.zeros_like(g) for b, g in zip(bases, gains, strict=True)]
@@ -410,7 +447,28 @@ def fit_corrections(
     mix_csi = mixes.get("csi")
     if mix_csi is None and mixes.get("ssb") is not None:  # CSI-RS chose no mix: not SSB's either
         mix_csi = _no_mix()
-    return PairCorrections(levels, anchor_series, posterior, left_over, mix=mixes.get("ssb"), mix_csi=mix_csi)
+    return PairCorrections(
+        levels, anchor_series, posterior, left_over, mix=mixes.get("ssb"), mix_csi=mix_csi, rendered=renders
+    )
+
+
+def _pair_index(data: PairData, cell_ids: np.ndarray, pairs: torch.Tensor) -> pd.MultiIndex:
+    """(cell_id, grid_id) of training ``pairs [P]`` (``cell_ids`` of the cell indices)."""
+    at = pairs.cpu().numpy()
+    ids = np.asarray(cell_ids, np.int64)[data.cell_index.cpu().numpy()[at]]
+    return pd.MultiIndex.from_arrays([ids, data.grid_ids[at]], names=["cell_id", "grid_id"])
+
+
+def _kept_renders(
+    index: pd.MultiIndex, parts: list[tuple[torch.Tensor | None, torch.Tensor | None]]
+) -> PairFallback | None:
+    """The corrected pairs' renders (``parts``: each chunk's ``(bins, values)``, in ``index``'s order) as one table,
+    or None where a chunk did not keep its render (too wide, :data:`KEPT_BINS`) or there is none."""
+    if not parts or any(b is None or x is None for b, x in parts):
+        return None
+    bins = _widened([b for b, _ in parts if b is not None], none=-1).to(torch.int32).cpu()
+    values = _widened([x for _, x in parts if x is not None], none=0).float().cpu()
+    return PairFallback(index, bins, values)
 
 
 def _no_mix() -> PairFallback:
@@ -471,6 +529,9 @@ class PassTimes:
     fit_s: float
     solve_s: float = 0.0
     """Per pair, WNOMP's solve of its own reports (the fallback of a pair the pass does not reach)."""
+    field_wins: bool = True
+    """On the measured pairs' held-aside reports the field with one level per beam type predicted better than WNOMP
+    fitted on the others (as the pass chooses for the pairs it leaves; always True without the fallback)."""
 
     def total_s(self, cfg: CorrectionsConfig, pairs: int) -> float:
         """The whole pass over ``pairs`` pairs with reports: setup, each pair once, and the λ (and atoms) choice:
@@ -517,7 +578,7 @@ def measure_pass(
     atoms = max(WNOMP_ATOMS) if cfg.pair_posterior and cfg.wnomp_atoms and visible is not None else 0
     fit.plan = _Plan.uniform(atoms, 0, LAMBDAS[0])
     t0 = clock()
-    fit.render_pairs(first, top=cfg.pair_posterior)
+    spread = fit.render_pairs(first, top=cfg.pair_posterior)
     t1 = clock()
     rendered = fit.render_pairs(second, top=cfg.pair_posterior)
     t2 = clock()
@@ -530,11 +591,31 @@ def measure_pass(
     if cfg.wnomp_fallback:
         fit.solve(sample, data.observed[sample], None, fallback_solver(cfg))
     t5 = clock()
+    field_wins = True
+    if cfg.wnomp_fallback and visible is not None:  # which the pass will choose for the pairs it leaves, probed
+        both = _merged(spread, rendered.without(first))
+        level_err, wnomp_err, count = _held_scores(fit, both, both.pairs, _one_level(fit, both), 0)
+        field_wins = count > 0 and level_err <= wnomp_err
     n_first, n_second = first.numel(), second.numel()
     cells_first = int(data.cell_index[first].unique().numel())
     setup = max(0.0, (t1 - t0) - (t2 - t1) * n_first / n_second) * num_cells / max(cells_first, 1)
     render_s, prep_s, fit_s = ((b - a) / n_second for a, b in ((t1, t2), (t2, t3), (t3, t4)))
-    return PassTimes(setup, render_s, prep_s, fit_s, (t5 - t4) / sample.numel())
+    return PassTimes(setup, render_s, prep_s, fit_s, (t5 - t4) / sample.numel(), field_wins)
+
+
+def _one_level(fit: _Fit, rendered: _Rendered) -> torch.Tensor:
+    """``[C, 2]`` one level [dB] per beam type for every cell: the median (measured − predicted) over the reports of
+    the ``rendered`` pairs (0 for a type without any)."""
+    d = fit.data
+    resid = 10.0 * torch.log10(d.rsrp[rendered.pairs] / rendered.pred.clamp_min(1e-30))
+    is_csi = torch.arange(resid.shape[1], device=resid.device) >= fit.num_ssb
+    observed = d.observed[rendered.pairs]
+    levels = torch.zeros(fit.num_cells, 2, device=resid.device)
+    for beam_type, of_type in enumerate((~is_csi, is_csi)):
+        values = resid[observed & of_type[None]]
+        if values.numel():
+            levels[:, beam_type] = float(np.median(values.cpu().double().numpy()))
+    return levels
 
 
 def _spread(pairs: torch.Tensor, count: int) -> torch.Tensor:
@@ -598,6 +679,7 @@ def _first_pairs(
     extra = fit.render_pairs(more, top=top, bar=bar)
     if more.numel():
         render_s = (clock() - begun) / more.numel()
+    fit.render_s = render_s
     return first, _merged(rendered, extra), render_s + prep_s, subset
 
 
@@ -612,7 +694,9 @@ def _merged(a: _Rendered, b: _Rendered) -> _Rendered:
         return None if x is None or y is None else torch.cat([x, y])[order]
 
     pred = torch.cat([a.pred, b.pred])[order]
-    return _Rendered(pairs[order], pred, both(a.top_bins, b.top_bins), both(a.top_x, b.top_x))
+    out = _Rendered(pairs[order], pred, both(a.top_bins, b.top_bins), both(a.top_x, b.top_x))
+    out.aps_bins, out.aps_x = both(a.aps_bins, b.aps_bins), both(a.aps_x, b.aps_x)
+    return out
 
 
 def _later_pairs(pairs: torch.Tensor, first: torch.Tensor, seed: int) -> torch.Tensor:
@@ -629,13 +713,22 @@ def _later_pairs(pairs: torch.Tensor, first: torch.Tensor, seed: int) -> torch.T
 @dataclass
 class _Rendered:
     """Training pairs ``pairs [P]`` (sorted) rendered once: their predicted round-1 reports ``pred [P, M]``
-    (normalised, uncorrected) and optionally their strongest bins ``top_bins [P, n]`` (int32) with the APS there
-    ``top_x [P, n]``."""
+    (normalised, uncorrected), optionally their strongest bins ``top_bins [P, n]`` (int32) with the APS there
+    ``top_x [P, n]``, and optionally the whole render (``aps_bins``, ``aps_x``)."""
 
     pairs: torch.Tensor
     pred: torch.Tensor
     top_bins: torch.Tensor | None = None
     top_x: torch.Tensor | None = None
+    aps_bins: torch.Tensor | None = None
+    """``[P, K]`` the whole sparse APS's bins (int32) where the pass keeps it (:data:`KEPT_BINS`), else None."""
+    aps_x: torch.Tensor | None = None
+    """``[P, K]`` its values (normalised)."""
+
+    def without(self, pairs: torch.Tensor) -> _Rendered:
+        """The same without the rows of ``pairs`` (the reports only: a probe's view)."""
+        keep = ~torch.isin(self.pairs, pairs)
+        return _Rendered(self.pairs[keep], self.pred[keep])
 
     def rows_of(self, pairs: torch.Tensor) -> torch.Tensor:
         """Rows of ``pairs`` (each one of :attr:`pairs`)."""
@@ -652,7 +745,8 @@ class _PairChunk:
     the strongest bins ``top_bins [B, n]``, the APS there ``top_x [B, n]``, their columns ``cols [B, M, n]`` and
     the other bins' ``rest [B, M]`` (normalised) and each pair's ridge ``lam [B]`` (∞: no posterior); with WNOMP's
     atoms among them, ``base [B, n]`` the prior centre added at each bin (``resid`` then against the prediction with
-    it) and ``level [B]`` [dB] the corrections applied before the posterior."""
+    it) and ``level [B]`` [dB] the corrections applied before the posterior; ``aps_bins``, ``aps_x`` the pairs' whole
+    render where the pass keeps it."""
 
     pairs: torch.Tensor
     anchor: torch.Tensor
@@ -665,6 +759,8 @@ class _PairChunk:
     base: torch.Tensor | None = None
     level: torch.Tensor | None = None
     lam: torch.Tensor | None = None
+    aps_bins: torch.Tensor | None = None
+    aps_x: torch.Tensor | None = None
 
     def fit_inputs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(cols, prior centre, rest)``, the posterior's view of the chunk (made ``with_columns``)."""
@@ -695,14 +791,20 @@ class _Fit:
     """Each pair's WNOMP atoms (0: none), their prior (``WNOMP_PRIORS``) and λ, by the pair's number of reports."""
     _atom_cache: dict[tuple[int, ...], tuple[torch.Tensor, torch.Tensor]] = dataclasses.field(default_factory=dict)
     """WNOMP's atoms of a chunk, kept while the choice tries prior centres on the same atoms (see :func:`_choose`)."""
+    keep: bool = False
+    """Keep each render whole (at most :data:`KEPT_BINS` wide): the pass's corrected pairs are not rendered again."""
+    render_s: float = 0.0
+    """Seconds a pair's render took in the pass (its first pairs'), within a budget."""
 
     def render_pairs(self, pairs: torch.Tensor, top: bool, bar: object = None) -> _Rendered:
         """Render ``pairs [P]`` (sorted) ``PAIR_CHUNK`` at a time: their predicted reports and, with ``top``, their
         ``POSTERIOR_BINS`` strongest bins and the APS there (``bar``: a tqdm bar)."""
-        preds, tops, xs = [], [], []
+        preds, tops, xs, whole = [], [], [], []
         for start in range(0, pairs.numel(), PAIR_CHUNK):
             bins, values, pred = self.render(pairs[start : start + PAIR_CHUNK])
             preds.append(pred)
+            if self.keep and values.shape[1] <= KEPT_BINS:
+                whole.append((bins.to(torch.int32), values))
             if top:
                 best = torch.topk(values, min(POSTERIOR_BINS, values.shape[1]), dim=1).indices
                 tops.append(bins.gather(1, best).to(torch.int32))  # kept for every pair: half the memory
@@ -710,7 +812,34 @@ class _Fit:
             if bar is not None:
                 bar.update(min(PAIR_CHUNK, pairs.numel() - start))  # type: ignore[attr-defined]
         pred = torch.cat(preds) if preds else torch.zeros(0, self.data.rsrp.shape[1], device=pairs.device)
-        return _Rendered(pairs, pred, torch.cat(tops) if tops else None, torch.cat(xs) if xs else None)
+        out = _Rendered(pairs, pred, torch.cat(tops) if tops else None, torch.cat(xs) if xs else None)
+        if whole and len(whole) == len(preds):
+            out.aps_bins, out.aps_x = torch.cat([b for b, _ in whole]), torch.cat([x for _, x in whole])
+        return out
+
+    def render_only(
+        self, pairs: torch.Tensor, time_left: TimeLeftFn, clock: Callable[[], float], bar: object, per_pair: int
+    ) -> _Rendered:
+        """``pairs`` rendered (and kept, :attr:`keep`), ``PAIR_CHUNK`` at a time in their order (each chunk sorted), a
+        chunk started only while ``CHUNK_MARGIN`` times the slowest so far (at first :attr:`render_s` per pair) fits
+        in ``time_left``; the rendered ones in that order (``bar`` counts ``per_pair`` steps for each)."""
+        parts: list[_Rendered] = []
+        slowest = PAIR_CHUNK * self.render_s
+        for start in range(0, pairs.numel(), PAIR_CHUNK):
+            if time_left() < CHUNK_MARGIN * slowest:
+                break
+            begun = clock()
+            parts.append(self.render_pairs(pairs[start : start + PAIR_CHUNK].sort().values, top=False))
+            slowest = max(slowest, clock() - begun)
+            if bar is not None:
+                bar.update(parts[-1].pairs.numel() * per_pair)  # type: ignore[attr-defined]
+        if not parts:
+            return _Rendered(pairs[:0], self.data.rsrp[:0])
+        out = _Rendered(torch.cat([p.pairs for p in parts]), torch.cat([p.pred for p in parts]))
+        if all(p.aps_bins is not None for p in parts):
+            out.aps_bins = torch.cat([p.aps_bins for p in parts if p.aps_bins is not None])
+            out.aps_x = torch.cat([p.aps_x for p in parts if p.aps_x is not None])
+        return out
 
     def level_picks(self, per_cell: int | None = None) -> torch.Tensor:
         """Up to ``per_cell`` (default :attr:`level_per_cell`) evenly spaced pairs with reports per cell (sorted)."""
@@ -775,6 +904,8 @@ class _Fit:
             if self.cfg.pair_anchors:
                 resid = resid - anchor[:, None]
             chunk = _PairChunk(batch, anchor, resid, mask)
+            if rendered.aps_bins is not None and rendered.aps_x is not None:
+                chunk.aps_bins, chunk.aps_x = rendered.aps_bins[at], rendered.aps_x[at]
             if with_columns:
                 assert rendered.top_bins is not None and rendered.top_x is not None
                 chunk.top_bins, chunk.top_x = rendered.top_bins[at].long(), rendered.top_x[at]
@@ -1033,13 +1164,30 @@ def _left_over(
     seed: int,
     time_left: TimeLeftFn | None = None,
     clock: Callable[[], float] = time.perf_counter,
+    affordable: Callable[[int], bool] | None = None,
 ) -> PairFallback:
     """WNOMP's APS of the ``later`` pairs (:mod:`.fallback`) when it beats the field with its level on the reports of
     the rendered pairs ``on`` held aside as the posterior's λ holds them (``seed``), WNOMP fitted on their other
-    reports; else no pairs, with the scores (``"level"``, ``"wnomp"``: held-aside MAE [dB]) either way.  With
-    ``time_left``: as many of ``later`` (in their order) as fit (:meth:`_Fit.fallback`)."""
+    reports, or when the field would have to be rendered for every later pair and the budget cannot pay for that
+    (``affordable(count)`` False: the scores then say ``"budget": 1``); else no pairs, with the scores (``"level"``,
+    ``"wnomp"``: held-aside MAE [dB]) either way.  With ``time_left``: as many of ``later`` (in their order) as fit
+    (:meth:`_Fit.fallback`)."""
+    level_err, wnomp_err, count = _held_scores(fit, rendered, on.unique(), levels, seed)
+    scores = {"level": level_err / count, "wnomp": wnomp_err / count} if count else {}
+    use = bool(scores) and scores["wnomp"] < scores["level"]
+    if not use and affordable is not None and not affordable(later.numel()):
+        use, scores = True, {**scores, "budget": 1.0}
+    return fit.fallback(
+        later if use else later[:0], cell_ids, levels, scores, time_left, clock, fallback_solver(fit.cfg)
+    )
+
+
+def _held_scores(
+    fit: _Fit, rendered: _Rendered, pairs: torch.Tensor, levels: torch.Tensor | None, seed: int
+) -> tuple[float, float, int]:
+    """Summed held-aside |error| [dB] of the field with ``levels`` and of WNOMP fitted on the other reports, over the
+    reports of the rendered ``pairs`` held aside as the posterior's λ holds them (``seed``), and their count."""
     d = fit.data
-    pairs = on.unique()
     held = torch.rand(d.rsrp.shape, generator=torch.Generator().manual_seed(seed)) < HOLDOUT
     level_sum = wnomp_sum = 0.0
     count = 0
@@ -1056,11 +1204,7 @@ def _left_over(
         level_err, n = held_mae_db(d.rsrp[part], pred, score)
         wnomp_err, _ = held_mae_db(d.rsrp[part], wnomp, score)
         level_sum, wnomp_sum, count = level_sum + level_err, wnomp_sum + wnomp_err, count + n
-    scores = {"level": level_sum / count, "wnomp": wnomp_sum / count} if count else {}
-    use = bool(scores) and scores["wnomp"] < scores["level"]
-    return fit.fallback(
-        later if use else later[:0], cell_ids, levels, scores, time_left, clock, fallback_solver(fit.cfg)
-    )
+    return level_sum, wnomp_sum, count
 
 
 def fallback_solver(cfg: CorrectionsConfig) -> WNOMPConfig:

@@ -147,10 +147,11 @@ class PairFallback:
         return self.without(self.index[~self.index.isin(index)])
 
     def to_state(self) -> dict[str, object]:
+        narrow = not self.bins.numel() or int(self.bins.max()) < 2**15  # the angle grid's 6 552 bins fit 16 bits
         return {
             "cell_id": torch.as_tensor(self.index.get_level_values(0).to_numpy(np.int64, copy=True)),
             "grid_id": torch.as_tensor(self.index.get_level_values(1).to_numpy(np.int64, copy=True)),
-            "bins": self.bins.to(torch.int32).cpu().clone(),
+            "bins": self.bins.to(torch.int16 if narrow else torch.int32).cpu().clone(),
             "gains": self.gains.float().cpu().clone(),
             "scores": {k: float(v) for k, v in self.scores.items()},
             **({} if self.weight is None else {"weight": self.weight.float().cpu().clone()}),

@@ -438,9 +438,15 @@ class RFLSCM(LSCMModel):
         )
         keys = [(int(c), *np.round(p, 3).tolist()) for c, p in zip(cells, xyz)]
         skip = self.corrections.unrendered(cell_ids, grid_ids)  # answered whole by the corrections: not rendered
+        # the pairs the pass corrected, asked at their own grids' positions: their render at the final weights was kept
+        stored = self.corrections.stored_rows(cell_ids, grid_ids)
+        if grid_xyz is not None and (stored >= 0).any():
+            mine = np.flatnonzero(stored >= 0)
+            own = self.scene.grid_positions(np.asarray(grid_ids).reshape(-1)[mine])
+            stored[mine[np.abs(xyz[mine] - own).max(1) > 1e-3]] = -1
         first: dict[tuple, int] = {}
         for i, key in enumerate(keys):
-            if not skip[i]:
+            if not skip[i] and stored[i] < 0:
                 first.setdefault(key, i)
         todo = sorted(first.values(), key=lambda i: (keys[i][0], i))
         out = torch.zeros(len(keys), self.angle_grid.num_bins, device=self.device)
@@ -451,14 +457,15 @@ class RFLSCM(LSCMModel):
             g = torch.as_tensor(xyz[rows], dtype=torch.float32, device=self.device)
             bins, values = R.output(c, g, self.position)
             rendered[start : start + len(rows)].scatter_add_(1, bins, values)
-        if todo and not skip.any():
+        if todo:
             slot = {keys[i]: j for j, i in enumerate(todo)}
-            out = rendered[torch.as_tensor([slot[k] for k in keys], dtype=torch.long, device=self.device)]
-        elif todo:
-            slot = {keys[i]: j for j, i in enumerate(todo)}
-            answered = np.flatnonzero(~skip)
-            at = torch.as_tensor([slot[keys[i]] for i in answered], dtype=torch.long, device=self.device)
-            out[torch.as_tensor(answered, dtype=torch.long, device=self.device)] = rendered[at]
+            answered = np.flatnonzero(~skip & (stored < 0))
+            src = torch.as_tensor([slot[keys[i]] for i in answered], dtype=torch.long, device=self.device)
+            out[torch.as_tensor(answered, dtype=torch.long, device=self.device)] = rendered[src]
+        if (stored >= 0).any():
+            kept = self.corrections.rendered
+            assert kept is not None
+            out = kept.apply(out, cell_ids, grid_ids)
         out = self.corrections.apply(out, cells, cell_ids, grid_ids) * self.scene.x_ref
         w = self.corrections.unseen_weight
         anchors = self.corrections.anchors
@@ -564,13 +571,13 @@ class RFLSCM(LSCMModel):
         progress: bool = False,
         time_left: TimeLeftFn | None = None,
         clock: Callable[[], float] = time.perf_counter,
-        after_pair_s: float = 0.0,
+        render_rest: bool = False,
         extra_left: TimeLeftFn | None = None,
     ) -> None:
         """After the last step: fit the pair corrections that predictions and the checkpoint carry, once (one
         render of every training pair; ``progress``: a bar).  With ``time_left`` (seconds left on ``clock``, a budget
-        run's) the pass is sized to the time left, each pair it corrects charged ``after_pair_s`` more for the
-        caller's later render of it, and the pairs beyond its least corrected only within ``extra_left`` where that is
+        run's) the pass is sized to the time left, renders the pairs it leaves itself where a caller would render them
+        later (``render_rest``), and corrects the pairs beyond its least only within ``extra_left`` where that is
         given (:func:`~rflscm.models.rflscm.corrections.fit_corrections`)."""
         train = self._training()
         assert self.scene is not None
@@ -586,7 +593,7 @@ class RFLSCM(LSCMModel):
             time_left,
             clock,
             visible=torch.as_tensor(self.scene.visible, device=self.device),
-            after_pair_s=after_pair_s,
+            render_rest=render_rest,
             extra_left=extra_left,
         )
         if self._silence_dbm is not None:
@@ -605,12 +612,14 @@ class RFLSCM(LSCMModel):
             self.corrections.unseen_weight = UNSEEN_WEIGHT
             self.run_info["unseen_blend"] = {"weight": UNSEEN_WEIGHT, "held_out_grids": 0.0, "held_out_pairs": 0.0}
         if cfg.pair_anchors or cfg.pair_posterior:  # per-pair corrections: how many pairs the pass reached
-            fallback, mix = self.corrections.fallback, self.corrections.mix
+            fallback, mix, kept = self.corrections.fallback, self.corrections.mix, self.corrections.rendered
             self.run_info["corrections"] = {
                 "training_pairs": float(int(train.data.observed.any(1).sum())),
                 "corrected_pairs": self.corrections.corrected_pairs(),
                 "wnomp_pairs": float(len(fallback.index)) if fallback is not None else 0.0,
+                "wnomp_by_budget": float(fallback is not None and "budget" in fallback.scores),
                 "mixed_pairs": float(len(mix.index)) if mix is not None else 0.0,
+                "rendered_pairs": float(len(kept.index)) if kept is not None else 0.0,
             }
 
     @torch.no_grad()
@@ -677,7 +686,9 @@ class RFLSCM(LSCMModel):
         )
         pairs = int(train.data.observed.any(1).sum())
         cfg, cells = self.config.corrections, len(self.scene.cell_ids)
-        return PassCost(times.total_s(cfg, pairs), times.render_s, times.least_s(cfg, pairs, cells))
+        renders_all = not (cfg.wnomp_fallback and (cfg.pair_anchors or cfg.pair_posterior)) or times.field_wins
+        every = times.setup_s + pairs * times.render_s  # each pair rendered once, none corrected
+        return PassCost(times.total_s(cfg, pairs), times.render_s, times.least_s(cfg, pairs, cells), renders_all, every)
 
     @torch.no_grad()
     def _render_training(
