@@ -181,9 +181,10 @@ FEW_PASSES = 4.0
 _COMMAND_START: list[float] = []
 
 
-def mark_command_start() -> None:
-    """Remember now as the start of the command being run (:func:`command_start`); the entry point calls it first."""
-    _COMMAND_START[:] = [time.perf_counter()]
+def mark_command_start(at: float | None = None) -> None:
+    """Remember ``at`` (a ``time.perf_counter()`` reading; default now) as the start of the command being run
+    (:func:`command_start`); the entry point calls it first."""
+    _COMMAND_START[:] = [time.perf_counter() if at is None else at]
 
 
 def command_start() -> float:
