@@ -489,8 +489,8 @@ def test_where_the_budget_cannot_render_the_pairs_left_wnomps_aps_answers_them_t
     None
 ):
     """The field here is the truth, so the held-aside choice keeps its level for the pairs the pass leaves, which the
-    pass then renders (``render_rest``). Where the time left cannot render them all, WNOMP's APS answers them instead
-    (the budget's choice, ``scores["budget"]``); where it can, the pass renders them; without ``render_rest`` the
+    pass then renders (``render_rest``). Those the time left cannot render get WNOMP's APS instead (the budget's
+    choice, ``scores["budget"]``), as many as must; where it can render them all, none; without ``render_rest`` the
     choice is the held-aside one whatever the time."""
     pair_data, _, columns_, truth, _, cells, now = fallback_problem()
 
@@ -508,7 +508,7 @@ def test_where_the_budget_cannot_render_the_pairs_left_wnomps_aps_answers_them_t
             time_left=lambda: deadline - now[0], clock=lambda: now[0], visible=visible, render_rest=rest,
         )  # fmt: skip
 
-    ample, short, alone = run(6.0), run(2.0), run(2.0, rest=False)
+    ample, short, alone, some = run(6.0), run(2.0), run(2.0, rest=False), run(4.0)
     assert ample.fallback is not None and not len(ample.fallback.index) and "budget" not in ample.fallback.scores
     assert ample.fallback.scores["level"] < ample.fallback.scores["wnomp"]
     assert ample.rendered is not None and len(ample.rendered.index) == len(cells)
@@ -517,6 +517,10 @@ def test_where_the_budget_cannot_render_the_pairs_left_wnomps_aps_answers_them_t
     assert short.anchors is not None and len(fb.index) + len(short.anchors) == len(cells)
     assert not set(fb.index) & set(short.anchors.index)
     assert alone.fallback is not None and not len(alone.fallback.index)
+    # only as many get WNOMP's APS as the time cannot render: more time, more pairs keep the field
+    assert some.fallback is not None and some.fallback.scores["budget"] == 1.0 and some.rendered is not None
+    assert 0 < len(some.fallback.index) < len(fb.index)
+    assert len(some.fallback.index) + len(some.rendered.index) == len(cells)
 
 
 def test_the_left_over_pairs_are_solved_with_the_wnomp_settings_the_config_gives() -> None:

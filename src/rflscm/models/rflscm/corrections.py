@@ -300,8 +300,8 @@ def fit_corrections(
     ``render_rest``: a caller within the same deadline would render the pairs the pass leaves where no fallback
     answers them (the demo's evaluation): once the held-aside choice keeps the field's level for them (or the fallback
     is off), the pass renders and keeps them itself, on its own clock, and corrects a pair only while the time left
-    still renders every pair left after it; where the time left cannot render them all, WNOMP's APS answers them
-    after all (the budget's choice, ``PairFallback.scores["budget"]``).  ``extra_left``: the time left for the pairs
+    still renders every pair left after it; those its time cannot render get WNOMP's APS after all (the budget's
+    choice, ``PairFallback.scores["budget"]``), as many as must.  ``extra_left``: the time left for the pairs
     corrected beyond the least (the levels' and λ's pairs and the fallback), where ``time_left`` runs past the
     budget's end to keep that least: a pass over its budget corrects no more pairs than its least needs."""
     from tqdm.auto import tqdm
@@ -314,14 +314,14 @@ def fit_corrections(
         return PairCorrections(fit.levels(fit.render_pairs(fit.level_picks(), top=False)))
     fit.keep = True
     corrected = [0]
-    owing = [False]  # the pass renders the pairs it leaves (``render_rest``, and no fallback answers them)
+    owing = [0]  # pairs the pass must render, corrected or not (``render_rest``: those no fallback answers)
     each = [0.0]  # seconds a pair's render takes (measured on the first pairs)
     deadline = time_left
     if time_left is not None and render_rest:
         extra_deadline = extra_left
 
         def owed() -> float:  # the renders of the pairs left, were the next chunk corrected
-            return each[0] * max(pairs.numel() - corrected[0] - PAIR_CHUNK, 0) if owing[0] else 0.0
+            return each[0] * max(owing[0] - corrected[0] - PAIR_CHUNK, 0)
 
         def time_left() -> float:
             assert deadline is not None
@@ -361,11 +361,15 @@ def fit_corrections(
         on = subset if cfg.pair_posterior else first
         to_end = extra_left if extra_left is not None else time_left  # the budget's own end (nothing owed yet)
 
-        def affordable(count: int) -> bool:  # the pass can render ``count`` pairs left over within the budget
-            return not render_rest or each[0] * (count + CHUNK_MARGIN * PAIR_CHUNK) <= to_end()
+        def renderable() -> int:  # how many later pairs the pass can render within the budget, WNOMP's for the rest
+            if not render_rest:
+                return later.numel()
+            room = to_end() - CHUNK_MARGIN * (each[0] * PAIR_CHUNK + fit.solve_s * later.numel())
+            return int(min(max(room / max(each[0] - fit.solve_s, 1e-9), 0.0), later.numel()))
 
-        left_over = _left_over(fit, rendered, on, later, cell_ids, levels, seed, time_left, clock, affordable)
-    owing[0] = render_rest and (left_over is None or not len(left_over.index))  # no fallback answers the pairs left
+        left_over = _left_over(fit, rendered, on, later, cell_ids, levels, seed, time_left, clock, renderable)
+    if render_rest:  # the pairs no fallback answers: rendered by the pass
+        owing[0] = pairs.numel() - (len(left_over.index) if left_over is not None else 0)
     yielded = 0
     beyond = extra_left if extra_left is not None else time_left  # the pairs past the least: within the budget only
     for chunk in fit.corrected_chunks(rendered, later, levels, fitting, beyond, clock, bar, PAIR_CHUNK * render_s):
@@ -385,8 +389,9 @@ def fit_corrections(
         bar.update(chunk.pairs.numel() * (per_pair - 1))
     reached = torch.cat(done) if done else pairs[:0]
     index = _pair_index(data, cell_ids, reached)
-    if owing[0] and deadline is not None:  # the pairs left, rendered and kept with their level only
-        only = fit.render_only(later[~torch.isin(later, reached)], deadline, clock, bar, per_pair)
+    if owing[0] and deadline is not None:  # the pairs left that no fallback answers, rendered with their level only
+        unanswered = later[: later.numel() - (len(left_over.index) if left_over is not None else 0)]
+        only = fit.render_only(unanswered[~torch.isin(unanswered, reached)], deadline, clock, bar, per_pair)
         if only.pairs.numel():
             reached = torch.cat([reached, only.pairs])
             kept.append((only.aps_bins, only.aps_x))
@@ -657,7 +662,8 @@ def _first_pairs(
         sample = _spread(every, FALLBACK_CHUNK)  # spread over the cells, as the fallback's chunks are
         begun = clock()
         fit.solve(sample, fit.data.observed[sample], None, fallback_solver(cfg))
-        safety_net = CHUNK_MARGIN * (clock() - begun) / max(sample.numel(), 1) * (every.numel() - one.numel())
+        fit.solve_s = (clock() - begun) / max(sample.numel(), 1)
+        safety_net = CHUNK_MARGIN * fit.solve_s * (every.numel() - one.numel())
     left = time_left()  # the fallback's time kept, up to half: the levels' pairs keep a quarter of the pass at least
     room = FIRST_SHARE * (left - min(safety_net, FIRST_SHARE * max(left, 0.0)))
     cells = max(one.numel(), 1)
@@ -795,6 +801,8 @@ class _Fit:
     """Keep each render whole (at most :data:`KEPT_BINS` wide): the pass's corrected pairs are not rendered again."""
     render_s: float = 0.0
     """Seconds a pair's render took in the pass (its first pairs'), within a budget."""
+    solve_s: float = 0.0
+    """Seconds a pair's WNOMP solve took in the pass (a spread sample's), within a budget with the fallback on."""
 
     def render_pairs(self, pairs: torch.Tensor, top: bool, bar: object = None) -> _Rendered:
         """Render ``pairs [P]`` (sorted) ``PAIR_CHUNK`` at a time: their predicted reports and, with ``top``, their
@@ -1164,22 +1172,20 @@ def _left_over(
     seed: int,
     time_left: TimeLeftFn | None = None,
     clock: Callable[[], float] = time.perf_counter,
-    affordable: Callable[[int], bool] | None = None,
+    renderable: Callable[[], int] | None = None,
 ) -> PairFallback:
     """WNOMP's APS of the ``later`` pairs (:mod:`.fallback`) when it beats the field with its level on the reports of
     the rendered pairs ``on`` held aside as the posterior's λ holds them (``seed``), WNOMP fitted on their other
-    reports, or when the field would have to be rendered for every later pair and the budget cannot pay for that
-    (``affordable(count)`` False: the scores then say ``"budget": 1``); else no pairs, with the scores (``"level"``,
-    ``"wnomp"``: held-aside MAE [dB]) either way.  With ``time_left``: as many of ``later`` (in their order) as fit
-    (:meth:`_Fit.fallback`)."""
+    reports; else of none, or of those past the first ``renderable()`` in their order, where the field must be
+    rendered and the budget cannot render them all (the scores then say ``"budget": 1``); with the scores
+    (``"level"``, ``"wnomp"``: held-aside MAE [dB]) either way.  With ``time_left``: as many of them (in ``later``'s
+    order) as fit (:meth:`_Fit.fallback`)."""
     level_err, wnomp_err, count = _held_scores(fit, rendered, on.unique(), levels, seed)
     scores = {"level": level_err / count, "wnomp": wnomp_err / count} if count else {}
-    use = bool(scores) and scores["wnomp"] < scores["level"]
-    if not use and affordable is not None and not affordable(later.numel()):
-        use, scores = True, {**scores, "budget": 1.0}
-    return fit.fallback(
-        later if use else later[:0], cell_ids, levels, scores, time_left, clock, fallback_solver(fit.cfg)
-    )
+    answered = later if bool(scores) and scores["wnomp"] < scores["level"] else later[:0]
+    if not answered.numel() and renderable is not None and (first := renderable()) < later.numel():
+        answered, scores = later[first:], {**scores, "budget": 1.0}
+    return fit.fallback(answered, cell_ids, levels, scores, time_left, clock, fallback_solver(fit.cfg))
 
 
 def _held_scores(
