@@ -52,6 +52,67 @@ class APSCacheError(RflscmError):
     """An APS cache file cannot be used: not a cache, damaged, of another source or scenario, or non-finite."""
 
 
+class SparseRowStore:
+    """APS rows by ``(cell_id, grid_id)``, kept sparse in blocks (each as it was added: row offsets, nonzero bins,
+    values), so that a cache of hundreds of thousands of pairs costs its nonzeros and not a tensor object per pair,
+    and is stored and read back with a few vectorised operations per block."""
+
+    def __init__(self, num_bins: int, device: torch.device | str) -> None:
+        self.num_bins, self.device = num_bins, torch.device(device)
+        self._where: dict[tuple[int, int], tuple[int, int]] = {}  # key → (block, row)
+        self._blocks: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (offsets [n+1], bins, values)
+
+    def __len__(self) -> int:
+        return len(self._where)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._where
+
+    def keys(self) -> set[tuple[int, int]]:
+        return set(self._where)
+
+    def add(self, keys: list[tuple[int, int]], rows: torch.Tensor) -> None:
+        """Keep the dense ``rows [len(keys), num_bins]`` as each key's row (a later add of a key replaces it)."""
+        rows = rows.detach()
+        at, bins = torch.nonzero(rows, as_tuple=True)
+        counts = torch.bincount(at, minlength=len(keys))
+        self._add_block(keys, counts, bins, rows[at, bins])
+
+    def add_sparse(self, keys: list[tuple[int, int]], rows: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """Keep ``rows`` (per key: its nonzero bins and their values, as workers answer them)."""
+        counts = torch.as_tensor([len(b) for b, _ in rows], dtype=torch.long)
+        bins = torch.as_tensor(np.concatenate([b for b, _ in rows]) if rows else np.zeros(0), dtype=torch.long)
+        values = torch.as_tensor(np.concatenate([v for _, v in rows]) if rows else np.zeros(0), dtype=torch.float32)
+        self._add_block(keys, counts, bins, values)
+
+    def _add_block(
+        self, keys: list[tuple[int, int]], counts: torch.Tensor, bins: torch.Tensor, values: torch.Tensor
+    ) -> None:
+        offsets = torch.zeros(len(keys) + 1, dtype=torch.long)
+        offsets[1:] = torch.cumsum(counts.cpu(), 0)
+        block = len(self._blocks)
+        small = torch.int16 if self.num_bins < 2**15 else torch.int32
+        self._blocks.append((offsets, bins.to(small).cpu(), values.float().cpu()))
+        for row, key in enumerate(keys):
+            self._where[key] = (block, row)
+
+    def dense(self, keys: list[tuple[int, int]]) -> torch.Tensor:
+        """``[len(keys), num_bins]`` the kept rows of ``keys`` (each must be kept)."""
+        out = torch.zeros(len(keys), self.num_bins)
+        if keys:
+            where = np.array([self._where[k] for k in keys], dtype=np.int64).reshape(-1, 2)
+            for block in np.unique(where[:, 0]):
+                mine = np.flatnonzero(where[:, 0] == block)
+                offsets, bins, values = self._blocks[int(block)]
+                rows = torch.as_tensor(where[mine, 1])
+                start, count = offsets[rows], offsets[rows + 1] - offsets[rows]
+                first = torch.cumsum(count, 0) - count  # each row's first place among the gathered nonzeros
+                flat = torch.arange(int(count.sum())) - torch.repeat_interleave(first - start, count)
+                dst = torch.repeat_interleave(torch.as_tensor(mine), count)
+                out[dst, bins[flat].long()] = values[flat]
+        return out.to(self.device)
+
+
 class APSCache(Predicts):
     """A view of the fitted source ``inner`` that remembers its APS per ``(cell_id, grid_id)``.
 
@@ -61,7 +122,7 @@ class APSCache(Predicts):
 
     def __init__(self, inner: APSSource) -> None:
         self.inner = inner
-        self._rows: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
+        self._rows = SparseRowStore(inner.angle_grid.num_bins, inner.device)
         self._sha256: str | None = None
 
     @staticmethod
@@ -112,14 +173,8 @@ class APSCache(Predicts):
         if todo.size:
             xyz = None if grid_xyz is None else np.asarray(grid_xyz).reshape(-1, 3)[todo]
             rows = self.inner.aps(cell_ids[todo], grid_ids[todo], xyz).detach()
-            for i, row in zip(todo.tolist(), rows, strict=True):
-                bins = torch.nonzero(row).squeeze(1)
-                self._rows[keys[i]] = (bins, row[bins].clone())
-        out = torch.zeros(len(keys), self.angle_grid.num_bins, device=self.device)
-        for j, key in enumerate(keys):
-            bins, values = self._rows[key]
-            out[j, bins.to(self.device)] = values.to(self.device)
-        return out
+            self._rows.add([keys[i] for i in todo.tolist()], rows)
+        return self._rows.dense(keys)
 
     def level_offset_db(
         self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None

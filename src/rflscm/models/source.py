@@ -136,8 +136,9 @@ def checked_aps(
     """``source.aps``, refusing an answer that is not finite and ≥ 0 (never write NaN or drop beams silently); with
     ``scenario``, capped where the source says round 1 could not have reported the pair (:func:`capped_aps`)."""
     x = source.aps(cell_ids, grid_ids, grid_xyz)
-    bad = ~torch.isfinite(x) | (x < 0)
-    if bool(bad.any()):
+    low, high = torch.aminmax(x) if x.numel() else (torch.zeros(()), torch.zeros(()))
+    if not (bool(torch.isfinite(high)) and bool(low >= 0)):  # two reductions (NaN fails both); the mask only then
+        bad = ~torch.isfinite(x) | (x < 0)
         pair = int(torch.nonzero(bad.any(1))[0, 0])
         raise NonFiniteError(
             f"the {source.name} model answered a non-finite or negative APS for (cell {int(cell_ids[pair])}, grid "

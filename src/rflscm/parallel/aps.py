@@ -44,28 +44,26 @@ class FilledAPSCache(APSCache):
         """Store ``rows`` (one per pair of ``call``, in order) as the cache's answer for ``call``'s pairs."""
         if len(rows) != len(call):
             raise RflscmError(f"a worker answered {len(rows)} APS rows for a call of {len(call)} pairs")
-        for cell, grid, (bins, values) in zip(call.cell_ids.tolist(), call.grid_ids.tolist(), rows, strict=True):
-            # copies: Ray hands out read-only views of its object store (torch warns on those), and the cache
-            # outlives the worker's answer
-            self._rows[(cell, grid)] = (
-                torch.tensor(bins, device=self.device),
-                torch.tensor(values, device=self.device),
-            )
+        # concatenated into the store's own tensors: Ray hands out read-only views of its object store (torch warns
+        # on those), and the cache outlives the worker's answer
+        self._rows.add_sparse(list(zip(call.cell_ids.tolist(), call.grid_ids.tolist(), strict=True)), rows)
 
     filled: int = 0  # pairs filled from elsewhere
 
     def known(self) -> set[tuple[int, int]]:
         """The pairs answered so far."""
-        return set(self._rows)
+        return self._rows.keys()
 
 
 def sparse_rows(x: torch.Tensor) -> SparseRows:
     """Rows of an APS ``[num_pairs, num_bins]`` as APSCache keeps them: (nonzero bins, values) per pair."""
-    out = []
-    for row in x.detach():
-        bins = torch.nonzero(row).squeeze(1)
-        out.append((bins.cpu().numpy(), row[bins].clone().cpu().numpy()))
-    return out
+    x = x.detach().cpu()
+    if not x.shape[0]:
+        return []
+    at, bins = torch.nonzero(x, as_tuple=True)
+    values = x[at, bins].numpy()
+    cut = np.cumsum(torch.bincount(at, minlength=x.shape[0]).numpy())[:-1]
+    return list(zip(np.split(bins.numpy(), cut), np.split(values, cut), strict=True))
 
 
 def answer(source: APSSource, tasks: Sequence[Task]) -> list[Answer]:

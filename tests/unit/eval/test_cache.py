@@ -388,3 +388,24 @@ def test_a_cell_with_no_pair_in_the_area_renders_to_an_empty_row_set(fitted) -> 
         cache = ScenarioAPS.render(source, quiet)
         assert not cache.known[0].any() and len(cache.bins[0]) == 0 and cache.aps[0].shape[0] == 0
         assert cache.known[1:].any()
+
+
+def test_the_row_store_gives_back_each_keys_latest_row_whatever_block_and_order() -> None:
+    """Rows added in blocks (dense, or sparse as workers answer them) come back exactly, in any order and with repeats;
+    a key added again answers its latest row; empty rows and an empty block are rows too."""
+    from rflscm.eval.cache import SparseRowStore
+    from rflscm.parallel.aps import sparse_rows
+
+    gen = torch.Generator().manual_seed(0)
+    first = torch.rand(5, 12, generator=gen) * (torch.rand(5, 12, generator=gen) < 0.3)
+    first[2] = 0.0  # a row without a nonzero bin
+    second = torch.rand(3, 12, generator=gen) * (torch.rand(3, 12, generator=gen) < 0.5)
+    store = SparseRowStore(12, "cpu")
+    store.add([(1, g) for g in range(5)], first)
+    store.add_sparse([(2, 0), (1, 4), (2, 1)], sparse_rows(second))  # (1, 4) replaced
+    store.add_sparse([], sparse_rows(second[:0]))
+    assert len(store) == 7 and (1, 4) in store and (3, 0) not in store
+    keys = [(2, 1), (1, 0), (1, 4), (1, 2), (1, 0), (2, 0)]
+    expected = torch.stack([second[2], first[0], second[1], first[2], first[0], second[0]])
+    assert torch.equal(store.dense(keys), expected)
+    assert store.dense([]).shape == (0, 12)
