@@ -93,7 +93,7 @@ class Trainable(Protocol):
         progress: bool = False,
         time_left: Callable[[], float] | None = None,
         clock: Callable[[], float] = ...,
-        after_pair_s: float = 0.0,
+        render_rest: bool = False,
         extra_left: Callable[[], float] | None = None,
     ) -> None: ...
 
@@ -172,7 +172,7 @@ def fit(
     summary["decoder_evals_per_s"] = (model.decoder_evals() - evals0) / max(clock() - time0, 1e-9)
     finish0 = clock()
     time_left = None
-    charge: dict[str, Any] = {}
+    extra: dict[str, Any] = {}
     if deal is not None and deal.cost is not None:
         saving = SAVE_SAFETY * trainer.save_s if checkpoint_path else 0.0
         # the least pass always runs (WNOMP's APS for the pairs it cannot reach): a budget too small for the data
@@ -181,10 +181,10 @@ def fit(
         end = max(budget_end, finish0 + deal.least_s())
         time_left = lambda: end - clock()  # noqa: E731
         if end > budget_end:
-            charge["extra_left"] = lambda: budget_end - clock()
+            extra["extra_left"] = lambda: budget_end - clock()
         if deal.render_rest:  # the pairs the pass leaves to the field's level: rendered by the pass, not the caller
-            charge["render_rest"] = True
-    model.finish_training(progress=progress, time_left=time_left, clock=clock, **charge)
+            extra["render_rest"] = True
+    model.finish_training(progress=progress, time_left=time_left, clock=clock, **extra)
     summary["finish_s"] = clock() - finish0
     summary.update(model.run_info.get("corrections", {}))  # how many training pairs the pass corrected
     summary["total_s"] = clock() - started
