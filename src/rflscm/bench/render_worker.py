@@ -76,6 +76,9 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     model = load_model(args.checkpoint)
     load_s = time.perf_counter() - t0
+    corrections = getattr(model, "corrections", None)
+    if getattr(corrections, "rendered", None) is not None:  # the renderer is timed: not the pass's kept renders
+        corrections.rendered = None
     pairs = np.load(args.pairs)
     names = sorted({k.rsplit("_", 1)[0] for k in pairs.files})
     t0 = time.perf_counter()
