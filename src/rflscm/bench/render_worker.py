@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> None:
     load_s = time.perf_counter() - t0
     corrections = getattr(model, "corrections", None)
     if getattr(corrections, "rendered", None) is not None:  # the renderer is timed: not the pass's kept renders
-        corrections.rendered = None
+        setattr(corrections, "rendered", None)  # noqa: B010 (older code's corrections have no such field)
     pairs = np.load(args.pairs)
     names = sorted({k.rsplit("_", 1)[0] for k in pairs.files})
     t0 = time.perf_counter()

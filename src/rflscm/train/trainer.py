@@ -266,6 +266,10 @@ on the weights trained so far: a render's cost follows HiTAM's refined direction
 APS (114-cell city, field regime: 3.6 ms a pair measured before the first step, 6.6 ms after training), and whether
 the field with its level already predicts held-aside reports better than WNOMP decides which pairs a caller renders
 (docs/DECISIONS.md, "The pass keeps its renders")."""
+REPLAN_MIN_STEPS = 20
+"""The budget is dealt again only once training has taken this many steps (at ``REPLAN_AT`` or later): where loading
+and the first measurement took half the training's share, a second measurement after a step or two would only cost its
+seconds (222 cells: one step, then a measurement of several seconds)."""
 SAVE_SAFETY = 1.5
 """The pass after training leaves this many times the latest checkpoint's writing time for the final checkpoint."""
 
@@ -482,7 +486,7 @@ class Trainer:
             if validated:
                 self.last_val_mae = float(self.model.validation_mae())
             self.elapsed_s = self.clock() - start
-            if self.replan is not None and not self.replanned and self.progress() >= REPLAN_AT:
+            if self._redeal_due():
                 self._redeal(start, bar)
             last = self.finished()
             if last and not validated:  # budget mode: the budget ran out between validations
@@ -507,6 +511,13 @@ class Trainer:
             stop = self.stop_s
             summary.update(budget_s=self.budget_s, train_budget_s=stop, stopped_by_budget=float(self.elapsed_s >= stop))
         return summary
+
+    def _redeal_due(self) -> bool:
+        """Whether to deal the budget again now: once, at ``REPLAN_AT`` of the progress, after ``REPLAN_MIN_STEPS``
+        steps at least (weights barely trained measure as they did before the first step)."""
+        if self.replan is None or self.replanned:
+            return False
+        return self.progress() >= REPLAN_AT and self.step >= REPLAN_MIN_STEPS
 
     def _redeal(self, start: float, bar: Any) -> None:
         """Deal the budget again (:attr:`replan`): the schedule goes on from where it is to 1 at the new stop."""

@@ -213,11 +213,22 @@ def test_the_caller_renders_no_training_pair_and_the_pass_keeps_time_to_render_t
     assert kept == pytest.approx(60.0) and after == pytest.approx(FINISH_SAFETY * (100.0 + 5.0))
 
 
-def test_halfway_the_budget_is_dealt_again_from_a_fresh_measurement_and_the_schedule_goes_on(scenario) -> None:
+def test_halfway_the_budget_is_dealt_again_from_a_fresh_measurement_and_the_schedule_goes_on(
+    scenario, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Before the first step the pass is measured cheap (12 s kept: training's share 88 s); halfway through that share
     it is measured again, dearer (48 s kept): the share becomes 52 s and training stops at the first step past it. The
     schedule never jumps back, and goes on from where it was; where the second measurement is cheaper, training gets
-    the time back."""
+    the time back; before ``REPLAN_MIN_STEPS`` steps nothing is dealt again."""
+    from rflscm.train import trainer
+
+    clock, seen = StepClock(10.0), []
+    model = timed_model(clock, seen)
+    costs = iter([PassCost(10.0, 0.5), PassCost(40.0, 0.5)])
+    model.finish_seconds = lambda clock, c=costs: next(c)  # type: ignore[method-assign]
+    model.finish_training = lambda progress=False, time_left=None, clock=None: None  # type: ignore[method-assign]
+    assert fit(model, scenario, progress=False, budget_s=100.0, clock=clock)["train_budget_s"] == pytest.approx(88.0)
+    monkeypatch.setattr(trainer, "REPLAN_MIN_STEPS", 0)
     for second, stop, steps in ((PassCost(40.0, 0.5), 52.0, 6), (PassCost(0.0, 0.5), 100.0, 10)):
         clock, seen, left = StepClock(10.0), [], []
         model = timed_model(clock, seen)
