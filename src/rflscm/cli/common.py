@@ -220,15 +220,20 @@ def budget_summary(summary: dict[str, float]) -> str | None:
         if pairs is not None and corrected is not None:
             line += f" and corrected {corrected:.0f} of {pairs:.0f} training pairs"
             wnomp = summary.get("wnomp_pairs") or 0.0
+            borrowed = summary.get("borrowed_pairs") or 0.0
             level_only = max((summary.get("rendered_pairs") or 0.0) - corrected, 0.0)
+            by_budget = " (rendering them all did not fit the budget)" if summary.get("budget_choice") else ""
             if corrected < pairs and wnomp:
-                why = (
-                    "the field's level predicted held-aside reports better, but rendering them all did not fit the "
-                    "budget"
-                    if summary.get("wnomp_by_budget")
-                    else "which predicted held-aside reports better than the field's level"
+                line += (
+                    f" ({wnomp:.0f} others get WNOMP's APS of their own reports, which predicted held-aside reports "
+                    f"better{by_budget}: give more `--minutes` to correct them all)"
                 )
-                line += f" ({wnomp:.0f} others get WNOMP's APS of their own reports, {why}: give more `--minutes` to correct them all)"
+            elif corrected < pairs and borrowed:
+                line += (
+                    f" ({borrowed:.0f} others borrow the APS of the nearest rendered grid of their cell with their own "
+                    f"anchor, which predicted held-aside reports better{by_budget}: give more `--minutes` to correct them "
+                    "all)"
+                )
             elif corrected < pairs and level_only:
                 line += (
                     f" ({level_only:.0f} others were rendered with the level correction only: give more `--minutes` "

@@ -83,13 +83,6 @@ class PassCost:
     least_s: float = 0.0
     """Seconds of the least pass a budget must leave: the levels, and WNOMP's APS of every training pair's own
     reports where the pass cannot reach it (the safety net that keeps an under-trained model near WNOMP)."""
-    renders_all: bool = False
-    """Whether the pairs the pass leaves are expected to keep the field with its level, which must then be rendered
-    (by the pass itself where a caller would render them within the same budget): the field with its level predicted
-    held-aside reports better than WNOMP's fit of the others on the measured pairs (so the pass's held-aside choice is
-    likely to keep it), or no WNOMP fallback is switched on."""
-    render_all_s: float = 0.0
-    """Seconds to render every training pair once, none corrected (the pass's render of the pairs it leaves)."""
 
 
 class NonFiniteError(RflscmError):

@@ -178,7 +178,7 @@ def fit(
         # the least pass always runs (WNOMP's APS for the pairs it cannot reach): a budget too small for the data
         # overruns by it rather than leave pairs with an untrained field, and then corrects no pair beyond its least
         budget_end = finish0 + deal.budget_s - deal.fixed_after_s() - trainer.elapsed_s - saving
-        end = max(budget_end, finish0 + deal.least_s())
+        end = max(budget_end, finish0 + least_pass_s(deal.cost))
         time_left = lambda: end - clock()  # noqa: E731
         if end > budget_end:
             extra["extra_left"] = lambda: budget_end - clock()
@@ -197,16 +197,15 @@ def fit(
 
 
 def budget_split(
-    cost: PassCost, budget_s: float, share: float, after_s: float = 0.0, after_fresh: int = 0, render_rest: bool = False
+    cost: PassCost, budget_s: float, share: float, after_s: float = 0.0, after_fresh: int = 0
 ) -> tuple[float, float]:
     """``(after, kept)`` [s] of a ``budget_s`` fit: the time kept for a caller's work after it and for the pass after
     training, each with ``FINISH_SAFETY``.  The caller renders its ``after_fresh`` pairs (without training reports)
     and spends ``after_s`` seconds on other work; it renders no training pair, as the pass keeps the render of each
-    pair it corrects and, with ``render_rest``, renders the pairs it leaves to the field's level itself.  The pass
-    keeps ``share`` of what the caller leaves, at least its least (:func:`least_pass_s`) and at most the whole pass."""
+    pair it corrects and answers the others without one or renders them itself (``render_rest``).  The pass keeps
+    ``share`` of what the caller leaves, at least its least (:func:`least_pass_s`) and at most the whole pass."""
     after = FINISH_SAFETY * (after_fresh * cost.per_pair_s + after_s)
-    least = least_pass_s(cost, render_rest)
-    return after, min(max(FINISH_SAFETY * cost.total_s, least), max(share * (budget_s - after), least))
+    return after, min(FINISH_SAFETY * cost.total_s, max(share * (budget_s - after), least_pass_s(cost)))
 
 
 @dataclass
@@ -227,7 +226,7 @@ class BudgetDeal:
         """The training's share [s] under ``cost`` (kept as :attr:`cost`): the budget less the caller's later work and
         the pass's time, at least ``MIN_TRAIN_SHARE`` of it."""
         self.cost = cost
-        after, kept = budget_split(cost, self.budget_s, self.share, self.after_s, self.after_fresh, self.render_rest)
+        after, kept = budget_split(cost, self.budget_s, self.share, self.after_s, self.after_fresh)
         return max(self.budget_s - after - kept, MIN_TRAIN_SHARE * self.budget_s)
 
     def fixed_after_s(self) -> float:
@@ -235,21 +234,12 @@ class BudgetDeal:
         assert self.cost is not None
         return FINISH_SAFETY * (self.after_fresh * self.cost.per_pair_s + self.after_s)
 
-    def least_s(self) -> float:
-        """The least pass (:func:`least_pass_s`) under the latest cost."""
-        assert self.cost is not None
-        return least_pass_s(self.cost, self.render_rest)
 
-
-def least_pass_s(cost: PassCost, render_rest: bool = False) -> float:
+def least_pass_s(cost: PassCost) -> float:
     """The least time [s] a budget's fit keeps for its pass after training: ``FINISH_SAFETY`` × the model's least
-    pass (the levels and WNOMP's APS of every pair it cannot reach; where the pairs it leaves are expected to keep the
-    field's level and a caller would render them, ``render_rest``, their render instead), whatever the budget: where
-    that does not fit, the fit runs past the budget's end rather than leave pairs with a barely trained field, which
-    is worse than trivial and which a later evaluation must render (docs/DECISIONS.md, "The demo on a 114-cell
-    city")."""
-    if render_rest and cost.renders_all:
-        return FINISH_SAFETY * max(cost.least_s, cost.render_all_s)
+    pass (the levels and WNOMP's APS of every pair it cannot reach), whatever the budget: where that does not fit, the
+    fit runs past the budget's end rather than leave pairs with a barely trained field, which is worse than trivial
+    and which a later evaluation must render (docs/DECISIONS.md, "The demo on a 114-cell city")."""
     return FINISH_SAFETY * cost.least_s
 
 

@@ -489,9 +489,9 @@ def test_where_the_budget_cannot_render_the_pairs_left_wnomps_aps_answers_them_t
     None
 ):
     """The field here is the truth, so the held-aside choice keeps its level for the pairs the pass leaves, which the
-    pass then renders (``render_rest``). Those the time left cannot render get WNOMP's APS instead (the budget's
-    choice, ``scores["budget"]``), as many as must; where it can render them all, none; without ``render_rest`` the
-    choice is the held-aside one whatever the time."""
+    pass then renders (``render_rest``). Where the time left cannot render them all, the better render-free answer takes
+    them (here WNOMP's APS; the budget's choice, ``scores["budget"]``), and the pass corrects what it can; where it can
+    render them all, none; without ``render_rest`` the choice is the held-aside one whatever the time."""
     pair_data, _, columns_, truth, _, cells, now = fallback_problem()
 
     def exact(p: torch.Tensor):  # the true APS, 10 ms a pair
@@ -517,7 +517,7 @@ def test_where_the_budget_cannot_render_the_pairs_left_wnomps_aps_answers_them_t
     assert short.anchors is not None and len(fb.index) + len(short.anchors) == len(cells)
     assert not set(fb.index) & set(short.anchors.index)
     assert alone.fallback is not None and not len(alone.fallback.index)
-    # only as many get WNOMP's APS as the time cannot render: more time, more pairs keep the field
+    # with more time the pass corrects more of them itself: fewer left for WNOMP's APS
     assert some.fallback is not None and some.fallback.scores["budget"] == 1.0 and some.rendered is not None
     assert 0 < len(some.fallback.index) < len(fb.index)
     assert len(some.fallback.index) + len(some.rendered.index) == len(cells)
@@ -863,3 +863,62 @@ def test_a_mix_cut_short_takes_the_missing_pairs_from_the_left_over_solutions() 
     torch.testing.assert_close(aps, torch.tensor([[3.0, 4.0, 5.0, 0, 0, 0, 0, 0]]))
     assert _with_solved(mix, None, index([1, 2, 3])) is mix
     assert _with_solved(mix, solved, index([1, 2])) is mix
+
+
+def test_pairs_left_over_borrow_the_nearest_rendered_pairs_aps_with_their_own_anchor_where_that_predicts_best() -> None:
+    """Each cell's pairs share one angular shape and differ in level; the field renders that shape at a wrong level per
+    pair. The held-aside choice for the pairs the pass leaves then prefers the nearest rendered pair's APS with the
+    pair's own anchor (the shape is right, the reports pin the level) over the field's level and over WNOMP; such a
+    pair's corrected APS is its neighbour's kept render with its own anchor, no render of its own, and predicts a
+    changed antenna nearly as the truth does; the train line's count says so."""
+    gen = torch.Generator().manual_seed(3)
+    pairs, beams, bins = 400, 12, 30
+    a = torch.rand(2, beams, bins, generator=gen) ** 3
+    a2 = torch.rand(2, beams, bins, generator=gen) ** 3  # the changed antennas'
+    cells = torch.arange(pairs) % 2
+    shape = torch.rand(2, bins, generator=gen) ** 4
+    level = 10 ** (torch.randn(pairs, generator=gen) / 10 * 8)  # ±8 dB between pairs
+    truth = shape[cells] * level[:, None]
+    field = shape[cells] * 10 ** (torch.randn(pairs, generator=gen) / 10 * 6)[:, None]  # the wrong level per pair
+    now = [0.0]
+
+    def render(p: torch.Tensor):
+        now[0] += 0.01 * p.numel()
+        b = torch.arange(bins).expand(len(p), bins)
+        return b, field[p], torch.einsum("bmk,bk->bm", a[cells[p]], field[p])
+
+    def columns(c: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return torch.gather(a[c], 2, b[:, None, :].expand(-1, beams, -1))
+
+    xyz = torch.zeros(pairs, 3)
+    xyz[:, 0] = torch.arange(pairs, dtype=torch.float32) * 5.0  # a street: neighbours 10 m apart within a cell
+    data_ = PairData(
+        cell_index=cells, grid_ids=np.arange(pairs, dtype=np.int64), grid_xyz=xyz,
+        rsrp=torch.einsum("bmn,bn->bm", a[cells], truth), beam_mask=torch.ones(pairs, beams, dtype=torch.bool),
+        val_mask=torch.zeros(pairs, beams, dtype=torch.bool), x_scale=torch.ones(pairs),
+        bound=torch.full((pairs, beams), float("nan")), val_pairs=torch.zeros(0, dtype=torch.long),
+    )  # fmt: skip
+    ids = np.array([7, 8])
+    fitted = fit_corrections(
+        CorrectionsConfig(pair_posterior=False), data_, 6, ids, render, columns, 0,
+        time_left=lambda: 2.0 - now[0], clock=lambda: now[0], visible=torch.ones(2, bins, dtype=torch.bool),
+    )  # fmt: skip
+    fb = fitted.fallback
+    assert fb is not None and not len(fb.index)
+    assert fb.scores["borrow"] < min(fb.scores["level"], fb.scores["wnomp"])
+    assert fitted.borrowed > 0 and fitted.anchors is not None and fitted.rendered is not None
+    assert len(fitted.anchors) == len(fitted.rendered.index) == pairs  # every pair: its own render or a borrowed one
+    assert fitted.corrected_pairs() == pairs - fitted.borrowed < pairs
+    borrowed = fitted.anchors.index[int(fitted.corrected_pairs()) :]  # the corrected pairs' anchors come first
+    rows = np.array([g for _, g in borrowed])
+    c = cells.numpy()[rows]
+    stored = fitted.rendered.apply(torch.zeros(len(rows), bins), ids[c], rows)
+    out = fitted.apply(stored, c, ids[c], rows)
+
+    def mae(x: torch.Tensor) -> float:
+        pred = torch.einsum("bmn,bn->bm", a2[c], x)
+        true = torch.einsum("bmn,bn->bm", a2[c], truth[rows])
+        return float((10.0 * torch.log10(pred.clamp_min(1e-12) / true)).abs().mean())
+
+    level_only = PairCorrections(levels=fitted.levels).apply(field[rows], c, ids[c], rows)
+    assert mae(out) < 0.5 < mae(level_only)

@@ -206,3 +206,38 @@ def test_coarse_model_is_frozen_once_alpha_is_one_and_its_selection_is_remembere
 def test_iterative_models_are_trained_by_the_trainer_not_by_model_fit(scenario) -> None:
     with pytest.raises(UnsupportedError, match="trained iteratively"):
         RFLSCM.build(tiny_config(), GRID).fit(scenario, progress=False)
+
+
+def test_the_pairs_the_pass_corrected_are_answered_from_its_kept_renders_not_rendered_again(
+    tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After training every corrected pair's render is kept: ``aps`` answers those pairs without a render, the same
+    (to float rounding) as rendering them again, through a save too; a pair asked at another position than its grid's
+    is rendered there."""
+    from rflscm.models.rflscm.renderer import APSRenderer
+
+    scenario = load_scenario(tiny_scenario(tmp_path / "tiny", seed=0))
+    model = RFLSCM.build(tiny_config(), AngleGrid.full_sphere(10, 12))
+    fit(model, scenario, progress=False)
+    kept = model.corrections.rendered
+    assert kept is not None and len(kept.index) == model.corrections.corrected_pairs() > 0
+    cells = kept.index.get_level_values(0).to_numpy()
+    grids = kept.index.get_level_values(1).to_numpy()
+    calls: list[int] = []
+    output = APSRenderer.output
+
+    def counted(self, c, g, position):  # type: ignore[no-untyped-def]
+        calls.append(len(c))
+        return output(self, c, g, position)
+
+    monkeypatch.setattr(APSRenderer, "output", counted)
+    stored = model.aps(cells, grids)
+    assert calls == []
+    xyz = scenario.grids.set_index("grid_id").loc[grids, ["x", "y", "z"]].to_numpy()
+    assert torch.equal(model.aps(cells, grids, xyz), stored) and calls == []  # their own positions
+    moved = model.aps(cells[:2], grids[:2], xyz[:2] + np.array([60.0, 40.0, 0.0]))
+    assert sum(calls) == 2 and not torch.allclose(moved, stored[:2], rtol=1e-3, atol=0.0)
+    loaded = load_model(model.save(tmp_path / "m.ckpt"), scenario)
+    assert torch.equal(loaded.aps(cells, grids), stored)
+    model.corrections.rendered = None  # the same pairs rendered again
+    torch.testing.assert_close(model.aps(cells, grids), stored, rtol=1e-4, atol=1e-12)

@@ -188,28 +188,20 @@ def test_the_pass_keeps_its_least_and_training_its_share_when_the_budget_is_shor
     assert left == [pytest.approx(1.2 * 20.0)]  # the least pass, past the budget's end
 
 
-def test_the_caller_renders_no_training_pair_and_the_pass_keeps_time_to_render_those_it_leaves() -> None:
-    """A pair the pass corrects keeps its render, a pair it leaves is answered by WNOMP's APS or, where the field is
-    expected to win the held-aside choice (``renders_all``) and a caller would render it (``render_rest``), rendered by
-    the pass itself: so the caller's reserve counts only its pairs without training reports and its other work, and the
-    pass's least becomes the render of every pair where it must render those it leaves."""
-    from rflscm.train.trainer import FINISH_SAFETY, budget_split, least_pass_s
+def test_the_caller_renders_no_training_pair_only_its_pairs_without_training_reports() -> None:
+    """A pair the pass corrects keeps its render and a pair it leaves is answered without the caller's render (WNOMP's
+    APS, a borrowed APS, or the pass's own render), so the caller's reserve counts only its pairs without training
+    reports and its other seconds."""
+    from rflscm.train.trainer import FINISH_SAFETY, budget_split
 
-    cost = PassCost(50.0, 0.5, 20.0, render_all_s=40.0)
+    cost = PassCost(50.0, 0.5, 20.0)
     # nothing after the fit: the pass keeps its share of the budget (half of 100 s: less than 1.2 × 50)
     assert budget_split(cost, 100.0, 0.5) == (0.0, pytest.approx(50.0))
-    assert budget_split(cost, 100.0, 0.5, render_rest=True) == (0.0, pytest.approx(50.0))
-    # the field expected to win: a pass that renders what it leaves keeps at least every pair's render (1.2 × 40 s)
-    every = dataclasses.replace(cost, renders_all=True)
-    assert least_pass_s(every) == pytest.approx(FINISH_SAFETY * 20.0)
-    assert least_pass_s(every, render_rest=True) == pytest.approx(FINISH_SAFETY * 40.0)
-    after, kept = budget_split(every, 100.0, 0.5, after_s=30.0, render_rest=True)
-    assert after == pytest.approx(36.0) and kept == pytest.approx(48.0)  # half of the 64 s left is less than 48
     # pairs without training data are always rendered by the caller: 1.2 × 200 × 0.5 = 120 s, the pass keeps its least
     after, kept = budget_split(cost, 100.0, 0.5, after_fresh=200)
     assert after == pytest.approx(120.0) and kept == pytest.approx(FINISH_SAFETY * cost.least_s)
     # an ample budget: the whole pass, and the caller's renders and other work
-    after, kept = budget_split(every, 1000.0, 0.5, after_s=5.0, after_fresh=200, render_rest=True)
+    after, kept = budget_split(cost, 1000.0, 0.5, after_s=5.0, after_fresh=200)
     assert kept == pytest.approx(60.0) and after == pytest.approx(FINISH_SAFETY * (100.0 + 5.0))
 
 
@@ -290,8 +282,8 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
 
 def test_work_after_the_fit_is_kept_out_of_the_budget(scenario) -> None:
     """``after_s`` seconds and the renders of ``after_fresh`` pairs are kept free (×1.2) whatever the pass does; a
-    caller's ``after_pairs`` (with training reports) ask the pass to render the pairs it leaves itself
-    (``render_rest``), whose least is then every pair's render where the field is expected to answer them."""
+    caller's ``after_pairs`` (with training reports) cost no reserve but ask the pass to render the pairs it leaves
+    itself (``render_rest``) where no render-free answer serves them."""
     clock, seen, left, rest = StepClock(10.0), [], [], []
     model = timed_model(clock, seen)
 
@@ -300,14 +292,11 @@ def test_work_after_the_fit_is_kept_out_of_the_budget(scenario) -> None:
         rest.append(render_rest)
 
     model.finish_training = finish  # type: ignore[method-assign]
-    for renders_all, stop, least in ((True, 46.0, 48.0), (False, 82.0, 1.2)):
-        model.finish_seconds = lambda clock, r=renders_all: PassCost(10.0, 0.5, 1.0, r, 40.0)  # type: ignore[method-assign]
-        left.clear()
-        clock.now = 0.0
-        summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_pairs=20, after_s=5.0)
-        # kept after the fit: 1.2 × 5 = 6 s; for the pass 1.2 × 10 = 12 s, or its least 1.2 × 40 = 48 s
-        assert summary["train_budget_s"] == pytest.approx(stop) and rest[-1] is True
-        assert left == [pytest.approx(max(100.0 - 6.0 - summary["train_time_s"], least))]
+    model.finish_seconds = lambda clock: PassCost(10.0, 0.5, 1.0)  # type: ignore[method-assign]
+    summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_pairs=20, after_s=5.0)
+    # kept after the fit: 1.2 × 5 = 6 s; for the pass 1.2 × 10 = 12 s: training stops at 82 s (9 steps)
+    assert summary["train_budget_s"] == pytest.approx(82.0) and rest[-1] is True
+    assert left == [pytest.approx(max(100.0 - 6.0 - summary["train_time_s"], 1.2))]
     left.clear()
     clock.now = 0.0
     fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_fresh=20, after_s=5.0)

@@ -39,6 +39,7 @@ import torch
 
 from rflscm.errors import CheckpointError
 from rflscm.models.pairs import PairData
+from rflscm.models.rflscm.borrow import borrowed_reports, nearest_of_cell, own_anchor
 from rflscm.models.rflscm.config import CorrectionsConfig
 from rflscm.models.rflscm.fallback import (
     CLIP_DB,
@@ -174,7 +175,10 @@ class PairCorrections:
     rendered: PairFallback | None = None
     """The field's own APS (normalised, before any correction) of the pairs the pass rendered and corrected, as it
     rendered them at the final weights, so that no later prediction renders them again (:meth:`stored_rows`); None
-    where the render is too wide to keep (HiTAM's warm-up: every bin) and in checkpoints written before it."""
+    where the render is too wide to keep (HiTAM's warm-up: every bin) and in checkpoints written before it.  A pair
+    that borrowed its APS (:mod:`.borrow`) holds the borrowed row here and its own anchor in :attr:`anchors`."""
+    borrowed: int = 0
+    """How many of the pairs in :attr:`anchors` borrowed their APS from a rendered neighbour (not corrected)."""
 
     def mix_for(self, beam_type: str) -> PairFallback | None:
         """The dB mix of ``beam_type``'s predictions (:attr:`mix_csi` for CSI-RS where there is one, else :attr:`mix`)."""
@@ -214,9 +218,9 @@ class PairCorrections:
         return self.fallback.rows(cell_ids, grid_ids) >= 0
 
     def corrected_pairs(self) -> float:
-        """How many training pairs carry their own correction (an anchor, or else a posterior)."""
+        """How many training pairs carry their own correction (an anchor, or else a posterior) on their own render."""
         if self.anchors is not None:
-            return float(len(self.anchors))
+            return float(len(self.anchors) - self.borrowed)
         return float(len(self.posterior.index)) if self.posterior is not None else 0.0
 
     def level_offset_db(self, cell_index: np.ndarray, beam_type: str) -> np.ndarray | None:
@@ -238,6 +242,7 @@ class PairCorrections:
             "censor": self.censor.to_state() if self.censor is not None else None,
             "mix_csi": self.mix_csi.to_state() if self.mix_csi is not None else None,
             "rendered": self.rendered.to_state() if self.rendered is not None else None,
+            "borrowed": torch.tensor(int(self.borrowed), dtype=torch.int64),
         }
 
     @classmethod
@@ -271,6 +276,7 @@ class PairCorrections:
             RoundOneCensor.from_state(state.get("censor")),
             mix_csi,
             PairFallback.from_state(state.get("rendered"), num_bins, "rendered APS of the corrected pairs"),
+            _count(state.get("borrowed")),
         )
 
 
@@ -355,20 +361,17 @@ def fit_corrections(
     fitting = cfg.pair_posterior and plan.fits()
     done, anchors, gains, bins_of, bases, mixed, kept = [], [], [], [], [], [], []
     later = _later_pairs(pairs, first, seed)
-    left_over = None
+    left_over, choice = None, "level"
     if time_left is not None and cfg.wnomp_fallback and visible is not None and later.numel():
         # solved now for every later pair (no render: ~0.3 ms a pair), dropped below for the pairs the pass reaches
         on = subset if cfg.pair_posterior else first
         to_end = extra_left if extra_left is not None else time_left  # the budget's own end (nothing owed yet)
 
-        def renderable() -> int:  # how many later pairs the pass can render within the budget, WNOMP's for the rest
-            if not render_rest:
-                return later.numel()
-            room = to_end() - CHUNK_MARGIN * (each[0] * PAIR_CHUNK + fit.solve_s * later.numel())
-            return int(min(max(room / max(each[0] - fit.solve_s, 1e-9), 0.0), later.numel()))
+        def affordable(count: int) -> bool:  # the pass can render ``count`` pairs left over within the budget
+            return not render_rest or each[0] * (count + CHUNK_MARGIN * PAIR_CHUNK) <= to_end()
 
-        left_over = _left_over(fit, rendered, on, later, cell_ids, levels, seed, time_left, clock, renderable)
-    if render_rest:  # the pairs no fallback answers: rendered by the pass
+        left_over, choice = _left_over(fit, rendered, on, later, cell_ids, levels, seed, time_left, clock, affordable)
+    if render_rest and choice != "borrow":  # the pairs no fallback answers: rendered by the pass
         owing[0] = pairs.numel() - (len(left_over.index) if left_over is not None else 0)
     yielded = 0
     beyond = extra_left if extra_left is not None else time_left  # the pairs past the least: within the budget only
@@ -389,12 +392,27 @@ def fit_corrections(
         bar.update(chunk.pairs.numel() * (per_pair - 1))
     reached = torch.cat(done) if done else pairs[:0]
     index = _pair_index(data, cell_ids, reached)
-    if owing[0] and deadline is not None:  # the pairs left that no fallback answers, rendered with their level only
-        unanswered = later[: later.numel() - (len(left_over.index) if left_over is not None else 0)]
-        only = fit.render_only(unanswered[~torch.isin(unanswered, reached)], deadline, clock, bar, per_pair)
+    left = later[~torch.isin(later, reached)]
+    if left_over is not None and len(left_over.index):
+        left = left[~torch.as_tensor(_pair_index(data, cell_ids, left).isin(left_over.index), device=left.device)]
+    borrowed = pairs[:0]
+    if choice == "borrow" and left.numel():  # the pairs left: the nearest rendered pair's APS, their own anchor
+        sources = _Rendered(reached, data.rsrp[:0])
+        if all(b is not None for b, _ in kept) and kept:
+            sources.aps_bins = torch.cat([b for b, _ in kept if b is not None])
+            sources.aps_x = torch.cat([x for _, x in kept if x is not None])
+            level_db = _level_db(fit, levels, left)
+            _, source, anchor, found = _borrowed(fit, sources, left, data.observed[left], level_db)
+            at = source[found]
+            kept.append((sources.aps_bins[at], sources.aps_x[at]))
+            borrowed = left[found]
+            anchors.append(anchor[found])
+            reached, index = torch.cat([reached, borrowed]), index.append(_pair_index(data, cell_ids, borrowed))
+    elif owing[0] and deadline is not None:  # the pairs left that no fallback answers, rendered with their level only
+        only = fit.render_only(left, deadline, clock, bar, per_pair)
         if only.pairs.numel():
-            reached = torch.cat([reached, only.pairs])
             kept.append((only.aps_bins, only.aps_x))
+            reached = torch.cat([reached, only.pairs])
     bar.close()
     renders = _kept_renders(_pair_index(data, cell_ids, reached), kept)
     median = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)
@@ -403,7 +421,7 @@ def fit_corrections(
     if left_over is not None:
         left_over = left_over.without(index)
     if not cfg.pair_posterior:
-        return PairCorrections(levels, anchor_series, None, left_over, rendered=renders)
+        return PairCorrections(levels, anchor_series, None, left_over, rendered=renders, borrowed=int(borrowed.numel()))
     if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
         empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
         posterior = PairPosterior(
@@ -415,7 +433,9 @@ def fit_corrections(
             plan.atom_scores,
             plan.groups,
         )
-        return PairCorrections(levels, anchor_series, posterior, left_over, rendered=renders)
+        return PairCorrections(
+            levels, anchor_series, posterior, left_over, rendered=renders, borrowed=int(borrowed.numel())
+        )
     # a chunk's width is the field's bins and the most WNOMP atoms of its pairs' groups: chunks differ
     gain_db = _widened(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
     with_base = [b if b is not None else torch.zeros_like(g) for b, g in zip(bases, gains, strict=True)]
@@ -453,7 +473,14 @@ def fit_corrections(
     if mix_csi is None and mixes.get("ssb") is not None:  # CSI-RS chose no mix: not SSB's either
         mix_csi = _no_mix()
     return PairCorrections(
-        levels, anchor_series, posterior, left_over, mix=mixes.get("ssb"), mix_csi=mix_csi, rendered=renders
+        levels,
+        anchor_series,
+        posterior,
+        left_over,
+        mix=mixes.get("ssb"),
+        mix_csi=mix_csi,
+        rendered=renders,
+        borrowed=int(borrowed.numel()),
     )
 
 
@@ -534,9 +561,6 @@ class PassTimes:
     fit_s: float
     solve_s: float = 0.0
     """Per pair, WNOMP's solve of its own reports (the fallback of a pair the pass does not reach)."""
-    field_wins: bool = True
-    """On the measured pairs' held-aside reports the field with one level per beam type predicted better than WNOMP
-    fitted on the others (as the pass chooses for the pairs it leaves; always True without the fallback)."""
 
     def total_s(self, cfg: CorrectionsConfig, pairs: int) -> float:
         """The whole pass over ``pairs`` pairs with reports: setup, each pair once, and the λ (and atoms) choice:
@@ -583,7 +607,7 @@ def measure_pass(
     atoms = max(WNOMP_ATOMS) if cfg.pair_posterior and cfg.wnomp_atoms and visible is not None else 0
     fit.plan = _Plan.uniform(atoms, 0, LAMBDAS[0])
     t0 = clock()
-    spread = fit.render_pairs(first, top=cfg.pair_posterior)
+    fit.render_pairs(first, top=cfg.pair_posterior)
     t1 = clock()
     rendered = fit.render_pairs(second, top=cfg.pair_posterior)
     t2 = clock()
@@ -596,31 +620,11 @@ def measure_pass(
     if cfg.wnomp_fallback:
         fit.solve(sample, data.observed[sample], None, fallback_solver(cfg))
     t5 = clock()
-    field_wins = True
-    if cfg.wnomp_fallback and visible is not None:  # which the pass will choose for the pairs it leaves, probed
-        both = _merged(spread, rendered.without(first))
-        level_err, wnomp_err, count = _held_scores(fit, both, both.pairs, _one_level(fit, both), 0)
-        field_wins = count > 0 and level_err <= wnomp_err
     n_first, n_second = first.numel(), second.numel()
     cells_first = int(data.cell_index[first].unique().numel())
     setup = max(0.0, (t1 - t0) - (t2 - t1) * n_first / n_second) * num_cells / max(cells_first, 1)
     render_s, prep_s, fit_s = ((b - a) / n_second for a, b in ((t1, t2), (t2, t3), (t3, t4)))
-    return PassTimes(setup, render_s, prep_s, fit_s, (t5 - t4) / sample.numel(), field_wins)
-
-
-def _one_level(fit: _Fit, rendered: _Rendered) -> torch.Tensor:
-    """``[C, 2]`` one level [dB] per beam type for every cell: the median (measured − predicted) over the reports of
-    the ``rendered`` pairs (0 for a type without any)."""
-    d = fit.data
-    resid = 10.0 * torch.log10(d.rsrp[rendered.pairs] / rendered.pred.clamp_min(1e-30))
-    is_csi = torch.arange(resid.shape[1], device=resid.device) >= fit.num_ssb
-    observed = d.observed[rendered.pairs]
-    levels = torch.zeros(fit.num_cells, 2, device=resid.device)
-    for beam_type, of_type in enumerate((~is_csi, is_csi)):
-        values = resid[observed & of_type[None]]
-        if values.numel():
-            levels[:, beam_type] = float(np.median(values.cpu().double().numpy()))
-    return levels
+    return PassTimes(setup, render_s, prep_s, fit_s, (t5 - t4) / sample.numel())
 
 
 def _spread(pairs: torch.Tensor, count: int) -> torch.Tensor:
@@ -730,11 +734,6 @@ class _Rendered:
     """``[P, K]`` the whole sparse APS's bins (int32) where the pass keeps it (:data:`KEPT_BINS`), else None."""
     aps_x: torch.Tensor | None = None
     """``[P, K]`` its values (normalised)."""
-
-    def without(self, pairs: torch.Tensor) -> _Rendered:
-        """The same without the rows of ``pairs`` (the reports only: a probe's view)."""
-        keep = ~torch.isin(self.pairs, pairs)
-        return _Rendered(self.pairs[keep], self.pred[keep])
 
     def rows_of(self, pairs: torch.Tensor) -> torch.Tensor:
         """Rows of ``pairs`` (each one of :attr:`pairs`)."""
@@ -1172,45 +1171,86 @@ def _left_over(
     seed: int,
     time_left: TimeLeftFn | None = None,
     clock: Callable[[], float] = time.perf_counter,
-    renderable: Callable[[], int] | None = None,
-) -> PairFallback:
-    """WNOMP's APS of the ``later`` pairs (:mod:`.fallback`) when it beats the field with its level on the reports of
-    the rendered pairs ``on`` held aside as the posterior's λ holds them (``seed``), WNOMP fitted on their other
-    reports; else of none, or of those past the first ``renderable()`` in their order, where the field must be
-    rendered and the budget cannot render them all (the scores then say ``"budget": 1``); with the scores
-    (``"level"``, ``"wnomp"``: held-aside MAE [dB]) either way.  With ``time_left``: as many of them (in ``later``'s
-    order) as fit (:meth:`_Fit.fallback`)."""
-    level_err, wnomp_err, count = _held_scores(fit, rendered, on.unique(), levels, seed)
-    scores = {"level": level_err / count, "wnomp": wnomp_err / count} if count else {}
-    answered = later if bool(scores) and scores["wnomp"] < scores["level"] else later[:0]
-    if not answered.numel() and renderable is not None and (first := renderable()) < later.numel():
-        answered, scores = later[first:], {**scores, "budget": 1.0}
-    return fit.fallback(answered, cell_ids, levels, scores, time_left, clock, fallback_solver(fit.cfg))
+    affordable: Callable[[int], bool] | None = None,
+) -> tuple[PairFallback, str]:
+    """What answers the ``later`` pairs the pass may leave, and WNOMP's APS of them where that is the answer
+    (:mod:`.fallback`): of the field with its level (``"level"``: rendered by whoever asks), WNOMP fitted on their
+    reports (``"wnomp"``) and the APS of the nearest rendered pair of the cell with the pair's own anchor (``"borrow"``,
+    :mod:`.borrow`: no render), the one that predicts the reports of the rendered pairs ``on`` held aside as the
+    posterior's λ holds them (``seed``) best; where that is the field's level but ``affordable(len(later))`` says
+    the pairs could not all be rendered within the budget, the better of the other two (the scores then say
+    ``"budget": 1``).  Returns ``(WNOMP's APS of the pairs it answers, the choice)``, the scores (held-aside MAE [dB])
+    kept in the first; with ``time_left``, as many of ``later`` (in their order) as fit (:meth:`_Fit.fallback`)."""
+    errors, count = _held_scores(fit, rendered, on.unique(), levels, seed)
+    scores = {name: err / count for name, err in errors.items()} if count else {}
+    choice = min(scores, key=lambda name: scores[name]) if scores else "level"
+    if choice == "level" and affordable is not None and not affordable(later.numel()):
+        choice = min(("wnomp", "borrow"), key=lambda name: scores.get(name, math.inf))
+        scores = {**scores, "budget": 1.0}
+    answered = later if choice == "wnomp" else later[:0]
+    return fit.fallback(answered, cell_ids, levels, scores, time_left, clock, fallback_solver(fit.cfg)), choice
 
 
 def _held_scores(
     fit: _Fit, rendered: _Rendered, pairs: torch.Tensor, levels: torch.Tensor | None, seed: int
-) -> tuple[float, float, int]:
-    """Summed held-aside |error| [dB] of the field with ``levels`` and of WNOMP fitted on the other reports, over the
-    reports of the rendered ``pairs`` held aside as the posterior's λ holds them (``seed``), and their count."""
+) -> tuple[dict[str, float], int]:
+    """Summed held-aside |error| [dB] per answer a left-over pair may get (``"level"``: the field with ``levels``;
+    ``"wnomp"``: WNOMP fitted on the other reports; ``"borrow"``: the nearest other rendered pair's APS of the cell
+    with the anchor of the other reports, where ``rendered`` kept its renders), over the reports of the rendered
+    ``pairs`` held aside as the posterior's λ holds them (``seed``), and their count."""
     d = fit.data
     held = torch.rand(d.rsrp.shape, generator=torch.Generator().manual_seed(seed)) < HOLDOUT
-    level_sum = wnomp_sum = 0.0
+    sums = {"level": 0.0, "wnomp": 0.0, **({"borrow": 0.0} if rendered.aps_bins is not None else {})}
     count = 0
     for start in range(0, pairs.numel(), FALLBACK_CHUNK):
         part = pairs[start : start + FALLBACK_CHUNK]
         cells, observed = d.cell_index[part], d.observed[part]
         score = observed & held[part.cpu()].to(observed.device)
-        pred = rendered.pred[rendered.rows_of(part)]
-        if levels is not None:
-            beam_type = (torch.arange(pred.shape[1], device=pred.device) >= fit.num_ssb).long()
-            pred = pred * torch.pow(10.0, levels[cells][:, beam_type] / 10.0)
+        level_db = _level_db(fit, levels, part)
+        pred = rendered.pred[rendered.rows_of(part)] * torch.pow(10.0, level_db / 10.0)
         bins, gains = fit.solve(part, observed & ~score, levels, fallback_solver(fit.cfg))
-        wnomp = predicted_reports(fit.columns, cells, bins, gains)
-        level_err, n = held_mae_db(d.rsrp[part], pred, score)
-        wnomp_err, _ = held_mae_db(d.rsrp[part], wnomp, score)
-        level_sum, wnomp_sum, count = level_sum + level_err, wnomp_sum + wnomp_err, count + n
-    return level_sum, wnomp_sum, count
+        answers = {"level": pred, "wnomp": predicted_reports(fit.columns, cells, bins, gains)}
+        if "borrow" in sums:
+            answers["borrow"] = _borrowed(fit, rendered, part, observed & ~score, level_db, fallback=pred)[0]
+        for name, predicted in answers.items():
+            err, n = held_mae_db(d.rsrp[part], predicted, score)
+            sums[name] += err
+        count += n
+    return sums, count
+
+
+def _level_db(fit: _Fit, levels: torch.Tensor | None, pairs: torch.Tensor) -> torch.Tensor:
+    """``[P, M]`` [dB] each report's level correction (its cell's, per beam type; 0 without levels)."""
+    d = fit.data
+    if levels is None:
+        return torch.zeros_like(d.rsrp[pairs])
+    beam_type = (torch.arange(d.rsrp.shape[1], device=pairs.device) >= fit.num_ssb).long()
+    return levels[d.cell_index[pairs]][:, beam_type]
+
+
+def _borrowed(
+    fit: _Fit,
+    rendered: _Rendered,
+    targets: torch.Tensor,
+    mask: torch.Tensor,
+    level_db: torch.Tensor,
+    fallback: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The ``targets``' reports predicted from the nearest other pair of their cell that ``rendered`` holds (its kept
+    APS, :func:`~rflscm.models.rflscm.borrow.nearest_of_cell`) with each target's level ``level_db [T, M]`` and its own
+    anchor over its ``mask``-ed reports: ``(predicted [T, M], source rows [T] (−1: none), anchor [T] [dB], found [T])``;
+    a target without a source keeps ``fallback``'s row (else 0)."""
+    assert rendered.aps_bins is not None and rendered.aps_x is not None
+    d = fit.data
+    source = nearest_of_cell(d, rendered.pairs, targets)
+    found = source >= 0
+    at = source.clamp_min(0)
+    raw = borrowed_reports(fit.columns, d, targets, rendered.aps_bins[at], rendered.aps_x[at])
+    anchor = own_anchor(d.rsrp[targets], raw, mask & found[:, None], level_db)
+    predicted = raw * torch.pow(10.0, (level_db + anchor[:, None]) / 10.0)
+    if fallback is not None:
+        predicted = torch.where(found[:, None], predicted, fallback)
+    return predicted, source, anchor, found
 
 
 def fallback_solver(cfg: CorrectionsConfig) -> WNOMPConfig:
@@ -1331,6 +1371,19 @@ def _with_solved(mix: PairFallback, solved: PairFallback | None, wanted: pd.Mult
     bins = _widened([mix.bins, solved.bins[take].to(mix.bins.dtype)], none=-1)
     gains = _widened([mix.gains, solved.gains[take].to(mix.gains.dtype)])
     return PairFallback(mix.index.append(solved.index[rows]), bins, gains, mix.scores)
+
+
+def _count(value: object) -> int:
+    """A checkpointed count (absent: 0); a damaged one is a one-line :class:`CheckpointError`."""
+    if value is None:
+        return 0
+    try:
+        count = int(torch.as_tensor(value).reshape(()))
+    except (RuntimeError, TypeError, ValueError):
+        count = -1
+    if count < 0:
+        raise CheckpointError("the checkpoint's pair corrections are damaged (the borrowed pairs' count).")
+    return count
 
 
 def _anchors_state(anchors: pd.Series | None) -> dict[str, torch.Tensor] | None:

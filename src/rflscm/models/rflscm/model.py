@@ -617,9 +617,10 @@ class RFLSCM(LSCMModel):
                 "training_pairs": float(int(train.data.observed.any(1).sum())),
                 "corrected_pairs": self.corrections.corrected_pairs(),
                 "wnomp_pairs": float(len(fallback.index)) if fallback is not None else 0.0,
-                "wnomp_by_budget": float(fallback is not None and "budget" in fallback.scores),
+                "budget_choice": float(fallback is not None and "budget" in fallback.scores),
                 "mixed_pairs": float(len(mix.index)) if mix is not None else 0.0,
-                "rendered_pairs": float(len(kept.index)) if kept is not None else 0.0,
+                "rendered_pairs": float(len(kept.index) - self.corrections.borrowed) if kept is not None else 0.0,
+                "borrowed_pairs": float(self.corrections.borrowed),
             }
 
     @torch.no_grad()
@@ -686,9 +687,7 @@ class RFLSCM(LSCMModel):
         )
         pairs = int(train.data.observed.any(1).sum())
         cfg, cells = self.config.corrections, len(self.scene.cell_ids)
-        renders_all = not (cfg.wnomp_fallback and (cfg.pair_anchors or cfg.pair_posterior)) or times.field_wins
-        every = times.setup_s + pairs * times.render_s  # each pair rendered once, none corrected
-        return PassCost(times.total_s(cfg, pairs), times.render_s, times.least_s(cfg, pairs, cells), renders_all, every)
+        return PassCost(times.total_s(cfg, pairs), times.render_s, times.least_s(cfg, pairs, cells))
 
     @torch.no_grad()
     def _render_training(
