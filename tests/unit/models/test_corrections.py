@@ -865,12 +865,16 @@ def test_a_mix_cut_short_takes_the_missing_pairs_from_the_left_over_solutions() 
     assert _with_solved(mix, solved, index([1, 2])) is mix
 
 
-def test_pairs_left_over_borrow_the_nearest_rendered_pairs_aps_with_their_own_anchor_where_that_predicts_best() -> None:
+@pytest.mark.parametrize("posterior", [False, True])
+def test_pairs_left_over_borrow_the_nearest_rendered_pairs_aps_with_their_own_anchor_where_that_predicts_best(
+    posterior: bool,
+) -> None:
     """Each cell's pairs share one angular shape and differ in level; the field renders that shape at a wrong level per
     pair. The held-aside choice for the pairs the pass leaves then prefers the nearest rendered pair's APS with the
     pair's own anchor (the shape is right, the reports pin the level) over the field's level and over WNOMP; such a
     pair's corrected APS is its neighbour's kept render with its own anchor, no render of its own, and predicts a
-    changed antenna nearly as the truth does; the train line's count says so."""
+    changed antenna nearly as the truth does; the train line's count says so. With the posterior, its gains belong
+    to the corrected pairs only (a borrowed pair has an anchor, no gains), and every pair's APS applies."""
     gen = torch.Generator().manual_seed(3)
     pairs, beams, bins = 400, 12, 30
     a = torch.rand(2, beams, bins, generator=gen) ** 3
@@ -880,6 +884,8 @@ def test_pairs_left_over_borrow_the_nearest_rendered_pairs_aps_with_their_own_an
     level = 10 ** (torch.randn(pairs, generator=gen) / 10 * 8)  # ±8 dB between pairs
     truth = shape[cells] * level[:, None]
     field = shape[cells] * 10 ** (torch.randn(pairs, generator=gen) / 10 * 6)[:, None]  # the wrong level per pair
+    if posterior:  # each pair's own shape differs a little from its cell's: its reports have something to fit
+        truth = truth * 10 ** (torch.randn(pairs, bins, generator=torch.Generator().manual_seed(4)) / 10 * 1.5)
     now = [0.0]
 
     def render(p: torch.Tensor):
@@ -900,9 +906,15 @@ def test_pairs_left_over_borrow_the_nearest_rendered_pairs_aps_with_their_own_an
     )  # fmt: skip
     ids = np.array([7, 8])
     fitted = fit_corrections(
-        CorrectionsConfig(pair_posterior=False), data_, 6, ids, render, columns, 0,
+        CorrectionsConfig(pair_posterior=posterior, wnomp_atoms=False), data_, 6, ids, render, columns, 0,
         time_left=lambda: 2.0 - now[0], clock=lambda: now[0], visible=torch.ones(2, bins, dtype=torch.bool),
     )  # fmt: skip
+    if posterior:
+        assert fitted.posterior is not None and fitted.anchors is not None
+        assert len(fitted.posterior.index) == fitted.posterior.bins.shape[0] == fitted.corrected_pairs()
+        assert not fitted.posterior.index.isin(fitted.anchors.index[int(fitted.corrected_pairs()) :]).any()
+        every = np.arange(pairs)
+        assert torch.isfinite(fitted.apply(field.clone(), cells.numpy(), ids[cells.numpy()], every)).all()
     fb = fitted.fallback
     assert fb is not None and not len(fb.index)
     assert fb.scores["borrow"] < min(fb.scores["level"], fb.scores["wnomp"])

@@ -392,6 +392,7 @@ def fit_corrections(
         bar.update(chunk.pairs.numel() * (per_pair - 1))
     reached = torch.cat(done) if done else pairs[:0]
     index = _pair_index(data, cell_ids, reached)
+    corrected_index = index  # the pairs with the posterior's gains: the borrowed ones below have none
     left = later[~torch.isin(later, reached)]
     if left_over is not None and len(left_over.index):
         left = left[~torch.as_tensor(_pair_index(data, cell_ids, left).isin(left_over.index), device=left.device)]
@@ -441,7 +442,9 @@ def fit_corrections(
     with_base = [b if b is not None else torch.zeros_like(g) for b, g in zip(bases, gains, strict=True)]
     base = _widened(with_base) if any(b is not None for b in bases) else None
     lam, scores = plan.summary()
-    posterior = PairPosterior(index, _widened(bins_of), gain_db, lam, scores, base, plan.atom_scores, plan.groups)
+    posterior = PairPosterior(
+        corrected_index, _widened(bins_of), gain_db, lam, scores, base, plan.atom_scores, plan.groups
+    )
     mixes: dict[str, PairFallback | None] = {bt: None for bt in MIX_BEAM_TYPES}
     candidates = torch.cat(mixed).sort().values if mixed else torch.zeros(0, dtype=torch.long)
     if cfg.wnomp_atoms and visible is not None and candidates.numel():
