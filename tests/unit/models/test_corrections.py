@@ -13,6 +13,7 @@ import torch
 from rflscm.errors import CheckpointError
 from rflscm.models.pairs import PairData
 from rflscm.models.rflscm.config import CorrectionsConfig
+from rflscm.models.rflscm import corrections as corrections_module
 from rflscm.models.rflscm.corrections import PairCorrections, fit_corrections
 from rflscm.models.rflscm.posterior import WNOMP_ATOMS, PairPosterior
 
@@ -865,16 +866,18 @@ def test_a_mix_cut_short_takes_the_missing_pairs_from_the_left_over_solutions() 
     assert _with_solved(mix, solved, index([1, 2])) is mix
 
 
-@pytest.mark.parametrize("posterior", [False, True])
+@pytest.mark.parametrize(("posterior", "wide_later"), [(False, False), (True, False), (False, True)])
 def test_pairs_left_over_borrow_the_nearest_rendered_pairs_aps_with_their_own_anchor_where_that_predicts_best(
-    posterior: bool,
+    posterior: bool, wide_later: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Each cell's pairs share one angular shape and differ in level; the field renders that shape at a wrong level per
     pair. The held-aside choice for the pairs the pass leaves then prefers the nearest rendered pair's APS with the
     pair's own anchor (the shape is right, the reports pin the level) over the field's level and over WNOMP; such a
     pair's corrected APS is its neighbour's kept render with its own anchor, no render of its own, and predicts a
     changed antenna nearly as the truth does; the train line's count says so. With the posterior, its gains belong
-    to the corrected pairs only (a borrowed pair has an anchor, no gains), and every pair's APS applies."""
+    to the corrected pairs only (a borrowed pair has an anchor, no gains), and every pair's APS applies. Where the
+    pass's later renders are too wide to keep, the pairs left have nothing to borrow and get WNOMP's APS after all:
+    none is left for the caller to render."""
     gen = torch.Generator().manual_seed(3)
     pairs, beams, bins = 400, 12, 30
     a = torch.rand(2, beams, bins, generator=gen) ** 3
@@ -887,11 +890,16 @@ def test_pairs_left_over_borrow_the_nearest_rendered_pairs_aps_with_their_own_an
     if posterior:  # each pair's own shape differs a little from its cell's: its reports have something to fit
         truth = truth * 10 ** (torch.randn(pairs, bins, generator=torch.Generator().manual_seed(4)) / 10 * 1.5)
     now = [0.0]
+    calls = [0]
+    monkeypatch.setattr(corrections_module, "KEPT_BINS", bins)
 
     def render(p: torch.Tensor):
         now[0] += 0.01 * p.numel()
-        b = torch.arange(bins).expand(len(p), bins)
-        return b, field[p], torch.einsum("bmk,bk->bm", a[cells[p]], field[p])
+        calls[0] += 1
+        b, x = torch.arange(bins).expand(len(p), bins), field[p]
+        if wide_later and calls[0] > 2:  # the same APS with empty bins beyond: wider than the pass keeps
+            b, x = torch.cat([b, b[:, :4]], 1), torch.cat([x, torch.zeros(len(p), 4)], 1)
+        return b, x, torch.einsum("bmk,bk->bm", a[cells[p]], field[p])
 
     def columns(c: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         return torch.gather(a[c], 2, b[:, None, :].expand(-1, beams, -1))
@@ -916,7 +924,12 @@ def test_pairs_left_over_borrow_the_nearest_rendered_pairs_aps_with_their_own_an
         every = np.arange(pairs)
         assert torch.isfinite(fitted.apply(field.clone(), cells.numpy(), ids[cells.numpy()], every)).all()
     fb = fitted.fallback
-    assert fb is not None and not len(fb.index)
+    assert fb is not None
+    if wide_later:  # no render kept beyond the first chunks, so none to borrow: WNOMP answers every pair left
+        assert fitted.borrowed == 0 and fb.scores["borrow"] < min(fb.scores["level"], fb.scores["wnomp"])
+        assert 0 < fitted.corrected_pairs() < pairs and len(fb.index) == pairs - fitted.corrected_pairs()
+        return
+    assert not len(fb.index)
     assert fb.scores["borrow"] < min(fb.scores["level"], fb.scores["wnomp"])
     assert fitted.borrowed > 0 and fitted.anchors is not None and fitted.rendered is not None
     assert len(fitted.anchors) == len(fitted.rendered.index) == pairs  # every pair: its own render or a borrowed one

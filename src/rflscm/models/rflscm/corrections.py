@@ -409,6 +409,10 @@ def fit_corrections(
             borrowed = left[found]
             anchors.append(anchor[found])
             reached, index = torch.cat([reached, borrowed]), index.append(_pair_index(data, cell_ids, borrowed))
+            left = left[~found]
+        if left.numel():  # no rendered pair of their cell (or no kept render) to borrow from: WNOMP's APS after all
+            assert left_over is not None  # a choice of ``_left_over``
+            left_over = fit.fallback(left, cell_ids, levels, left_over.scores, time_left, clock, fallback_solver(cfg))
     elif owing[0] and deadline is not None:  # the pairs left that no fallback answers, rendered with their level only
         only = fit.render_only(left, deadline, clock, bar, per_pair)
         if only.pairs.numel():
