@@ -429,6 +429,51 @@ def test_the_later_pairs_come_in_random_blocks_each_sorted_and_the_estimate_time
     assert times.render_s < 0.5 * spread
 
 
+def test_wnomp_fallback_solves_chunks_of_consecutive_pairs_and_the_estimate_times_such_a_chunk(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """WNOMP's solve pays per cell of a chunk: the fallback solves the pairs it is given (in the pass's random block
+    order) sorted, in chunks of consecutive pairs (a few cells each) drawn in a seeded random order, and returns them
+    in pair order; ``measure_pass`` times its per-pair solve on such a chunk, not on pairs spread over every cell."""
+    import rflscm.models.rflscm.corrections as module
+
+    cells, per_cell = 40, 300
+    n = cells * per_cell
+    pairs = torch.arange(n)
+    cell_of = pairs // per_cell
+    now, seen = [0.0], []
+
+    def solve(self, p: torch.Tensor, mask: torch.Tensor, levels: object, solver: object = None):
+        seen.append(p.clone())
+        now[0] += 1e-4 * p.numel() + 0.02 * cell_of[p].unique().numel()  # per pair, and per cell in the chunk
+        return torch.full((p.numel(), 2), -1), torch.zeros(p.numel(), 2)
+
+    def render(p: torch.Tensor):
+        return torch.zeros(p.numel(), 1, dtype=torch.long), torch.ones(p.numel(), 1), torch.ones(p.numel(), 4)
+
+    monkeypatch.setattr(module._Fit, "solve", solve)
+    pair_data = PairData(
+        cell_index=cell_of, grid_ids=np.arange(n, dtype=np.int64), grid_xyz=torch.zeros(n, 3),
+        rsrp=torch.ones(n, 4), beam_mask=torch.ones(n, 4, dtype=torch.bool), val_mask=torch.zeros(n, 4, dtype=torch.bool),
+        x_scale=torch.ones(n), bound=torch.full((n, 4), float("nan")), val_pairs=torch.zeros(0, dtype=torch.long),
+    )  # fmt: skip
+    cfg = CorrectionsConfig(pair_posterior=False)
+    fit = module._Fit(cfg, pair_data, 2, cells, render, columns, torch.ones(cells, 4, dtype=torch.bool))
+    later = module._later_pairs(pairs, pairs[:0], 0)
+    fb = fit.fallback(later, np.arange(cells) + 100, None, {}, lambda: 1e9, lambda: now[0])
+    assert list(fb.index.get_level_values("grid_id")) == list(range(n))  # every pair once, in pair order
+    span = -(-module.FALLBACK_SOLVE // per_cell) + 1
+    assert len(seen) == -(-n // module.FALLBACK_SOLVE)
+    assert all(int(cell_of[p].unique().numel()) <= span and torch.equal(p, p.sort().values) for p in seen)
+    starts = [int(p[0]) for p in seen]
+    assert starts != sorted(starts)  # chunks drawn over the network
+    assert now[0] < 1e-4 * n + 0.02 * (cells + len(seen))  # about once per cell, not once per cell and chunk
+    now[0], seen[:] = 0.0, []
+    times = module.measure_pass(cfg, pair_data, 2, cells, render, columns, lambda: now[0])
+    assert times.solve_s < 1e-4 + 0.02 * span / module.FALLBACK_CHUNK
+    assert times.solve_s < 0.5 * (1e-4 + 0.02 * cells / module.FALLBACK_CHUNK)  # a chunk spread over every cell
+
+
 def fallback_problem(pairs: int = 400):
     """:func:`atom_problem` with many pairs and a clock that charges 10 ms per rendered pair."""
     pair_data, render_, columns_, truth, a2, cells = atom_problem(0, pairs=pairs)
