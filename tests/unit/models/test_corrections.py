@@ -12,8 +12,8 @@ import torch
 
 from rflscm.errors import CheckpointError
 from rflscm.models.pairs import PairData
-from rflscm.models.rflscm.config import CorrectionsConfig
 from rflscm.models.rflscm import corrections as corrections_module
+from rflscm.models.rflscm.config import CorrectionsConfig
 from rflscm.models.rflscm.corrections import PairCorrections, fit_corrections
 from rflscm.models.rflscm.posterior import WNOMP_ATOMS, PairPosterior
 
