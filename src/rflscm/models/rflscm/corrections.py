@@ -20,8 +20,9 @@ Within a time budget (``time_left``) the pass is sized to the time left: the pai
 on come first (one per cell, then as many of the others as half the time left allows), then the other pairs in a
 seeded random order (spread over cells and grids; in blocks of ``PASS_BLOCK``, each sorted by cell, so that a render
 chunk spans few cells), a chunk at a time, while a chunk still fits.  When the pass
-cannot reach every pair, the pairs left over get WNOMP's APS of their own reports (:mod:`.fallback`, no render)
-where that predicts the held-aside reports better than the field with its level, else they keep the level only.
+cannot reach every pair, the pairs left over get whichever predicts the held-aside reports best: WNOMP's APS of
+their own reports (:mod:`.fallback`, solved in chunks of consecutive pairs), the APS rendered at the nearest corrected
+grid of their cell with their own anchor (:mod:`.borrow`), both without a render, or the field with its level.
 :func:`measure_pass` measures the pass's cost on two chunks, so that a budget run can keep time for it.
 """
 
@@ -306,8 +307,8 @@ def fit_corrections(
     ``render_rest``: a caller within the same deadline would render the pairs the pass leaves where no fallback
     answers them (the demo's evaluation): once the held-aside choice keeps the field's level for them (or the fallback
     is off), the pass renders and keeps them itself, on its own clock, and corrects a pair only while the time left
-    still renders every pair left after it; those its time cannot render get WNOMP's APS after all (the budget's
-    choice, ``PairFallback.scores["budget"]``), as many as must.  ``extra_left``: the time left for the pairs
+    still renders every pair left after it; where its time cannot render them all, they get the better of WNOMP's
+    APS and a borrowed APS (the budget's choice, ``PairFallback.scores["budget"]``).  ``extra_left``: the time left for the pairs
     corrected beyond the least (the levels' and λ's pairs and the fallback), where ``time_left`` runs past the
     budget's end to keep that least: a pass over its budget corrects no more pairs than its least needs."""
     from tqdm.auto import tqdm
@@ -694,8 +695,8 @@ def _first_pairs(
         sample = _solve_sample(every)
         begun = clock()
         fit.solve(sample, fit.data.observed[sample], None, fallback_solver(cfg))
-        fit.solve_s = (clock() - begun) / max(sample.numel(), 1)
-        safety_net = CHUNK_MARGIN * fit.solve_s * (every.numel() - one.numel())
+        solve_s = (clock() - begun) / max(sample.numel(), 1)
+        safety_net = CHUNK_MARGIN * solve_s * (every.numel() - one.numel())
     left = time_left()  # the fallback's time kept, up to half: the levels' pairs keep a quarter of the pass at least
     room = FIRST_SHARE * (left - min(safety_net, FIRST_SHARE * max(left, 0.0)))
     cells = max(one.numel(), 1)
@@ -828,8 +829,6 @@ class _Fit:
     """Keep each render whole (at most :data:`KEPT_BINS` wide): the pass's corrected pairs are not rendered again."""
     render_s: float = 0.0
     """Seconds a pair's render took in the pass (its first pairs'), within a budget."""
-    solve_s: float = 0.0
-    """Seconds a pair's WNOMP solve took in the pass (a spread sample's), within a budget with the fallback on."""
 
     def render_pairs(self, pairs: torch.Tensor, top: bool, bar: object = None) -> _Rendered:
         """Render ``pairs [P]`` (sorted) ``PAIR_CHUNK`` at a time: their predicted reports and, with ``top``, their
