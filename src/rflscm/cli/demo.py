@@ -203,8 +203,9 @@ def demo(
         "rflscm", config, preset, sets, under={"corrections": {"wnomp_fallback": to_dict(wnomp_cfg)}}
     )
     configs: dict[str, str | dict[str, Any]] = {"wnomp": to_dict(wnomp_cfg), "rflscm": rflscm_cfg}
-    # RF-LSCM's evaluation renders the test pairs without a round-1 report; its pass renders (or answers with WNOMP's
-    # APS) every pair with one, where a fit told of them renders those it leaves itself
+    # RF-LSCM's evaluation renders the test pairs without a round-1 report (their time measured on a chunk of them);
+    # its pass renders (or answers with WNOMP's APS) every pair with one, where a fit told of them renders those it
+    # leaves itself
     known, fresh = tested_pairs(scen, AdjustProtocol())
     after_s = 0.0  # what WNOMP's save, evaluation and report took: RF-LSCM's take as long besides its renders
     for name, model_cfg in configs.items():

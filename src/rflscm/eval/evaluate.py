@@ -74,7 +74,7 @@ from rflscm.eval import metrics as M
 from rflscm.eval.cache import APSCache
 from rflscm.eval.oracle import OracleModel
 from rflscm.eval.protocols import AdjustProtocol, Protocol, protocol_from_dict, protocol_to_dict
-from rflscm.models.base import UnsupportedError
+from rflscm.models.base import FreshPairs, UnsupportedError
 from rflscm.models.source import APSSource, checked_aps, predict_rsrp
 
 if TYPE_CHECKING:
@@ -233,14 +233,15 @@ def _oracle(
         return None
 
 
-def tested_pairs(scenario: Scenario, protocol: Protocol) -> tuple[int, int]:
+def tested_pairs(scenario: Scenario, protocol: Protocol) -> tuple[int, FreshPairs]:
     """How many distinct (cell, grid) pairs ``protocol``'s test set of ``scenario`` asks for that have training
-    reports, and how many that have none (a field model renders the latter whatever its pass did)."""
-    tested = protocol.test_set(scenario).pairs()
-    known = pd.MultiIndex.from_frame(tested[["cell_id", "grid_id"]]).isin(
-        _trained_pairs(protocol.training_scenario(scenario))
-    )
-    return int(known.sum()), int((~known).sum())
+    reports, and those that have none, with their grids' positions (a field model renders the latter whatever its
+    pass did)."""
+    tested = protocol.test_set(scenario).pairs()[["cell_id", "grid_id"]].drop_duplicates()
+    known = pd.MultiIndex.from_frame(tested).isin(_trained_pairs(protocol.training_scenario(scenario)))
+    fresh = tested[~known]
+    xyz = scenario.grids.set_index("grid_id").loc[fresh["grid_id"].to_numpy(), ["x", "y", "z"]].to_numpy(np.float64)
+    return int(known.sum()), FreshPairs(fresh["cell_id"].to_numpy(np.int64), xyz)
 
 
 def _trained_pairs(train: Scenario) -> pd.MultiIndex:

@@ -83,6 +83,34 @@ class PassCost:
     least_s: float = 0.0
     """Seconds of the least pass a budget must leave: the levels, and WNOMP's APS of every training pair's own
     reports where the pass cannot reach it (the safety net that keeps an under-trained model near WNOMP)."""
+    fresh_s: float | None = None
+    """Seconds per pair of a caller's pairs without training reports (:class:`FreshPairs`), timed on a chunk of them:
+    their render may cost more than a training pair's (the 222-cell city: 9.3 against 3.8 ms a pair).  None: not
+    timed, :attr:`per_pair_s` stands in."""
+
+    @property
+    def fresh_pair_s(self) -> float:
+        """Seconds per pair of the caller's fresh pairs: :attr:`fresh_s` where timed, else :attr:`per_pair_s`."""
+        return self.per_pair_s if self.fresh_s is None else self.fresh_s
+
+
+@dataclass(frozen=True)
+class FreshPairs:
+    """The (cell, grid) pairs a caller will ask a fitted model for that have no training reports (the demo's
+    evaluation of round-2 pairs that round 1 did not report): a budget's fit keeps the time to render them, timed
+    on a chunk of them (:attr:`PassCost.fresh_s`)."""
+
+    cell_ids: np.ndarray
+    """``[n]`` cell ids."""
+    grid_xyz: np.ndarray
+    """``[n, 3]`` grid positions [m] (local frame)."""
+
+    def __post_init__(self) -> None:
+        if len(self.cell_ids) != len(self.grid_xyz):
+            raise ValueError(f"{len(self.cell_ids)} cells for {len(self.grid_xyz)} grid positions")
+
+    def __len__(self) -> int:
+        return len(self.cell_ids)
 
 
 class NonFiniteError(RflscmError):

@@ -37,7 +37,7 @@ import torch
 from torch import nn
 
 from rflscm.errors import CheckpointError, ConfigError
-from rflscm.models.base import LSCMModel, PassCost, TrainingPlan, discard_partial_save, read_checkpoint
+from rflscm.models.base import FreshPairs, LSCMModel, PassCost, TrainingPlan, discard_partial_save, read_checkpoint
 from rflscm.train.config import LoopConfig
 
 if TYPE_CHECKING:
@@ -97,7 +97,7 @@ class Trainable(Protocol):
         extra_left: Callable[[], float] | None = None,
     ) -> None: ...
 
-    def finish_seconds(self, clock: Callable[[], float] = ...) -> PassCost: ...
+    def finish_seconds(self, clock: Callable[[], float] = ..., fresh: FreshPairs | None = None) -> PassCost: ...
 
 
 def fit(
@@ -112,7 +112,7 @@ def fit(
     started: float | None = None,
     after_pairs: int = 0,
     after_s: float = 0.0,
-    after_fresh: int = 0,
+    after_fresh: FreshPairs | None = None,
 ) -> dict[str, float]:
     """Learn ``model`` from the round-1 measurements of ``scenario``; returns a summary (a :class:`Trainable`
     model also records it in ``run_info["train"]`` and ``run_info["fit"]``, whose ``train_time_s`` is then the whole
@@ -133,8 +133,8 @@ def fit(
     the same budget (the demo's evaluation) names it: ``after_pairs`` pairs it will ask for that have training
     reports (none of them rendered after the fit: the pass keeps the render of each pair it corrects, answers the
     others with its WNOMP fallback or, where the field's level wins, renders and keeps them too), ``after_fresh``
-    pairs without any (always rendered), each at the model's measured cost per pair, and ``after_s`` seconds of other
-    work; the fit keeps that time free too (:func:`budget_split`).  Halfway through training (``REPLAN_AT``) the
+    pairs without any (always rendered), each at the model's cost per pair measured on a chunk of them, and ``after_s``
+    seconds of other work; the fit keeps that time free too (:func:`budget_split`).  Halfway through training (``REPLAN_AT``) the
     budget is dealt again from the pass's cost measured on the weights trained so far.
     """
     started = clock() if started is None else started
@@ -157,11 +157,12 @@ def fit(
     deal = None
     if budget_s is not None:
         share = model.train_config.finish_share
-        deal = BudgetDeal(budget_s, share, after_s, after_fresh, render_rest=after_pairs > 0)
-        stop_s = deal.stop_s(model.finish_seconds(clock))
+        fresh = after_fresh if after_fresh is not None and len(after_fresh) else None
+        deal = BudgetDeal(budget_s, share, after_s, len(fresh or ()), render_rest=after_pairs > 0)
+        stop_s = deal.stop_s(model.finish_seconds(clock, fresh))
         if not trainer.replanned:  # a resumed run that re-dealt its budget before keeps that deal
             trainer.stop_s = stop_s
-        trainer.replan = lambda: deal.stop_s(model.finish_seconds(clock))
+        trainer.replan = lambda: deal.stop_s(model.finish_seconds(clock, fresh))
     evals0, time0 = model.decoder_evals(), clock()
     summary = trainer.run(
         progress=progress,
@@ -200,11 +201,11 @@ def budget_split(
     cost: PassCost, budget_s: float, share: float, after_s: float = 0.0, after_fresh: int = 0
 ) -> tuple[float, float]:
     """``(after, kept)`` [s] of a ``budget_s`` fit: the time kept for a caller's work after it and for the pass after
-    training, each with ``FINISH_SAFETY``.  The caller renders its ``after_fresh`` pairs (without training reports)
-    and spends ``after_s`` seconds on other work; it renders no training pair, as the pass keeps the render of each
+    training, each with ``FINISH_SAFETY``.  The caller renders its ``after_fresh`` pairs (without training reports,
+    at :attr:`~rflscm.models.base.PassCost.fresh_pair_s` each) and spends ``after_s`` seconds on other work; it renders no training pair, as the pass keeps the render of each
     pair it corrects and answers the others without one or renders them itself (``render_rest``).  The pass keeps
     ``share`` of what the caller leaves, at least its least (:func:`least_pass_s`) and at most the whole pass."""
-    after = FINISH_SAFETY * (after_fresh * cost.per_pair_s + after_s)
+    after = FINISH_SAFETY * (after_fresh * cost.fresh_pair_s + after_s)
     return after, min(FINISH_SAFETY * cost.total_s, max(share * (budget_s - after), least_pass_s(cost)))
 
 
@@ -232,7 +233,7 @@ class BudgetDeal:
     def fixed_after_s(self) -> float:
         """The caller's later work: its fresh pairs' renders and its other seconds."""
         assert self.cost is not None
-        return FINISH_SAFETY * (self.after_fresh * self.cost.per_pair_s + self.after_s)
+        return FINISH_SAFETY * (self.after_fresh * self.cost.fresh_pair_s + self.after_s)
 
 
 def least_pass_s(cost: PassCost) -> float:

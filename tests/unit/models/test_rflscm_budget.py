@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
 import pytest
 import torch
 from tiny_rflscm import Interrupt, stop_at, tiny_config
@@ -13,11 +14,16 @@ from rflscm.data import load_scenario
 from rflscm.data.examples import tiny_scenario
 from rflscm.errors import CheckpointError
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import PassCost
+from rflscm.models.base import FreshPairs, PassCost
 from rflscm.models.rflscm import RFLSCM
 from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)
+
+
+def fresh_pairs(count: int) -> FreshPairs:
+    """``count`` pairs without training reports (cell 0, grids along x)."""
+    return FreshPairs(np.zeros(count, np.int64), np.stack([np.arange(count), np.zeros(count), np.ones(count)], 1))
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +135,7 @@ def test_a_budget_keeps_time_for_the_pass_after_training_and_gives_it_the_rest(s
         model.config = dataclasses.replace(
             model.config, train=dataclasses.replace(model.config.train, finish_share=share)
         )
-        model.finish_seconds = lambda clock, e=estimate: PassCost(e, 0.5)  # type: ignore[method-assign]
+        model.finish_seconds = lambda clock, fresh=None, e=estimate: PassCost(e, 0.5)  # type: ignore[method-assign]
         model.finish_training = lambda progress=False, time_left=None, clock=None, seen=left: seen.append(time_left())  # type: ignore[method-assign]
         summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock)
         # kept = min(1.2 × estimate, share × budget); steps of 10 s stop at the first end at or past the rest
@@ -153,7 +159,7 @@ def test_the_pass_keeps_its_least_and_training_its_share_when_the_budget_is_shor
         model = timed_model(clock, seen)
         train = dataclasses.replace(model.config.train, finish_share=share)
         model.config = dataclasses.replace(model.config, train=train)
-        model.finish_seconds = lambda clock: cost  # type: ignore[method-assign]
+        model.finish_seconds = lambda clock, fresh=None: cost  # type: ignore[method-assign]
 
         def finish(progress=False, time_left=None, clock=None, extra_left=None):  # type: ignore[no-untyped-def]
             left.append(time_left())
@@ -181,9 +187,9 @@ def test_the_pass_keeps_its_least_and_training_its_share_when_the_budget_is_shor
     # budget, nothing is left for the fit
     clock, seen, left = StepClock(10.0), [], []
     model = timed_model(clock, seen)
-    model.finish_seconds = lambda clock: PassCost(50.0, 0.5, 20.0)  # type: ignore[method-assign]
+    model.finish_seconds = lambda clock, fresh=None: PassCost(50.0, 0.5, 20.0)  # type: ignore[method-assign]
     model.finish_training = lambda progress=False, time_left=None, clock=None, extra_left=None: left.append(time_left())  # type: ignore[method-assign]
-    summary = fit(model, scenario, progress=True, budget_s=100.0, clock=clock, after_fresh=200)
+    summary = fit(model, scenario, progress=True, budget_s=100.0, clock=clock, after_fresh=fresh_pairs(200))
     assert summary["train_budget_s"] == pytest.approx(MIN_TRAIN_SHARE * 100.0) and summary["steps"] == 2
     assert left == [pytest.approx(1.2 * 20.0)]  # the least pass, past the budget's end
 
@@ -217,7 +223,7 @@ def test_halfway_the_budget_is_dealt_again_from_a_fresh_measurement_and_the_sche
     clock, seen = StepClock(10.0), []
     model = timed_model(clock, seen)
     costs = iter([PassCost(10.0, 0.5), PassCost(40.0, 0.5)])
-    model.finish_seconds = lambda clock, c=costs: next(c)  # type: ignore[method-assign]
+    model.finish_seconds = lambda clock, fresh=None, c=costs: next(c)  # type: ignore[method-assign]
     model.finish_training = lambda progress=False, time_left=None, clock=None: None  # type: ignore[method-assign]
     assert fit(model, scenario, progress=False, budget_s=100.0, clock=clock)["train_budget_s"] == pytest.approx(88.0)
     monkeypatch.setattr(trainer, "REPLAN_MIN_STEPS", 0)
@@ -225,7 +231,7 @@ def test_halfway_the_budget_is_dealt_again_from_a_fresh_measurement_and_the_sche
         clock, seen, left = StepClock(10.0), [], []
         model = timed_model(clock, seen)
         costs = iter([PassCost(10.0, 0.5), second])
-        model.finish_seconds = lambda clock, c=costs: next(c)  # type: ignore[method-assign]
+        model.finish_seconds = lambda clock, fresh=None, c=costs: next(c)  # type: ignore[method-assign]
         model.finish_training = lambda progress=False, time_left=None, clock=None, seen=left: seen.append(time_left())  # type: ignore[method-assign]
         summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock)
         assert summary["train_budget_s"] == pytest.approx(stop) and summary["steps"] == steps
@@ -280,6 +286,40 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
     assert estimate.least_s < estimate.total_s
 
 
+def test_a_callers_fresh_pairs_are_timed_on_chunks_of_them(scenario) -> None:
+    """Given a caller's fresh pairs, ``finish_seconds`` also times ``FRESH_CHUNKS`` render chunks of them as ``aps``
+    takes them (one clock read before and after: 1 s here), skipping pairs of cells the model does not know; without
+    any known cell nothing is timed and the pass's own render rate stands in."""
+    from rflscm.models.rflscm.corrections import PAIR_CHUNK
+    from rflscm.models.rflscm.model import FRESH_CHUNKS
+
+    model = RFLSCM.build(tiny_config(), GRID)
+    model.prepare(scenario)
+    cells = model.scene.cell_ids
+    count = 3 * PAIR_CHUNK
+    ids = np.concatenate([np.resize(cells, count), [cells.max() + 1]])  # the last pair's cell is unknown
+    fresh = FreshPairs(ids, np.tile([5.0, -3.0, 1.5], (count + 1, 1)))
+    calls: list[int] = []
+    output = model.renderer.output
+    model.renderer.output = lambda c, g, p: calls.append(len(c)) or output(c, g, p)  # type: ignore[method-assign]
+    ticks = iter(range(1000))
+    assert model._fresh_render_s(fresh, 8.0, lambda: float(next(ticks))) == pytest.approx(
+        1 / (FRESH_CHUNKS * PAIR_CHUNK)
+    )
+    assert calls == [PAIR_CHUNK] * FRESH_CHUNKS
+    calls.clear()
+    few = FreshPairs(ids[:5], fresh.grid_xyz[:5])  # fewer than a chunk: one chunk of them all
+    assert model._fresh_render_s(few, 8.0, lambda: float(next(ticks))) == pytest.approx(1 / 5) and calls == [5]
+    stranger = FreshPairs(ids[-1:], fresh.grid_xyz[-1:])
+    assert model._fresh_render_s(stranger, 8.0, lambda: float(next(ticks))) is None
+    ticks = iter(range(1000))
+    cost = model.finish_seconds(lambda: float(next(ticks)), stranger)
+    assert cost.fresh_s is None and cost.fresh_pair_s == cost.per_pair_s
+    ticks = iter(range(1000))
+    cost = model.finish_seconds(lambda: float(next(ticks)), few)
+    assert cost.fresh_pair_s == cost.fresh_s == pytest.approx(1 / 5)
+
+
 def test_work_after_the_fit_is_kept_out_of_the_budget(scenario) -> None:
     """``after_s`` seconds and the renders of ``after_fresh`` pairs are kept free (×1.2) whatever the pass does; a
     caller's ``after_pairs`` (with training reports) cost no reserve but ask the pass to render the pairs it leaves
@@ -292,12 +332,23 @@ def test_work_after_the_fit_is_kept_out_of_the_budget(scenario) -> None:
         rest.append(render_rest)
 
     model.finish_training = finish  # type: ignore[method-assign]
-    model.finish_seconds = lambda clock: PassCost(10.0, 0.5, 1.0)  # type: ignore[method-assign]
+    told: list[FreshPairs | None] = []
+
+    def finish_seconds(clock, fresh=None) -> PassCost:  # type: ignore[no-untyped-def]
+        told.append(fresh)  # the fresh pairs' renders are timed on the pairs themselves: dearer than a training pair's
+        return PassCost(10.0, 0.5, 1.0, fresh_s=None if fresh is None else 1.0)
+
+    model.finish_seconds = finish_seconds  # type: ignore[method-assign]
     summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_pairs=20, after_s=5.0)
     # kept after the fit: 1.2 × 5 = 6 s; for the pass 1.2 × 10 = 12 s: training stops at 82 s (9 steps)
     assert summary["train_budget_s"] == pytest.approx(82.0) and rest[-1] is True
     assert left == [pytest.approx(max(100.0 - 6.0 - summary["train_time_s"], 1.2))]
     left.clear()
     clock.now = 0.0
-    fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_fresh=20, after_s=5.0)
-    assert left == [pytest.approx(100.0 - 18.0 - 70.0)] and rest[-1] is False  # fresh pairs: all kept up front
+    assert told and all(f is None for f in told)
+    fresh = fresh_pairs(20)
+    fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_fresh=fresh, after_s=5.0)
+    # fresh pairs: all kept up front at their own rate, 1.2 × (20 × 1 s + 5 s) = 30 s; the pass 12 s: training stops
+    # at 60 s (the first step end past 58 s)
+    assert left == [pytest.approx(100.0 - 30.0 - 60.0)] and rest[-1] is False
+    assert told[-1] is fresh

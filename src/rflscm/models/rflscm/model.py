@@ -35,7 +35,7 @@ from rflscm.fields import PassiveMedium, TensorVM
 from rflscm.fields.point_prior import PointPrior
 from rflscm.fields.surfaces import SurfaceOrientation
 from rflscm.geometry import AngleGrid
-from rflscm.models.base import LSCMModel, PassCost, TrainingPlan, register_model
+from rflscm.models.base import FreshPairs, LSCMModel, PassCost, TrainingPlan, register_model
 from rflscm.models.pairs import build_pair_data, reference_power, stacked_sensing
 from rflscm.models.rflscm import checkpoint
 from rflscm.models.rflscm.config import (
@@ -85,6 +85,10 @@ from rflscm.models.source import RsrpMix
 
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
+
+FRESH_CHUNKS = 2
+"""Render chunks of a caller's fresh pairs timed at each measurement of the pass (:meth:`RFLSCM._fresh_render_s`):
+two of 64 pairs cost about 1.5 s on the 222-cell city, at its 9–12 ms a pair."""
 
 
 @register_model
@@ -668,10 +672,13 @@ class RFLSCM(LSCMModel):
             "mae_db": {str(w): round(v, 4) for w, v in scores.items()},
         }
 
-    def finish_seconds(self, clock: Callable[[], float] = time.perf_counter) -> PassCost:
+    def finish_seconds(
+        self, clock: Callable[[], float] = time.perf_counter, fresh: FreshPairs | None = None
+    ) -> PassCost:
         """What :meth:`finish_training` would cost for every training pair, in seconds of ``clock``, measured now on
-        two chunks of the pass at the final schedule position (the refinement model's render), and what one more
-        render costs per pair (an evaluation's)."""
+        two chunks of the pass at the final schedule position (the refinement model's render), what one more
+        render costs per pair (an evaluation's), and, given a caller's ``fresh`` pairs (without training reports),
+        what theirs cost (:meth:`_fresh_render_s`)."""
         train = self._training()
         assert self.scene is not None
         final = float(self.config.train.steps)
@@ -687,7 +694,31 @@ class RFLSCM(LSCMModel):
         )
         pairs = int(train.data.observed.any(1).sum())
         cfg, cells = self.config.corrections, len(self.scene.cell_ids)
-        return PassCost(times.total_s(cfg, pairs), times.render_s, times.least_s(cfg, pairs, cells))
+        fresh_s = None if fresh is None else self._fresh_render_s(fresh, final, clock)
+        return PassCost(times.total_s(cfg, pairs), times.render_s, times.least_s(cfg, pairs, cells), fresh_s)
+
+    @torch.no_grad()
+    def _fresh_render_s(self, fresh: FreshPairs, position: float, clock: Callable[[], float]) -> float | None:
+        """Seconds per pair [s of ``clock``] of rendering ``fresh`` pairs at schedule ``position`` as :meth:`aps` does
+        (sorted by cell, ``PAIR_CHUNK`` at a time), timed on ``FRESH_CHUNKS`` such chunks evenly spaced over that
+        order; None when no pair's cell is the model's (the caller's renders then fail, costing nothing)."""
+        assert self.scene is not None
+        known = np.isin(np.asarray(fresh.cell_ids, np.int64), self.scene.cell_ids)
+        if not known.any():
+            return None
+        cells = self.scene.cell_index(np.asarray(fresh.cell_ids, np.int64)[known])
+        xyz = np.asarray(fresh.grid_xyz, np.float64).reshape(-1, 3)[known]
+        order = np.argsort(cells, kind="stable")
+        last = max(order.size - PAIR_CHUNK, 0)
+        starts = np.unique(np.linspace(0, last, FRESH_CHUNKS).round().astype(np.int64))
+        chunks = [order[a : a + PAIR_CHUNK] for a in starts]
+        R, rendered = self._renderer(), 0
+        begun = clock()
+        for rows in chunks:
+            c = torch.as_tensor(cells[rows], device=self.device)
+            R.output(c, torch.as_tensor(xyz[rows], dtype=torch.float32, device=self.device), position)
+            rendered += rows.size
+        return (clock() - begun) / rendered
 
     @torch.no_grad()
     def _render_training(
