@@ -176,6 +176,17 @@ class APSCache(Predicts):
             self._rows.add([keys[i] for i in todo.tolist()], rows)
         return self._rows.dense(keys)
 
+    def keep(self, other: APSCache, cell_ids: np.ndarray, grid_ids: np.ndarray) -> int:
+        """Remember ``other``'s rows of these pairs (those it holds and this cache does not), without asking the
+        source; returns how many.  ``other`` must wrap the same source."""
+        if other.inner is not self.inner:
+            raise ValueError("an APS cache keeps rows of another cache of the same source only")
+        pairs = zip(np.asarray(cell_ids).reshape(-1).tolist(), np.asarray(grid_ids).reshape(-1).tolist(), strict=True)
+        keys = list(dict.fromkeys(k for k in pairs if k in other._rows and k not in self._rows))
+        if keys:
+            self._rows.add(keys, other._rows.dense(keys))
+        return len(keys)
+
     def level_offset_db(
         self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
     ) -> np.ndarray | None:

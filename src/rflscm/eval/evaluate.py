@@ -73,7 +73,7 @@ from rflscm.errors import ConfigError, DataError
 from rflscm.eval import metrics as M
 from rflscm.eval.cache import APSCache
 from rflscm.eval.oracle import OracleModel
-from rflscm.eval.protocols import AdjustProtocol, Protocol, protocol_from_dict, protocol_to_dict
+from rflscm.eval.protocols import AdjustProtocol, Protocol, TestSet, protocol_from_dict, protocol_to_dict
 from rflscm.models.base import FreshPairs, UnsupportedError
 from rflscm.models.source import APSSource, checked_aps, predict_rsrp
 
@@ -177,7 +177,6 @@ def run_evaluation(
         max_aps_pairs: APS metrics use at most this many test pairs (seeded subsample).
     """
     protocol = resolve_protocol(model, protocol)
-    model = APSCache.of(model)  # the APS of a test pair is asked per beam type and again for the APS metrics
     timing: dict[str, float] = {}
     train = protocol.training_scenario(scenario)
     test = protocol.test_set(scenario)
@@ -186,22 +185,18 @@ def run_evaluation(
     timing["oracle"] = time.perf_counter() - t0
     seen_index = _trained_pairs(train)
     changed = M.changed_cells(scenario, 1, test.round)
-    beams: dict[str, BeamResult] = {}
-    unsupported: str | None = None
     t0 = time.perf_counter()
-    for beam_type in BEAM_TYPES:
+    beams, unsupported, kept = _predict_tests(
+        model, oracle_model, scenario, train, test, seen_index, max_aps_pairs if oracle_model is not None else 0
+    )
+    for beam_type, res in beams.items():
         pairs, measured = test.tables[beam_type]
-        res, why = _predict_beam_type(
-            model, oracle_model, scenario, train, test.round, beam_type, pairs, measured, seen_index
-        )
         res.changed = res.pairs["cell_id"].isin(changed).to_numpy()
         res.noiseless = _noiseless(scenario, test.round, beam_type, pairs, measured.shape[1])
         if res.noiseless is not None:
             above = res.noiseless >= scenario.meta.rsrp_threshold_dbm
             res.truth_target = np.where(above, res.noiseless, np.nan)
         res.bound = _bounds(scenario, test.round, beam_type, pairs, measured)
-        beams[beam_type] = res
-        unsupported = unsupported or why
     skipped = {bt: int((~res.scored).sum()) for bt, res in beams.items()}
     if unsupported is None and any(skipped.values()):
         unsupported = (
@@ -211,9 +206,9 @@ def run_evaluation(
     timing["predict"] = time.perf_counter() - t0
     evaluation = Evaluation({}, test.round, beams)
     t0 = time.perf_counter()
-    aps = _aps_metrics(model, oracle_model, beams, evaluation, top_k, max_aps_pairs)
+    aps = _aps_metrics(kept, oracle_model, beams, evaluation, top_k, max_aps_pairs)
     timing["aps"] = time.perf_counter() - t0
-    evaluation.metrics = _assemble(model, scenario, protocol, test.round, beams, changed, aps, unsupported, timing)
+    evaluation.metrics = _assemble(kept, scenario, protocol, test.round, beams, changed, aps, unsupported, timing)
     return evaluation
 
 
@@ -276,39 +271,96 @@ def _predict_where_possible(
     return pred, ask.copy(), None
 
 
-def _predict_beam_type(
+def _predict_tests(
     model: APSSource,
     oracle: APSSource | None,
     scenario: Scenario,
     train: Scenario,
-    round: int,
-    beam_type: str,
-    pairs: pd.DataFrame,
-    measured: np.ndarray,
+    test: TestSet,
     seen_index: pd.MultiIndex,
-) -> tuple[BeamResult, str | None]:
-    """Model, oracle and trivial predictions of one beam type's test pairs."""
-    width = measured.shape[1]
-    keys = pd.MultiIndex.from_frame(pairs[["cell_id", "grid_id"]])
-    seen = np.asarray(keys.isin(seen_index), dtype=bool) if len(pairs) else np.zeros(0, dtype=bool)
-    ask = np.ones(len(pairs), dtype=bool) if model.supports_unseen_grids else seen.copy()
-    pred, answered = np.full((len(pairs), width), np.nan), np.zeros(len(pairs), dtype=bool)
-    oracle_pred = None if oracle is None else np.full((len(pairs), width), np.nan)
-    why = None
-    cells = pairs["cell_id"].to_numpy()
+    max_aps_pairs: int,
+) -> tuple[dict[str, BeamResult], str | None, APSCache]:
+    """Model, oracle and trivial predictions of every beam type's test pairs, the first refusal (SSB's before CSI-RS's),
+    and the cache the APS metrics read.
+
+    Cell by cell, both beam types of a cell one after the other (they share its sensing matrices and most of its
+    pairs), each cell's APS remembered only while its pairs are predicted (a fresh :class:`APSCache` per cell), so
+    that memory grows with a cell's test pairs and not the network's (a field model's rows are its rendered bins: at
+    1 002 cells every test pair's took gigabytes).  The pairs the APS metrics will draw (:func:`_aps_sample` of those
+    asked) are kept as they go by.  A ``model`` that is an :class:`APSCache` already (filled by workers, or shared by
+    a benchmark) is read as it is, for every cell."""
+    shared = isinstance(model, APSCache)
+    kept = APSCache.of(model)
+    inner = kept.inner
+    runs = {bt: _BeamRun(bt, *test.tables[bt], seen_index, kept, oracle) for bt in BEAM_TYPES}
+    sample = _aps_sample([run.pairs[run.ask] for run in runs.values()], max_aps_pairs)
+    sample_cells = sample["cell_id"].to_numpy() if sample is not None else np.zeros(0, np.int64)
     view = cast("Scenario", SensingCache(scenario, size=4))  # the scenario, with its sensing matrices kept
-    for cell in np.unique(cells):  # cell by cell: model and oracle share the sensing matrices
-        rows = np.flatnonzero(cells == cell)
-        sub = pairs.iloc[rows].reset_index(drop=True)
-        p, ok, refusal = _predict_where_possible(model, view, round, beam_type, sub, width, ask[rows])
-        pred[rows], answered[rows], why = p, ok, why or refusal
-        if oracle is not None and oracle_pred is not None:
-            oracle_pred[rows] = _predict_where_possible(
-                oracle, view, round, beam_type, sub, width, np.ones(len(rows), bool)
+    cells = np.unique(np.concatenate([run.cells for run in runs.values()]))
+    for cell in cells:  # cell by cell: model and oracle share the sensing matrices
+        source = kept if shared else APSCache(inner)
+        for run in runs.values():
+            run.predict(cell, source, oracle, view, test.round)
+        if not shared and sample is not None:
+            mine = sample_cells == cell
+            kept.keep(source, sample_cells[mine], sample["grid_id"].to_numpy()[mine])
+    beams = {bt: run.result(train) for bt, run in runs.items()}
+    return beams, next((run.why for run in runs.values() if run.why), None), kept
+
+
+class _BeamRun:
+    """One beam type's test pairs while :func:`_predict_tests` predicts them cell by cell."""
+
+    def __init__(
+        self,
+        beam_type: str,
+        pairs: pd.DataFrame,
+        measured: np.ndarray,
+        seen_index: pd.MultiIndex,
+        model: APSSource,
+        oracle: APSSource | None,
+    ) -> None:
+        self.beam_type, self.pairs, self.measured, self.width = beam_type, pairs, measured, measured.shape[1]
+        keys = pd.MultiIndex.from_frame(pairs[["cell_id", "grid_id"]])
+        self.seen = np.asarray(keys.isin(seen_index), dtype=bool) if len(pairs) else np.zeros(0, dtype=bool)
+        self.ask = np.ones(len(pairs), dtype=bool) if model.supports_unseen_grids else self.seen.copy()
+        self.pred = np.full((len(pairs), self.width), np.nan)
+        self.answered = np.zeros(len(pairs), dtype=bool)
+        self.oracle_pred = None if oracle is None else np.full((len(pairs), self.width), np.nan)
+        self.cells = pairs["cell_id"].to_numpy()
+        order = np.argsort(self.cells, kind="stable")
+        starts = np.searchsorted(self.cells[order], np.unique(self.cells))
+        self._rows = dict(zip(np.unique(self.cells).tolist(), np.split(order, starts[1:]), strict=True))
+        self.why: str | None = None
+
+    def predict(self, cell: int, model: APSSource, oracle: APSSource | None, view: Scenario, round: int) -> None:
+        """Model and oracle predictions of ``cell``'s pairs (none: nothing to do)."""
+        rows = self._rows.get(int(cell))
+        if rows is None:
+            return
+        sub = self.pairs.iloc[rows].reset_index(drop=True)
+        bt = self.beam_type
+        p, ok, refusal = _predict_where_possible(model, view, round, bt, sub, self.width, self.ask[rows])
+        self.pred[rows], self.answered[rows], self.why = p, ok, self.why or refusal
+        if oracle is not None and self.oracle_pred is not None:
+            self.oracle_pred[rows] = _predict_where_possible(
+                oracle, view, round, bt, sub, self.width, np.ones(len(rows), bool)
             )[0]
-    trivial = M.trivial_prediction(train, beam_type, pairs, width) if len(pairs) else np.zeros((0, width))
-    res = BeamResult(pairs, measured, pred, trivial, oracle_pred, seen, answered, np.zeros(len(pairs), dtype=bool))
-    return res, why
+
+    def result(self, train: Scenario) -> BeamResult:
+        """The beam type's :class:`BeamResult` (``changed`` is set by the caller)."""
+        pairs, width = self.pairs, self.width
+        trivial = M.trivial_prediction(train, self.beam_type, pairs, width) if len(pairs) else np.zeros((0, width))
+        return BeamResult(
+            pairs,
+            self.measured,
+            self.pred,
+            trivial,
+            self.oracle_pred,
+            self.seen,
+            self.answered,
+            np.zeros(len(pairs), dtype=bool),
+        )
 
 
 def _noiseless(scenario: Scenario, round: int, beam_type: str, pairs: pd.DataFrame, width: int) -> np.ndarray | None:
@@ -491,15 +543,9 @@ def _aps_metrics(
     out: dict[str, Any] = {"nmse_db": None, "nmse_db_median": None, "angle_error_deg": None, "top_k": top_k, "pairs": 0}
     if oracle is None:
         return out
-    frames = [res.pairs[res.scored] for res in beams.values()]
-    pairs = (
-        pd.concat(frames).drop_duplicates().sort_values(["cell_id", "grid_id"], ignore_index=True) if frames else None
-    )
-    if pairs is None or not len(pairs):
+    pairs = _aps_sample([res.pairs[res.scored] for res in beams.values()], max_pairs)
+    if pairs is None:
         return out
-    if len(pairs) > max_pairs:
-        pick = np.sort(np.random.default_rng(0).choice(len(pairs), max_pairs, replace=False))
-        pairs = pairs.iloc[pick].reset_index(drop=True)
     cells, grids = pairs["cell_id"].to_numpy(), pairs["grid_id"].to_numpy()
     try:
         est = np.concatenate(
@@ -525,6 +571,21 @@ def _aps_metrics(
         true.astype(np.float32),
     )
     return out
+
+
+def _aps_sample(frames: list[pd.DataFrame], max_pairs: int) -> pd.DataFrame | None:
+    """The distinct (cell, grid) pairs of ``frames`` the APS metrics use, sorted: all, or a seeded subsample of
+    ``max_pairs``; None when there are none."""
+    if not frames or max_pairs <= 0:
+        return None
+    pairs = pd.concat(frames)[["cell_id", "grid_id"]].drop_duplicates()
+    pairs = pairs.sort_values(["cell_id", "grid_id"], ignore_index=True)
+    if not len(pairs):
+        return None
+    if len(pairs) > max_pairs:
+        pick = np.sort(np.random.default_rng(0).choice(len(pairs), max_pairs, replace=False))
+        pairs = pairs.iloc[pick].reset_index(drop=True)
+    return pairs
 
 
 def _aps_chunk(model: APSSource, cells: np.ndarray, grids: np.ndarray) -> np.ndarray:

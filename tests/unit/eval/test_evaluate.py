@@ -225,3 +225,43 @@ def test_missing_above_bound_counts_each_type_and_pools_them_by_beams() -> None:
     assert out["model"]["ssb"] == pytest.approx(1 / 4) and out["model"]["csi"] == 1.0
     assert out["model"]["pooled"] == pytest.approx(3 / 6)  # by beams, not the mean of the two shares (0.625)
     assert out["trivial"]["pooled"] == 0.0 and out["oracle"]["ssb"] is None and out["oracle"]["pooled"] is None
+
+
+def test_each_cells_aps_are_remembered_only_while_its_pairs_are_predicted(adjust_run, sim_scenario) -> None:
+    """A plain model is asked for each distinct test pair once, its APS cached per cell (memory grows with a cell's
+    pairs, not the network's) and only the APS metrics' pairs kept; the metrics equal those read through one shared
+    cache (a benchmark's, or the one Ray workers fill)."""
+    from rflscm.eval.cache import APSCache
+
+    model, shared = adjust_run
+    asked: list[tuple[int, int]] = []
+    held: dict[int, set[int]] = {}  # per cache: the cells it was asked for
+    aps = APSCache.aps
+
+    def spy(self, cell_ids, grid_ids, grid_xyz=None):  # type: ignore[no-untyped-def]
+        held.setdefault(id(self), set()).update(np.asarray(cell_ids).tolist())
+        return aps(self, cell_ids, grid_ids, grid_xyz)
+
+    inner_aps = model.aps
+
+    def counted(cell_ids, grid_ids, grid_xyz=None):  # type: ignore[no-untyped-def]
+        asked.extend(zip(np.asarray(cell_ids).tolist(), np.asarray(grid_ids).tolist(), strict=True))
+        return inner_aps(cell_ids, grid_ids, grid_xyz)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(APSCache, "aps", spy)
+        mp.setattr(model, "aps", counted)
+        evaluation = run_evaluation(model, sim_scenario, max_aps_pairs=7)
+    per_cell = [cells for cells in held.values() if len(cells) == 1]
+    assert len(per_cell) == len(held) - 1 >= 2  # one cache per cell, and the kept one the APS metrics read
+    assert len(asked) == len(set(asked))  # no pair asked twice, the APS metrics' pairs included
+    tested = {bt: res.pairs[res.scored] for bt, res in shared.beams.items()}
+    assert set(asked) == set(map(tuple, pd.concat(tested.values())[["cell_id", "grid_id"]].to_numpy().tolist()))
+    assert evaluation.metrics["aps"]["pairs"] == 7
+    again = run_evaluation(APSCache(model), sim_scenario, max_aps_pairs=7).metrics
+    drop = ("timing_s",)
+    assert {k: v for k, v in evaluation.metrics.items() if k not in drop} == {
+        k: v for k, v in again.items() if k not in drop
+    }
+    for key in ("mae_db", "oracle_mae_db", "trivial_mae_db", "per_cell", "unseen"):
+        assert evaluation.metrics[key] == shared.metrics[key]
