@@ -75,6 +75,18 @@ def test_the_demo_gives_rflscm_what_wnomp_left_and_at_least_a_floor() -> None:
     assert "WNOMP left 0 s of the budget" in text.getvalue() and "will run over" in text.getvalue()
 
 
+def test_a_demo_past_its_budget_says_where_the_time_went_and_what_budget_holds() -> None:
+    from rflscm.cli.demo import OVER_NOTE, overrun_note
+
+    parts = {"loading and WNOMP": 115.0, "RF-LSCM's fit": 70.0, "its evaluation and reports": 83.0}
+    assert overrun_note(240.0, 240.0, parts) is None
+    assert overrun_note((1 + OVER_NOTE) * 240.0 - 0.1, 240.0, parts) is None  # within a few percent: no note
+    note = overrun_note(268.0, 240.0, parts)
+    assert note is not None and "4.5 min of its 4-minute budget" in note
+    assert "loading and WNOMP 115 s, RF-LSCM's fit 70 s, its evaluation and reports 83 s" in note
+    assert "`--minutes 5`" in note  # 268 s and the 2 % it may run over fit 5 minutes
+
+
 def test_the_demos_rflscm_answers_the_pairs_its_pass_misses_with_the_baselines_selected_settings(
     scenario_dir: Path, tmp_path: Path, monkeypatch, capsys
 ) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -117,6 +118,25 @@ def rflscm_budget(left_s: float, console: Console) -> float:
     return MIN_RFLSCM_S
 
 
+OVER_NOTE = 0.02
+"""The demo notes how its time went when it ends more than this share past its budget."""
+
+
+def overrun_note(elapsed_s: float, budget_s: float, parts: dict[str, float]) -> str | None:
+    """A note when the demo took more than ``OVER_NOTE`` past its ``budget_s``: how long it took, where the time went
+    (``parts``: seconds per stage) and the ``--minutes`` that would hold it; None within the budget.  It runs over
+    only where WNOMP, RF-LSCM's least pass (the levels and WNOMP's APS of every training pair) and RF-LSCM's
+    evaluation leave its training less than its least share, which a larger network's first minutes can."""
+    if elapsed_s <= (1.0 + OVER_NOTE) * budget_s:
+        return None
+    split = ", ".join(f"{name} {seconds:.0f} s" for name, seconds in parts.items())
+    enough = math.ceil((1.0 + OVER_NOTE) * elapsed_s / 60.0)
+    return (
+        f"[yellow]note:[/yellow] the demo took {elapsed_s / 60:.1f} min of its {budget_s / 60:g}-minute budget ({split}): "
+        f"this network's least work does not fit it; give `--minutes {enough}` or more for the budget to hold."
+    )
+
+
 @app.command()
 def demo(
     out: Path = typer.Option(
@@ -208,6 +228,7 @@ def demo(
     # leaves itself
     known, fresh = tested_pairs(scen, AdjustProtocol())
     after_s = 0.0  # what WNOMP's save, evaluation and report took: RF-LSCM's take as long besides its renders
+    parts: dict[str, float] = {}  # seconds per stage, for the note of a demo past its budget
     for name, model_cfg in configs.items():
         seed_everything(seed)
         model = MODEL_REGISTRY[name].build(model_cfg, AngleGrid(), dev)
@@ -238,8 +259,15 @@ def demo(
         write_report(evaluation, scen, model, out / f"report-{name}")
         results[name] = metrics
         after_s = time.perf_counter() - t0
+        if name == "rflscm":
+            parts["RF-LSCM's fit"] = model.run_info["fit"]["train_time_s"]
+            parts["its evaluation and reports"] = after_s
+        else:
+            parts["loading and WNOMP"] = time.perf_counter() - started
     title = f"Antenna adjustment on {scen.meta.name}: round-2 RSRP predicted from round 1"
     console.print(demo_table(results, title))
     saved = save_comparison(results, title, out)
     console.print(f"comparison table: {', '.join(str(p) for p in saved)}")
     console.print(f"reports: {out / 'report-rflscm' / 'report.md'}, {out / 'report-wnomp' / 'report.md'}")
+    if (note := overrun_note(time.perf_counter() - started, budget_s, parts)) is not None:
+        console.print(note)
