@@ -261,7 +261,8 @@ def demo(
         after_s = time.perf_counter() - t0
         if name == "rflscm":
             parts["RF-LSCM's fit"] = model.run_info["fit"]["train_time_s"]
-            parts["its evaluation and reports"] = after_s
+            kept = model.run_info["fit"].get("after_kept_s")
+            parts["its evaluation and reports" + ("" if kept is None else f" (kept for them: {kept:.0f} s)")] = after_s
         else:
             parts["loading and WNOMP"] = time.perf_counter() - started
     title = f"Antenna adjustment on {scen.meta.name}: round-2 RSRP predicted from round 1"

@@ -187,6 +187,8 @@ def fit(
             extra["render_rest"] = True
     model.finish_training(progress=progress, time_left=time_left, clock=clock, **extra)
     summary["finish_s"] = clock() - finish0
+    if deal is not None and deal.cost is not None and (deal.after_fresh or deal.after_s):
+        summary["after_kept_s"] = deal.fixed_after_s()  # what the last deal kept for the caller's work after the fit
     summary.update(model.run_info.get("corrections", {}))  # how many training pairs the pass corrected
     summary["total_s"] = clock() - started
     model.run_info["train"] = {k: float(v) for k, v in summary.items()}

@@ -347,8 +347,8 @@ def test_work_after_the_fit_is_kept_out_of_the_budget(scenario) -> None:
     clock.now = 0.0
     assert told and all(f is None for f in told)
     fresh = fresh_pairs(20)
-    fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_fresh=fresh, after_s=5.0)
+    summary = fit(model, scenario, progress=False, budget_s=100.0, clock=clock, after_fresh=fresh, after_s=5.0)
     # fresh pairs: all kept up front at their own rate, 1.2 × (20 × 1 s + 5 s) = 30 s; the pass 12 s: training stops
     # at 60 s (the first step end past 58 s)
     assert left == [pytest.approx(100.0 - 30.0 - 60.0)] and rest[-1] is False
-    assert told[-1] is fresh
+    assert told[-1] is fresh and summary["after_kept_s"] == pytest.approx(30.0)  # told to the caller
