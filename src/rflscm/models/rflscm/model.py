@@ -562,12 +562,18 @@ class RFLSCM(LSCMModel):
         self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
     ) -> np.ndarray | None:
         """CSI-RS predictions carry each cell's CSI-RS level correction relative to its SSB one (the APS carries
-        the SSB one; :mod:`~rflscm.models.rflscm.corrections`)."""
+        the SSB one; :mod:`~rflscm.models.rflscm.corrections`), except at a pair answered by WNOMP's APS of its
+        reports and at a pair round 1 did not report at a grid it visited (its level is round 1's silence, the cap
+        of :meth:`round1_caps`, not the field's that the correction was fitted on)."""
         if self.scene is None:
             return None
         offset = self.corrections.level_offset_db(self.scene.cell_index(np.asarray(cell_ids)), beam_type)
-        if offset is not None and grid_ids is not None:  # a pair answered by WNOMP's APS of its reports has none
-            offset = np.where(self.corrections.unrendered(cell_ids, grid_ids), 0.0, offset)
+        if offset is not None and grid_ids is not None:
+            own = ~self.corrections.unrendered(cell_ids, grid_ids)
+            caps = self.round1_caps(cell_ids, grid_ids)
+            if caps is not None:
+                own &= ~np.isfinite(caps)
+            offset = np.where(own, offset, 0.0)
         return offset
 
     def finish_training(
