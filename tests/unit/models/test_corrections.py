@@ -847,7 +847,7 @@ def test_the_mix_weight_follows_which_of_the_two_predicts_held_aside_reports_bet
     from rflscm.models.rflscm import corrections as module
 
     e_post = torch.tensor([2.0, -3.0, 1.0, 4.0], dtype=torch.float64)
-    for e_wnomp, expected in ((torch.zeros(4, dtype=torch.float64), 0.75), (e_post * 0 + 15.0, 0.0)):
+    for e_wnomp, expected in ((torch.zeros(4, dtype=torch.float64), 1.0), (e_post * 0 + 15.0, 0.0)):
         err = {
             w: float(((1 - w) * e_post + w * e_wnomp).abs().clamp_max(module.CLIP_DB).mean())
             for w in module.MIX_WEIGHTS
@@ -992,3 +992,31 @@ def test_pairs_left_over_borrow_the_nearest_rendered_pairs_aps_with_their_own_an
 
     level_only = PairCorrections(levels=fitted.levels).apply(field[rows], c, ids[c], rows)
     assert mae(out) < 0.5 < mae(level_only)
+
+
+def test_the_mix_fits_wnomp_with_the_baselines_settings_and_may_choose_it_alone(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The dB mix's WNOMP is the baseline's (``wnomp_fallback``: the demo's selected settings) with each of
+    ``MIX_ATOMS``' atom counts, so that a weight of 1 (a candidate) answers a posterior pair exactly as the baseline
+    would with those atoms."""
+    from rflscm.models.rflscm import corrections as module
+    from rflscm.models.wnomp import WNOMPConfig
+
+    assert 1.0 in module.MIX_WEIGHTS
+    solvers: list[WNOMPConfig] = []
+    solve = module._Fit.solve
+
+    def spy(self, pairs, mask, levels, solver=module.SOLVER):  # type: ignore[no-untyped-def]
+        solvers.append(solver)
+        return solve(self, pairs, mask, levels, solver)
+
+    monkeypatch.setattr(module._Fit, "solve", spy)
+    baseline = WNOMPConfig(k_max=2, tolerance=0.05, weighting="none", residual_floor=0.1)
+    pair_data, render, columns, _, _, _ = atom_problem(0)
+    cfg = CorrectionsConfig(calibrate_levels=False, wnomp_atoms=True, lambda_groups=3, wnomp_fallback=baseline)
+    visible = torch.ones(2, 40, dtype=torch.bool)
+    fit_corrections(cfg, pair_data, 8, np.array([7, 8]), render, columns, seed=0, visible=visible)
+    mixes = [s for s in solvers if s.weighting == "none"]
+    assert {s.k_max for s in mixes} >= set(module.MIX_ATOMS)  # every atom count tried with the baseline's settings
+    assert all(s.tolerance == 0.05 and s.residual_floor == 0.1 for s in mixes)

@@ -1288,10 +1288,11 @@ def fallback_solver(cfg: CorrectionsConfig) -> WNOMPConfig:
 MIX_ATOMS = (2, 4, 8)
 """WNOMP's atom counts (``k_max``) for the dB mix of the posterior pairs, one chosen on held-aside reports as the WNOMP
 baseline's selection chooses among them (:data:`~rflscm.models.wnomp_select.CANDIDATES`)."""
-MIX_WEIGHTS = (0.0, 0.25, 0.5, 0.75)
+MIX_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 """Candidate weights of WNOMP's APS in a posterior pair's prediction, averaged in dB: (1 − w) × the posterior's +
-w × WNOMP's fit of the pair's own reports (:class:`~rflscm.models.source.RsrpMix`).  0: the posterior alone; 1 is
-not a candidate (it would drop the field wherever a group chose a posterior)."""
+w × WNOMP's fit of the pair's own reports (:class:`~rflscm.models.source.RsrpMix`).  0: the posterior alone; 1:
+WNOMP's fit alone, where the held-aside reports say a weak field's posterior only adds error (a 114-cell ideal
+city after 40 steps: SSB chose 1, CSI-RS 0.75; docs/DECISIONS.md, "WNOMP alone is a candidate of the dB mix")."""
 
 
 MIX_BEAM_TYPES = ("ssb", "csi")
@@ -1304,14 +1305,16 @@ def _mix_plan(
     fit: _Fit, rendered: _Rendered, rows: torch.Tensor, levels: torch.Tensor | None, held: torch.Tensor, plan: _Plan
 ) -> dict[str, tuple[WNOMPConfig, tuple[float, ...], dict[str, float]]]:
     """The dB mix of the posterior pairs per beam type (:data:`MIX_BEAM_TYPES`), chosen on that type's ``held``-aside
-    reports of the λ pairs ``rows`` of ``rendered`` under the posterior's ``plan``: WNOMP's atoms (the
-    :data:`MIX_ATOMS` count whose fit without the held-aside reports predicts them best) and, per group of ``plan``,
+    reports of the λ pairs ``rows`` of ``rendered`` under the posterior's ``plan``: WNOMP with the baseline's settings
+    (:func:`fallback_solver`: the demo's selected ones) and the :data:`MIX_ATOMS` count whose fit without the
+    held-aside reports predicts them best, and, per group of ``plan``,
     the :data:`MIX_WEIGHTS` weight whose dB average of the posterior's and WNOMP's held-aside predictions errs least (a
     dB average's error is the same average of the two errors; each report's error counts at most ``CLIP_DB``; the
     smaller on a tie; 0 in a group that keeps the field or holds none of the type's reports).  Returns per beam type
     the settings, the weight per group and the scores (``k2``…: WNOMP alone; ``w0``…: each group's weight)."""
     d = fit.data
     fit.plan = plan
+    base = fallback_solver(fit.cfg)  # the baseline's settings (the demo's selected ones), each atom count tried
     post, group_of_report, csi_report = [], [], []
     wnomp: dict[int, list[torch.Tensor]] = {k: [] for k in MIX_ATOMS}
     for chunk in fit.chunks(rendered, rows, levels, held=held):
@@ -1330,19 +1333,19 @@ def _mix_plan(
         csi_report.append((column[score] >= fit.num_ssb).cpu())
         cells = d.cell_index[chunk.pairs]
         for k in MIX_ATOMS:
-            bins, gains = fit.solve(chunk.pairs, chunk.mask & ~held_here, None, dataclasses.replace(SOLVER, k_max=k))
+            bins, gains = fit.solve(chunk.pairs, chunk.mask & ~held_here, None, dataclasses.replace(base, k_max=k))
             pred = predicted_reports(fit.columns, cells, bins, gains).clamp_min(1e-30)
             wnomp[k].append((10.0 * torch.log10(d.rsrp[chunk.pairs] / pred))[score].cpu())
     num_groups = len(plan.lam)
     if not post:
-        return {bt: (SOLVER, (0.0,) * num_groups, {}) for bt in MIX_BEAM_TYPES}
+        return {bt: (base, (0.0,) * num_groups, {}) for bt in MIX_BEAM_TYPES}
     e_post, groups, is_csi = torch.cat(post).double(), torch.cat(group_of_report), torch.cat(csi_report)
     e_alone = {k: torch.cat(v).double() for k, v in wnomp.items()}
     out: dict[str, tuple[WNOMPConfig, tuple[float, ...], dict[str, float]]] = {}
     for bt in MIX_BEAM_TYPES:
         mine_bt = is_csi if bt == "csi" else ~is_csi
         if not bool(mine_bt.any()):
-            out[bt] = (SOLVER, (0.0,) * num_groups, {})
+            out[bt] = (base, (0.0,) * num_groups, {})
             continue
         alone = {k: float(e[mine_bt].abs().clamp_max(CLIP_DB).mean()) for k, e in e_alone.items()}
         k_best = min(MIX_ATOMS, key=lambda k: (alone[k], k))
@@ -1357,7 +1360,7 @@ def _mix_plan(
             mix_err = {w: float(((1 - w) * e_p + w * e_w).abs().clamp_max(CLIP_DB).mean()) for w in MIX_WEIGHTS}
             weights.append(min(MIX_WEIGHTS, key=lambda w: (mix_err[w], w)))
             scores[f"w{g}"] = weights[-1]
-        out[bt] = (dataclasses.replace(SOLVER, k_max=k_best), tuple(weights), scores)
+        out[bt] = (dataclasses.replace(base, k_max=k_best), tuple(weights), scores)
     return out
 
 
