@@ -285,8 +285,7 @@ def _predict_tests(
 
     Cell by cell, both beam types of a cell one after the other (they share its sensing matrices and most of its
     pairs), each cell's APS remembered only while its pairs are predicted (a fresh :class:`APSCache` per cell), so
-    that memory grows with a cell's test pairs and not the network's (a field model's rows are its rendered bins: at
-    1 002 cells every test pair's took gigabytes).  The pairs the APS metrics will draw (:func:`_aps_sample` of those
+    that this memory grows with a cell's test pairs and not the network's.  The pairs the APS metrics will draw (:func:`_aps_sample` of those
     asked) are kept as they go by.  A ``model`` that is an :class:`APSCache` already (filled by workers, or shared by
     a benchmark) is read as it is, for every cell."""
     shared = isinstance(model, APSCache)
@@ -329,8 +328,8 @@ class _BeamRun:
         self.oracle_pred = None if oracle is None else np.full((len(pairs), self.width), np.nan)
         self.cells = pairs["cell_id"].to_numpy()
         order = np.argsort(self.cells, kind="stable")
-        starts = np.searchsorted(self.cells[order], np.unique(self.cells))
-        self._rows = dict(zip(np.unique(self.cells).tolist(), np.split(order, starts[1:]), strict=True))
+        ids, starts = np.unique(self.cells[order], return_index=True)
+        self._rows = dict(zip(ids.tolist(), np.split(order, starts[1:]), strict=True))  # cell → its rows, in order
         self.why: str | None = None
 
     def predict(self, cell: int, model: APSSource, oracle: APSSource | None, view: Scenario, round: int) -> None:
