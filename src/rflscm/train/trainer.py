@@ -133,9 +133,9 @@ def fit(
     the same budget (the demo's evaluation) names it: ``after_pairs`` pairs it will ask for that have training
     reports (none of them rendered after the fit: the pass keeps the render of each pair it corrects, answers the
     others with its WNOMP fallback or, where the field's level wins, renders and keeps them too), ``after_fresh``
-    pairs without any (always rendered), each at the model's cost per pair measured on a chunk of them, and ``after_s``
-    seconds of other work; the fit keeps that time free too (:func:`budget_split`).  Halfway through training (``REPLAN_AT``) the
-    budget is dealt again from the pass's cost measured on the weights trained so far.
+    pairs without any (always rendered), each at the model's cost per pair measured on a chunk of them, and
+    ``after_s`` seconds of other work; the fit keeps that time free too (:func:`budget_split`).  Halfway through
+    training (``REPLAN_AT``) the budget is dealt again from the pass's cost measured on the weights trained so far.
     """
     started = clock() if started is None else started
     checked_budget(budget_s)  # before minutes of data preparation
@@ -158,7 +158,7 @@ def fit(
     if budget_s is not None:
         share = model.train_config.finish_share
         fresh = after_fresh if after_fresh is not None and len(after_fresh) else None
-        deal = BudgetDeal(budget_s, share, after_s, len(fresh or ()), render_rest=after_pairs > 0)
+        deal = BudgetDeal(budget_s, share, after_s, 0 if fresh is None else len(fresh), render_rest=after_pairs > 0)
         stop_s = deal.stop_s(model.finish_seconds(clock, fresh))
         if not trainer.replanned:  # a resumed run that re-dealt its budget before keeps that deal
             trainer.stop_s = stop_s

@@ -563,8 +563,8 @@ class RFLSCM(LSCMModel):
     ) -> np.ndarray | None:
         """CSI-RS predictions carry each cell's CSI-RS level correction relative to its SSB one (the APS carries
         the SSB one; :mod:`~rflscm.models.rflscm.corrections`), except at a pair answered by WNOMP's APS of its
-        reports and at a pair round 1 did not report at a grid it visited (its level is round 1's silence, the cap
-        of :meth:`round1_caps`, not the field's that the correction was fitted on)."""
+        reports and at a pair round 1 did not report at a grid it visited (its level is held to round 1's silence,
+        the cap of :meth:`round1_caps`; the correction was fitted on pairs round 1 reported)."""
         if self.scene is None:
             return None
         offset = self.corrections.level_offset_db(self.scene.cell_index(np.asarray(cell_ids)), beam_type)
