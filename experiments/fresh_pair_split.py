@@ -3,9 +3,10 @@
     PYTHONPATH=src python experiments/fresh_pair_split.py SCENARIO CHECKPOINT
 
 For the round-2 pairs that round 1 did not report, per beam type: the checkpoint's MAE and mean signed error
-[dB] as it predicts them, then with round 1's silence cap switched off, with the CSI-RS level correction switched
-off, and with the unseen-grid blend switched off, each on changed cells and on the others (DECISIONS, "Kept: no
-CSI-RS level correction at a pair round 1 did not report").
+[dB] as it predicts them, then with round 1's silence cap switched off, with each pair's own cell's CSI-RS level
+correction, with none, with the median of the cells' corrections, and with the unseen-grid blend switched off, each on
+changed cells and on the others (DECISIONS, "Kept: the median CSI-RS level correction at a pair round 1 did not
+report").
 """
 
 import sys
@@ -42,9 +43,17 @@ for beam_type in ("ssb", "csi"):
         print(f"changed cells {parts[0]} others {parts[1]} ({len(sub)} pairs)")
 
     score("model", predict_rsrp(model, scenario, 2, beam_type, sub))
+    every = model.corrections.level_offset_db(np.arange(len(model.scene.cell_ids)), beam_type)
+    median = None if every is None else float(np.median(every))
+
+    def own_cell(cell_ids, beam_type, grid_ids=None):  # type: ignore[no-untyped-def]
+        return model.corrections.level_offset_db(model.scene.cell_index(np.asarray(cell_ids)), beam_type)
+
     for name, attr, off in (
         ("no cap", "round1_caps", lambda c, g: None),
+        ("own cell's offset", "level_offset_db", own_cell),
         ("no level offset", "level_offset_db", lambda *a, **k: None),
+        ("median offset", "level_offset_db", lambda c, *a, **k: None if median is None else np.full(len(c), median)),
     ):
         kept = getattr(model, attr)
         setattr(model, attr, off)

@@ -562,18 +562,21 @@ class RFLSCM(LSCMModel):
         self, cell_ids: np.ndarray, beam_type: str, grid_ids: np.ndarray | None = None
     ) -> np.ndarray | None:
         """CSI-RS predictions carry each cell's CSI-RS level correction relative to its SSB one (the APS carries
-        the SSB one; :mod:`~rflscm.models.rflscm.corrections`), except at a pair answered by WNOMP's APS of its
-        reports and at a pair round 1 did not report at a grid it visited (its level is held to round 1's silence,
-        the cap of :meth:`round1_caps`; the correction was fitted on pairs round 1 reported)."""
+        the SSB one; :mod:`~rflscm.models.rflscm.corrections`).  A pair answered by WNOMP's APS of its reports has
+        none; a pair round 1 did not report at a grid it visited (its level held to round 1's silence, the cap of
+        :meth:`round1_caps`) has the median of the cells' corrections: a cell's own, fitted where the field's level
+        stands, spread over tens of dB on weakly trained models, while what all cells share (a CSI-RS power offset of
+        the network) still applies."""
         if self.scene is None:
             return None
         offset = self.corrections.level_offset_db(self.scene.cell_index(np.asarray(cell_ids)), beam_type)
         if offset is not None and grid_ids is not None:
-            own = ~self.corrections.unrendered(cell_ids, grid_ids)
+            offset = np.where(self.corrections.unrendered(cell_ids, grid_ids), 0.0, offset)
             caps = self.round1_caps(cell_ids, grid_ids)
-            if caps is not None:
-                own &= ~np.isfinite(caps)
-            offset = np.where(own, offset, 0.0)
+            if caps is not None and np.isfinite(caps).any():
+                every = self.corrections.level_offset_db(np.arange(len(self.scene.cell_ids)), beam_type)
+                assert every is not None
+                offset = np.where(np.isfinite(caps), float(np.median(every)), offset)
         return offset
 
     def finish_training(
