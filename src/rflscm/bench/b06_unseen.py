@@ -18,20 +18,17 @@ angles, 1500 steps of 32 pairs) on 2 CPU cores; ``full`` = the whole scenario an
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
-import pandas as pd
 
 from rflscm.bench import BenchContext, register_bench
 from rflscm.bench.harness import BenchSize, bench_size, load_bench_data, train_and_evaluate
 from rflscm.bench.measure import aps_recovery
 from rflscm.bench.report import aggregate, header, new_figure, save_figure, seeds_of
 from rflscm.data import BEAM_TYPES
+from rflscm.data.measurements import reported_pairs
 from rflscm.eval import UnseenProtocol
-
-if TYPE_CHECKING:
-    from rflscm.data.scenario import Scenario
 
 MODELS = ("rflscm", "nerf2", "wnomp")
 HOLDOUT = 0.2
@@ -50,7 +47,7 @@ def run_b6(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
     out = header(ctx, data, seeds, __doc__.split("\n\n")[-1].strip())
     out["holdout_fraction"] = HOLDOUT
     out["holdout_grids"] = int(len(protocol.held_out(data.scenario)))
-    seen_pairs = reported_pairs(protocol.training_scenario(data.scenario))
+    seen_pairs = reported_pairs(protocol.training_scenario(data.scenario).measurements)
     models: dict[str, Any] = {}
     reference: dict[str, Any] = {}
     for name in MODELS:
@@ -76,13 +73,6 @@ def run_b6(ctx: BenchContext, size: BenchSize) -> dict[str, Any]:
     out["trivial"] = {"unseen_mae_db": dict(reference["unseen"]["trivial_mae_db"])}
     out["plots"] = [_plot(ctx, models, out["oracle"], out["trivial"])]
     return out
-
-
-def reported_pairs(scenario: Scenario) -> pd.DataFrame:
-    """(cell_id, grid_id) pairs with at least one reported round-1 beam (as the evaluation's test pairs)."""
-    m = scenario.measurements
-    rows = m[((m["round"] == 1) & m["rsrp_dbm"].notna()).to_numpy()]
-    return rows[["cell_id", "grid_id"]].drop_duplicates().sort_values(["cell_id", "grid_id"], ignore_index=True)
 
 
 def _plot(ctx: BenchContext, models: dict[str, Any], oracle: dict[str, Any], trivial: dict[str, Any]) -> str:

@@ -25,6 +25,7 @@ import torch
 from rflscm.bench import BenchContext
 from rflscm.bench.measure import MemoryProbe
 from rflscm.config import load_yaml, to_dict
+from rflscm.data.measurements import reported_pairs
 from rflscm.data.parts import scenario_part
 from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
@@ -243,9 +244,7 @@ def _site_order(full: Scenario) -> list[int]:
         from rflscm.eval.metrics import changed_cells
 
         changed = set(changed_cells(full, 1, 2).tolist())
-    m = full.measurements
-    rows = m[((m["round"] == 1) & m["rsrp_dbm"].notna()).to_numpy()]
-    pairs_per_cell = rows[["cell_id", "grid_id"]].drop_duplicates().groupby("cell_id").size()
+    pairs_per_cell = reported_pairs(full.measurements).groupby("cell_id").size()
     rank = []
     for site, group in cells.groupby("site_id"):
         counts = pairs_per_cell.reindex(group["cell_id"]).fillna(0).to_numpy()

@@ -48,6 +48,32 @@ def empty_measurements() -> pd.DataFrame:
     return pd.DataFrame({c: pd.Series(dtype=t) for c, t in zip(MEASUREMENT_COLUMNS, dtypes, strict=True)})
 
 
+def select_rows(table: pd.DataFrame, mask: np.ndarray) -> pd.DataFrame:
+    """The rows of ``table`` where ``mask [num_rows]`` holds, in order, numbered from 0.
+
+    When they are one contiguous run (a round of a table written round by round, as every scenario rflscm writes),
+    this is a slice of ``table`` that shares its columns (pandas' copy-on-write copies nothing until one of them is
+    written); otherwise a copy.  At 1 002 cells round 1's rows are 1.1 GB."""
+    mask = np.asarray(mask, dtype=bool)
+    if mask.any():
+        first, last = int(mask.argmax()), len(mask) - int(mask[::-1].argmax())
+        if mask[first:last].all():
+            return table.iloc[first:last].reset_index(drop=True)
+    return table[mask].reset_index(drop=True)
+
+
+def reported_pairs(measurements: pd.DataFrame, round: int = 1) -> pd.DataFrame:
+    """The distinct (``cell_id``, ``grid_id``) pairs with at least one reported RSRP in ``round``, sorted.
+
+    Only the two id columns of those rows are copied, never the whole rows."""
+    m = measurements
+    reported = (m["round"].to_numpy() == round) & ~np.isnan(m["rsrp_dbm"].to_numpy(np.float64))
+    pairs = pd.DataFrame(
+        {"cell_id": m["cell_id"].to_numpy()[reported], "grid_id": m["grid_id"].to_numpy()[reported]}, copy=False
+    )
+    return pairs.drop_duplicates().sort_values(["cell_id", "grid_id"], ignore_index=True)
+
+
 def codebook_sizes(cells: dict[int, pd.DataFrame], meta: ScenarioMeta) -> np.ndarray:
     """Number of beams ``[num_rounds, num_cells, 2]`` (int64) per round (sorted), cell (sorted ids) and
     beam type (``ssb``, ``csi``)."""

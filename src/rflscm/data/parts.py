@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
+from rflscm.data.measurements import reported_pairs
 from rflscm.data.scenario import OUTSIDE_SSB_COLUMNS
 from rflscm.errors import ConfigError, DataError
 
@@ -122,9 +123,7 @@ def plan_tiles(scenario: Scenario, tile_sites: int) -> list[Tile]:
     sites_xy = cells1.groupby("site_id")[["x", "y"]].mean().sort_index()
     site_ids = sites_xy.index.to_numpy(np.int64)
     xy = sites_xy.to_numpy(np.float64)
-    m = scenario.measurements
-    reported = m[((m["round"] == 1) & m["rsrp_dbm"].notna()).to_numpy()]
-    grids_of = reported.groupby("cell_id")["grid_id"].unique()
+    grids_of = reported_pairs(scenario.measurements).groupby("cell_id")["grid_id"].unique()
     pairs_of = grids_of.map(len)
     site_of = cells1.drop_duplicates("cell_id").set_index("cell_id")["site_id"]
     site_pairs = pairs_of.groupby(site_of.reindex(pairs_of.index).to_numpy()).sum()

@@ -68,6 +68,7 @@ import pandas as pd
 import torch
 
 from rflscm.data import BEAM_TYPES
+from rflscm.data.measurements import reported_pairs
 from rflscm.data.scenario import SensingCache
 from rflscm.errors import ConfigError, DataError
 from rflscm.eval import metrics as M
@@ -241,9 +242,7 @@ def tested_pairs(scenario: Scenario, protocol: Protocol) -> tuple[int, FreshPair
 
 def _trained_pairs(train: Scenario) -> pd.MultiIndex:
     """(cell_id, grid_id) pairs with at least one reported round-1 beam in the training data."""
-    m = train.measurements
-    rows = m[((m["round"] == 1) & m["rsrp_dbm"].notna()).to_numpy()]
-    return pd.MultiIndex.from_frame(rows[["cell_id", "grid_id"]].drop_duplicates())
+    return pd.MultiIndex.from_frame(reported_pairs(train.measurements))
 
 
 def _predict(

@@ -34,6 +34,7 @@ import pandas as pd
 
 from rflscm.config import from_dict, to_dict
 from rflscm.data import BEAM_TYPES
+from rflscm.data.measurements import select_rows
 from rflscm.errors import ConfigError, DataError
 from rflscm.train import fit
 
@@ -64,7 +65,7 @@ class TestSet:
 
 def _round1_rows(scenario: Scenario) -> pd.DataFrame:
     m = scenario.measurements
-    return m[(m["round"] == 1).to_numpy()]
+    return select_rows(m, (m["round"] == 1).to_numpy())
 
 
 def _measured_grids(rows: pd.DataFrame) -> np.ndarray:
@@ -136,7 +137,7 @@ class UnseenProtocol:
     def training_scenario(self, scenario: Scenario) -> Scenario:
         rows = _round1_rows(scenario)
         keep = ~rows["grid_id"].isin(self.held_out(scenario)).to_numpy()
-        return scenario.with_measurements(rows[keep], validate=False)
+        return scenario.with_measurements(select_rows(rows, keep), validate=False)
 
     def test_set(self, scenario: Scenario) -> TestSet:
         held = self.held_out(scenario)

@@ -20,6 +20,7 @@ import torch
 from tqdm.auto import tqdm
 
 from rflscm.data import BEAM_TYPES
+from rflscm.data.measurements import reported_pairs
 from rflscm.errors import ConfigError, RflscmError, UnsupportedError
 from rflscm.eval.cache import APSCache, render_rows
 from rflscm.parallel.engine import Engine, ray_session
@@ -210,9 +211,7 @@ def evaluation_requests(
     """What :func:`rflscm.eval.run_evaluation` asks its model for under ``protocol``: per beam type, the test
     pairs it scores (all, or only the trained ones for a model without unseen grids), cell by cell in blocks."""
     train = protocol.training_scenario(scenario)
-    m = train.measurements
-    rows = m[((m["round"] == 1) & m["rsrp_dbm"].notna()).to_numpy()]
-    seen_index = pd.MultiIndex.from_frame(rows[["cell_id", "grid_id"]].drop_duplicates())
+    seen_index = pd.MultiIndex.from_frame(reported_pairs(train.measurements))
     test = protocol.test_set(scenario)
     requests = []
     for beam_type in BEAM_TYPES:

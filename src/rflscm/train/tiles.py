@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from rflscm.config import to_dict
+from rflscm.data.measurements import reported_pairs
 from rflscm.data.parts import Tile, plan_tiles, tile_scenario
 from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
@@ -138,9 +139,7 @@ def queue_budgets(weights: Sequence[float], queue: Sequence[int]) -> list[tuple[
 
 def training_pairs(scenario: Scenario) -> int:
     """Distinct (cell, grid) pairs with a reported round-1 RSRP."""
-    m = scenario.measurements
-    rows = m[((m["round"] == 1) & m["rsrp_dbm"].notna()).to_numpy()]
-    return int(len(rows[["cell_id", "grid_id"]].drop_duplicates()))
+    return len(reported_pairs(scenario.measurements))
 
 
 def run_tile(job: TileJob, budget_s: float | None, deadline: float | None = None) -> TileResult:

@@ -75,3 +75,34 @@ def test_check_summary_counts_match_a_group_by_of_the_table(tiny: Scenario) -> N
             possible = sum(tiny.num_beams(int(c), bt, int(rnd)) for c in pairs["cell_id"])
             reported = int(sub[sub["beam_type"] == bt]["rsrp_dbm"].notna().sum())
             assert frac.loc[(rnd, bt), "possible"] == possible and frac.loc[(rnd, bt), "reported"] == reported
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_select_rows_equals_a_boolean_mask_and_shares_a_contiguous_run(seed: int) -> None:
+    from rflscm.data.measurements import select_rows
+
+    rng = np.random.default_rng(seed)
+    table = pd.DataFrame({"round": np.repeat([1, 2], 50), "v": rng.normal(size=100), "k": np.arange(100)})
+    run = (table["round"] == 1).to_numpy()
+    scattered = rng.random(100) < 0.4
+    for mask in (run, scattered, np.zeros(100, bool), np.ones(100, bool)):
+        got = select_rows(table, mask)
+        assert got.equals(table[mask].reset_index(drop=True))
+    shared = select_rows(table, run)
+    assert np.shares_memory(shared["v"].to_numpy(), table["v"].to_numpy())  # one run: a slice, not a copy
+    assert not np.shares_memory(select_rows(table, scattered)["v"].to_numpy(), table["v"].to_numpy())
+    shared.loc[0, "v"] = 1e9  # copy-on-write: writing the slice leaves the table as it was
+    assert table["v"].iloc[0] != 1e9
+
+
+def test_reported_pairs_are_the_distinct_sorted_pairs_with_a_reported_beam(tiny: Scenario) -> None:
+    from rflscm.data.measurements import reported_pairs
+
+    m = tiny.measurements
+    for rnd in (1, 2):
+        rows = m[(m["round"] == rnd) & m["rsrp_dbm"].notna()]
+        expect = rows[["cell_id", "grid_id"]].drop_duplicates().sort_values(["cell_id", "grid_id"], ignore_index=True)
+        got = reported_pairs(m, rnd)
+        assert got.equals(expect) and len(got) > 0
+    silent = m.assign(rsrp_dbm=np.nan)
+    assert reported_pairs(silent).empty
