@@ -1020,3 +1020,33 @@ def test_the_mix_fits_wnomp_with_the_baselines_settings_and_may_choose_it_alone(
     mixes = [s for s in solvers if s.weighting == "none"]
     assert {s.k_max for s in mixes} >= set(module.MIX_ATOMS)  # every atom count tried with the baseline's settings
     assert all(s.tolerance == 0.05 and s.residual_floor == 0.1 for s in mixes)
+
+
+def test_the_mix_choice_is_paid_inside_the_pass_deadline(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The dB mix's choice (charged 1 s of the fake clock here) is made before the pairs are corrected, so the loop
+    that corrects pairs while time is left stops in time for it: the pass ends within its deadline, and corrects fewer
+    pairs than with a free choice."""
+    from rflscm.models.rflscm import corrections as module
+
+    pair_data, costly, columns_, truth, _, _, now = fallback_problem()
+    visible = torch.ones(2, truth.shape[1], dtype=torch.bool)
+    choose = module._mix_plan
+
+    def run(charge: float) -> PairCorrections:
+        def charged(*args, **kwargs):  # type: ignore[no-untyped-def]
+            now[0] += charge
+            return choose(*args, **kwargs)
+
+        monkeypatch.setattr(module, "_mix_plan", charged)
+        now[0] = 0.0
+        cfg = CorrectionsConfig(calibrate_levels=False, wnomp_atoms=True, lambda_groups=3)
+        return fit_corrections(
+            cfg, pair_data, 8, np.array([7, 8]), costly, columns_, 0, time_left=lambda: 2.5 - now[0],
+            clock=lambda: now[0], visible=visible,
+        )  # fmt: skip
+
+    free = run(0.0)
+    paid = run(1.0)
+    assert now[0] <= 2.5
+    assert paid.mix is not None and free.mix is not None  # the mix was chosen both times
+    assert 0 < paid.corrected_pairs() < free.corrected_pairs()

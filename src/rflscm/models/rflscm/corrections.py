@@ -360,6 +360,10 @@ def fit_corrections(
         plan = _choose(fit, rendered, rendered.rows_of(subset.unique()), levels, held)
     fit.plan = plan
     fitting = cfg.pair_posterior and plan.fits()
+    mixing = fitting and cfg.wnomp_atoms and visible is not None
+    # the dB mix's choice reads only the λ pairs' renders: made before the pairs are corrected, whose loop then
+    # stops in time for what follows it (made after, it ran ~3 s past a 222-cell pass's time)
+    plans = _mix_plan(fit, rendered, rendered.rows_of(subset.unique()), levels, held, plan) if mixing else {}
     done, anchors, gains, bins_of, bases, mixed, kept = [], [], [], [], [], [], []
     later = _later_pairs(pairs, first, seed)
     left_over, choice = None, "level"
@@ -452,10 +456,9 @@ def fit_corrections(
     )
     mixes: dict[str, PairFallback | None] = {bt: None for bt in MIX_BEAM_TYPES}
     candidates = torch.cat(mixed).sort().values if mixed else torch.zeros(0, dtype=torch.long)
-    if cfg.wnomp_atoms and visible is not None and candidates.numel():
+    if plans and candidates.numel():
         # no render: WNOMP's solve of the posterior pairs' own reports (~0.3 ms a pair), sized to the time left; per
-        # beam type its atoms and each group's weight in the dB mix chosen on the λ pairs' held-aside reports
-        plans = _mix_plan(fit, rendered, rendered.rows_of(subset.unique()), levels, held, plan)
+        # beam type its atoms and each group's weight in the dB mix chosen above
         groups = group_of(data.observed[candidates].sum(1), plan.edges).cpu()
         weights = {bt: torch.tensor(w, dtype=torch.float32)[groups] for bt, (_, w, _) in plans.items()}
         solves: dict[WNOMPConfig, PairFallback] = {}  # one solve per setting: the beam types often choose the same

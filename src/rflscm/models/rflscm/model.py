@@ -440,7 +440,6 @@ class RFLSCM(LSCMModel):
         xyz = (
             self.scene.grid_positions(grid_ids) if grid_xyz is None else np.asarray(grid_xyz, np.float64).reshape(-1, 3)
         )
-        keys = [(int(c), *np.round(p, 3).tolist()) for c, p in zip(cells, xyz)]
         skip = self.corrections.unrendered(cell_ids, grid_ids)  # answered whole by the corrections: not rendered
         # the pairs the pass corrected, asked at their own grids' positions: their render at the final weights was kept
         stored = self.corrections.stored_rows(cell_ids, grid_ids)
@@ -448,12 +447,16 @@ class RFLSCM(LSCMModel):
             mine = np.flatnonzero(stored >= 0)
             own = self.scene.grid_positions(np.asarray(grid_ids).reshape(-1)[mine])
             stored[mine[np.abs(xyz[mine] - own).max(1) > 1e-3]] = -1
-        first: dict[tuple, int] = {}
-        for i, key in enumerate(keys):
-            if not skip[i] and stored[i] < 0:
-                first.setdefault(key, i)
-        todo = sorted(first.values(), key=lambda i: (keys[i][0], i))
-        out = torch.zeros(len(keys), self.angle_grid.num_bins, device=self.device)
+        # each distinct (cell, position to the mm) once, in the order of the cells and then of first asking
+        answered = np.flatnonzero(~skip & (stored < 0))
+        key = np.column_stack([cells[answered].astype(np.float64), np.round(xyz[answered], 3) + 0.0])  # no −0.0
+        _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        first_rows = answered[first]
+        order = np.lexsort((first_rows, cells[first_rows]))
+        todo = first_rows[order]
+        slot = np.empty(order.size, np.int64)
+        slot[order] = np.arange(order.size)
+        out = torch.zeros(len(cells), self.angle_grid.num_bins, device=self.device)
         rendered = torch.zeros(len(todo), self.angle_grid.num_bins, device=self.device)
         for start in range(0, len(todo), PAIR_CHUNK):
             rows = todo[start : start + PAIR_CHUNK]
@@ -461,10 +464,8 @@ class RFLSCM(LSCMModel):
             g = torch.as_tensor(xyz[rows], dtype=torch.float32, device=self.device)
             bins, values = R.output(c, g, self.position)
             rendered[start : start + len(rows)].scatter_add_(1, bins, values)
-        if todo:
-            slot = {keys[i]: j for j, i in enumerate(todo)}
-            answered = np.flatnonzero(~skip & (stored < 0))
-            src = torch.as_tensor([slot[keys[i]] for i in answered], dtype=torch.long, device=self.device)
+        if todo.size:
+            src = torch.as_tensor(slot[inverse.reshape(-1)], dtype=torch.long, device=self.device)
             out[torch.as_tensor(answered, dtype=torch.long, device=self.device)] = rendered[src]
         if (stored >= 0).any():
             kept = self.corrections.rendered
@@ -543,7 +544,9 @@ class RFLSCM(LSCMModel):
         if not (rows >= 0).any():
             return None
         zeros = torch.zeros(len(rows), self.angle_grid.num_bins, device=self.device)
-        aps = mix.apply(zeros, np.asarray(cell_ids).reshape(-1), np.asarray(grid_ids).reshape(-1)) * self.scene.x_ref
+        aps = mix.apply(zeros, np.asarray(cell_ids).reshape(-1), np.asarray(grid_ids).reshape(-1)).mul_(
+            self.scene.x_ref
+        )
         weight = torch.zeros(len(rows), device=self.device)
         found = torch.as_tensor(np.flatnonzero(rows >= 0), dtype=torch.long, device=self.device)
         weight[found] = mix.weight.to(self.device)[
