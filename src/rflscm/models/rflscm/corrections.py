@@ -466,9 +466,16 @@ def fit_corrections(
             wanted = torch.zeros(candidates.numel(), dtype=torch.bool)
             for bt, (s, _, _) in plans.items():
                 wanted |= (weights[bt] > 0) if s == solver else torch.zeros_like(wanted)
+            if solved is not None and len(solved.index) and solver == fallback_solver(cfg):
+                # WNOMP's APS of the later pairs with these settings was solved before the loop: taken from there
+                # (_with_solved) rather than solved twice, so that the time left goes to the pairs it lacks
+                known = _pair_index(data, cell_ids, candidates).isin(solved.index)
+                wanted &= torch.as_tensor(~known, device=wanted.device)
             if bool(wanted.any()):
                 pairs_ = candidates[wanted.to(candidates.device)]
                 solves[solver] = fit.fallback(pairs_, cell_ids, levels, {}, time_left, clock, solver)
+            else:
+                solves[solver] = _no_mix()
         for bt, (solver, _, mix_scores) in plans.items():
             weight = weights[bt]
             with_mix = candidates[(weight > 0).to(candidates.device)]
