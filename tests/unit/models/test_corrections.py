@@ -1055,31 +1055,40 @@ def test_the_mix_choice_is_paid_inside_the_pass_deadline(monkeypatch: pytest.Mon
 def test_the_mix_takes_the_later_pairs_wnomp_aps_solved_before_instead_of_solving_them_again(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """Within a deadline, WNOMP's APS of every later pair is solved before the loop (the fallback's settings); the dB
-    mix, with the same settings, solves only the pairs that lack one (the first pairs), takes the rest from there, and
-    still gives every mixed pair WNOMP's APS of its own reports."""
+    """Within a deadline, WNOMP's APS of every later pair is solved before the loop (the fallback's settings) and the
+    mix's of the first pairs too; after the loop the mix, with the same settings, solves only the pairs that lack one
+    (here none), takes the rest from there, and still gives every mixed pair WNOMP's APS of its own reports."""
     from rflscm.models.rflscm import corrections as module
 
     pair_data, costly, columns_, truth, _, _, now = fallback_problem()
     visible = torch.ones(2, truth.shape[1], dtype=torch.bool)
-    calls: list[tuple[object, set[int]]] = []
-    fallback = module._Fit.fallback
+    calls: list[tuple[str, object, set[int]]] = []
+    phase = ["before"]
+    fallback, left_over_fn = module._Fit.fallback, module._left_over
 
     def spy(self, pairs, *args, **kwargs):  # type: ignore[no-untyped-def]
-        out = fallback(self, pairs, *args, **kwargs)
-        calls.append((args[5] if len(args) >= 6 else kwargs.get("solver", module.SOLVER), set(pairs.tolist())))
+        solver = args[5] if len(args) >= 6 else kwargs.get("solver", module.SOLVER)
+        calls.append((phase[0], solver, set(pairs.tolist())))
+        return fallback(self, pairs, *args, **kwargs)
+
+    def left_over(*args, **kwargs):  # type: ignore[no-untyped-def]
+        phase[0] = "left over"
+        out = left_over_fn(*args, **kwargs)
+        phase[0] = "after"
         return out
 
     monkeypatch.setattr(module._Fit, "fallback", spy)
+    monkeypatch.setattr(module, "_left_over", left_over)
     cfg = CorrectionsConfig(calibrate_levels=False, wnomp_atoms=True, lambda_groups=3)
     fitted = fit_corrections(
         cfg, pair_data, 8, np.array([7, 8]), costly, columns_, 0, time_left=lambda: 2.5 - now[0],
         clock=lambda: now[0], visible=visible,
     )  # fmt: skip
     assert fitted.mix is not None and len(fitted.mix.index) > 0 and fitted.posterior is not None
-    left_over, *mix_calls = calls
-    same = [pairs for solver, pairs in mix_calls if solver == module.fallback_solver(cfg)]
-    assert all(not (pairs & left_over[1]) for pairs in same)  # no later pair solved twice with one setting
+    solved = set().union(*(p for when, _, p in calls if when != "after"))  # the first pairs' and the later pairs'
+    after = [p for when, solver, p in calls if when == "after" and solver == module.fallback_solver(cfg)]
+    assert all(not (p & solved) for p in after)  # nothing solved twice with one setting
     mixed = {g for _, g in fitted.mix.index}
-    reached = {g for _, g in fitted.posterior.index}
-    assert mixed <= reached and mixed & left_over[1]  # later pairs are mixed, with the APS solved before the loop
+    assert mixed <= {g for _, g in fitted.posterior.index} and mixed <= solved
+    later = set().union(*(p for when, _, p in calls if when == "left over"))
+    assert mixed & later and mixed - later  # later pairs and first pairs are mixed

@@ -364,6 +364,14 @@ def fit_corrections(
     # the dB mix's choice reads only the λ pairs' renders: made before the pairs are corrected, whose loop then
     # stops in time for what follows it (made after, it ran ~3 s past a 222-cell pass's time)
     plans = _mix_plan(fit, rendered, rendered.rows_of(subset.unique()), levels, held, plan) if mixing else {}
+    early: dict[WNOMPConfig, PairFallback] = {}  # the mix's WNOMP APS of the first pairs, solved before the loop
+    if plans and time_left is not None:
+        # whole, not cut by the time left: each first pair's render cost ~10× its solve, so this is bounded by what the
+        # first pairs took already, and a pair whose group mixes never keeps the posterior alone for want of a solve
+        mine = first[torch.isfinite(plan.of(data.observed[first].sum(1))[2]).to(first.device)]
+        for solver, wanted in _mix_wanted(data, mine, plans, plan).items():
+            if bool(wanted.any()):
+                early[solver] = fit.fallback(mine[wanted.to(mine.device)], cell_ids, levels, {}, None, clock, solver)
     done, anchors, gains, bins_of, bases, mixed, kept = [], [], [], [], [], [], []
     later = _later_pairs(pairs, first, seed)
     left_over, choice = None, "level"
@@ -462,14 +470,12 @@ def fit_corrections(
         groups = group_of(data.observed[candidates].sum(1), plan.edges).cpu()
         weights = {bt: torch.tensor(w, dtype=torch.float32)[groups] for bt, (_, w, _) in plans.items()}
         solves: dict[WNOMPConfig, PairFallback] = {}  # one solve per setting: the beam types often choose the same
-        for solver in dict.fromkeys(s for s, _, _ in plans.values()):
-            wanted = torch.zeros(candidates.numel(), dtype=torch.bool)
-            for bt, (s, _, _) in plans.items():
-                wanted |= (weights[bt] > 0) if s == solver else torch.zeros_like(wanted)
-            if solved is not None and len(solved.index) and solver == fallback_solver(cfg):
-                # WNOMP's APS of the later pairs with these settings was solved before the loop: taken from there
-                # (_with_solved) rather than solved twice, so that the time left goes to the pairs it lacks
-                known = _pair_index(data, cell_ids, candidates).isin(solved.index)
+        for solver, wanted in _mix_wanted(data, candidates, plans, plan).items():
+            # WNOMP's APS solved before the loop (the first pairs' for the mix; the later pairs' with the fallback's
+            # settings) is taken from there (_with_solved) rather than solved twice: the time left goes to the rest
+            have = [early.get(solver), solved if solver == fallback_solver(cfg) else None]
+            for done_ in (h for h in have if h is not None and len(h.index)):
+                known = _pair_index(data, cell_ids, candidates).isin(done_.index)
                 wanted &= torch.as_tensor(~known, device=wanted.device)
             if bool(wanted.any()):
                 pairs_ = candidates[wanted.to(candidates.device)]
@@ -484,7 +490,9 @@ def fit_corrections(
             mixed_index = pd.MultiIndex.from_arrays(
                 [np.asarray(cell_ids, np.int64)[data.cell_index[with_mix].cpu().numpy()], data.grid_ids[with_mix.cpu()]]
             )
-            mix = _with_solved(solves[solver].only(mixed_index), solved, mixed_index)
+            mix = _with_solved(
+                _with_solved(solves[solver].only(mixed_index), early.get(solver), mixed_index), solved, mixed_index
+            )
             rows = torch.as_tensor(mixed_index.get_indexer(mix.index), dtype=torch.long)
             mixes[bt] = dataclasses.replace(mix, scores=mix_scores, weight=weight[weight > 0][rows])  # not shared
     mix_csi = mixes.get("csi")
@@ -500,6 +508,22 @@ def fit_corrections(
         rendered=renders,
         borrowed=int(borrowed.numel()),
     )
+
+
+def _mix_wanted(
+    data: PairData,
+    pairs: torch.Tensor,
+    plans: dict[str, tuple[WNOMPConfig, tuple[float, ...], dict[str, float]]],
+    plan: _Plan,
+) -> dict[WNOMPConfig, torch.Tensor]:
+    """Per WNOMP setting of the dB mix's ``plans`` (:func:`_mix_plan`), which of the posterior's ``pairs [P]`` some beam
+    type mixes with it (their group's weight > 0), bool ``[P]``."""
+    groups = group_of(data.observed[pairs].sum(1), plan.edges).cpu()
+    out: dict[WNOMPConfig, torch.Tensor] = {}
+    for solver, weights, _ in plans.values():
+        mixes = torch.tensor(weights, dtype=torch.float32)[groups] > 0
+        out[solver] = out[solver] | mixes if solver in out else mixes
+    return out
 
 
 def _pair_index(data: PairData, cell_ids: np.ndarray, pairs: torch.Tensor) -> pd.MultiIndex:
