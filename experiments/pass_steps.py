@@ -13,23 +13,14 @@ import json
 import sys
 import time
 
-import torch
+from pass_model import model_before_its_pass  # experiments/pass_model.py
 
 from rflscm.data import load_scenario
-from rflscm.eval.protocols import AdjustProtocol
-from rflscm.models import load_model
-from rflscm.models.base import read_checkpoint
-from rflscm.models.rflscm import RFLSCM
 from rflscm.models.rflscm import corrections as C
 
 scenario = load_scenario(sys.argv[1])
 checkpoint, seconds = sys.argv[2], float(sys.argv[3])
-loaded = load_model(checkpoint, scenario)
-torch.manual_seed(0)
-model = RFLSCM(loaded.config, loaded.angle_grid)
-model.fingerprint, model.run_info = loaded.fingerprint, dict(loaded.run_info)
-model.prepare(AdjustProtocol().training_scenario(scenario))
-model.resume_from(read_checkpoint(checkpoint), checkpoint)
+model = model_before_its_pass(scenario, checkpoint)
 spent: dict[str, float] = {}
 
 
