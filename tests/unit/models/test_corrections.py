@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import math
 
@@ -1092,3 +1093,29 @@ def test_the_mix_takes_the_later_pairs_wnomp_aps_solved_before_instead_of_solvin
     assert mixed <= {g for _, g in fitted.posterior.index} and mixed <= solved
     later = set().union(*(p for when, _, p in calls if when == "left over"))
     assert mixed & later and mixed - later  # later pairs and first pairs are mixed
+
+
+def test_corrections_change_an_owned_aps_in_place_and_leave_any_other_alone() -> None:
+    """``apply(..., owned=True)`` (the model's own fresh tensor) gives the same APS as the copying call, written into
+    that tensor; without it the caller's tensor is never changed, whichever corrections there are (levels, anchors, a
+    posterior, WNOMP's fallback)."""
+    pair_data, costly, columns_, truth, _, cells, now = fallback_problem()
+    visible = torch.ones(2, truth.shape[1], dtype=torch.bool)
+    cfg = CorrectionsConfig(wnomp_atoms=True, lambda_groups=3)
+    fitted = fit_corrections(
+        cfg, pair_data, 8, np.array([7, 8]), costly, columns_, 0, time_left=lambda: 2.5 - now[0],
+        clock=lambda: now[0], visible=visible,
+    )  # fmt: skip
+    assert fitted.levels is not None and fitted.posterior is not None and fitted.fallback is not None
+    assert len(fitted.posterior.index) and len(fitted.fallback.index)
+    rows = np.arange(len(cells))
+    c = cells.numpy()
+    for parts in (fitted, dataclasses.replace(fitted, levels=None, anchors=None), PairCorrections()):
+        aps = torch.rand(len(rows), truth.shape[1], generator=torch.Generator().manual_seed(3))
+        before = aps.clone()
+        copied = parts.apply(aps, c, np.array([7, 8])[c], rows)
+        assert torch.equal(aps, before)  # not owned: untouched
+        mine = aps.clone()
+        in_place = parts.apply(mine, c, np.array([7, 8])[c], rows, owned=True)
+        assert in_place.data_ptr() == mine.data_ptr()
+        torch.testing.assert_close(in_place, copied, rtol=1e-6, atol=0.0)

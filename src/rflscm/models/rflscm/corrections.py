@@ -186,24 +186,32 @@ class PairCorrections:
         return self.mix_csi if beam_type == "csi" and self.mix_csi is not None else self.mix
 
     def apply(
-        self, aps: torch.Tensor, cell_index: np.ndarray, cell_ids: np.ndarray, grid_ids: np.ndarray
+        self, aps: torch.Tensor, cell_index: np.ndarray, cell_ids: np.ndarray, grid_ids: np.ndarray, owned: bool = False
     ) -> torch.Tensor:
         """``aps [N, K]`` (normalised) of pairs (``cell_index`` into the scene's cells, their ids and grid ids)
-        with the SSB level, the anchors and the posterior applied."""
+        with the SSB level, the anchors and the posterior applied.  Where the caller ``owned`` ``aps`` (a tensor of its
+        own, made for this answer) it is changed in place and level and anchor scale each row in one pass: a fresh
+        ``[N, K]`` tensor per step was most of RF-LSCM's answer time at the pairs it does not render."""
         cells = np.asarray(cell_ids, np.int64).reshape(-1)
         grids = np.asarray(grid_ids, np.int64).reshape(-1)
-        out = aps
+        factor = None  # [N] each row's level and anchor as a power ratio
         if self.levels is not None:
             index = torch.as_tensor(np.asarray(cell_index), device=aps.device)
-            out = out * torch.pow(10.0, self.levels.to(aps.device)[index, 0] / 10.0)[:, None]
+            factor = torch.pow(10.0, self.levels.to(aps.device)[index, 0] / 10.0)
         if self.anchors is not None and len(self.anchors) and len(cells):
             at = pd.MultiIndex.from_arrays([cells, grids])
             shift = self.anchors.reindex(at).fillna(0.0).to_numpy(np.float32, copy=True)
-            out = out * torch.pow(10.0, torch.as_tensor(shift, device=aps.device) / 10.0)[:, None]
+            anchor = torch.pow(10.0, torch.as_tensor(shift, device=aps.device) / 10.0)
+            factor = anchor if factor is None else factor * anchor
+        out = aps
+        if factor is not None:
+            out = out.mul_(factor[:, None]) if owned else out * factor[:, None]
+        mine = owned or out is not aps  # a tensor of this call's own may be changed in place from here on
         if self.posterior is not None:
-            out = self.posterior.apply(out, cells, grids)
+            out = self.posterior.apply(out, cells, grids, owned=mine)
+            mine = mine or out is not aps
         if self.fallback is not None:
-            out = self.fallback.apply(out, cells, grids)
+            out = self.fallback.apply(out, cells, grids, owned=mine)
         return out
 
     def stored_rows(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray:

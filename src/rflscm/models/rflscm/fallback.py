@@ -119,8 +119,9 @@ class PairFallback:
         )
         return np.asarray(self.index.get_indexer(at))
 
-    def apply(self, aps: torch.Tensor, cell_ids: np.ndarray, grid_ids: np.ndarray) -> torch.Tensor:
-        """``aps [N, K]`` with each left-over pair's row replaced by its WNOMP APS."""
+    def apply(self, aps: torch.Tensor, cell_ids: np.ndarray, grid_ids: np.ndarray, owned: bool = False) -> torch.Tensor:
+        """``aps [N, K]`` with each left-over pair's row replaced by its WNOMP APS; in place where the caller ``owned``
+        ``aps`` (a tensor of its own, made for this answer), else on a copy."""
         at = self.rows(cell_ids, grid_ids)
         dst = np.flatnonzero(at >= 0)
         if not dst.size:
@@ -129,7 +130,7 @@ class PairFallback:
         bins, gains = self.bins[src].to(aps.device), self.gains[src].to(aps.device, aps.dtype)
         rows = torch.zeros(dst.size, aps.shape[1], dtype=aps.dtype, device=aps.device)
         rows.scatter_add_(1, bins.clamp_min(0), torch.where(bins >= 0, gains, torch.zeros_like(gains)))
-        out = aps.clone()
+        out = aps if owned else aps.clone()
         out[torch.as_tensor(dst, dtype=torch.long, device=aps.device)] = rows
         return out
 

@@ -470,8 +470,8 @@ class RFLSCM(LSCMModel):
         if (stored >= 0).any():
             kept = self.corrections.rendered
             assert kept is not None
-            out = kept.apply(out, cell_ids, grid_ids)
-        out = self.corrections.apply(out, cells, cell_ids, grid_ids) * self.scene.x_ref
+            out = kept.apply(out, cell_ids, grid_ids, owned=True)
+        out = self.corrections.apply(out, cells, cell_ids, grid_ids, owned=True).mul_(self.scene.x_ref)
         w = self.corrections.unseen_weight
         anchors = self.corrections.anchors
         if w > 0.0 and anchors is not None and len(anchors):
@@ -544,9 +544,8 @@ class RFLSCM(LSCMModel):
         if not (rows >= 0).any():
             return None
         zeros = torch.zeros(len(rows), self.angle_grid.num_bins, device=self.device)
-        aps = mix.apply(zeros, np.asarray(cell_ids).reshape(-1), np.asarray(grid_ids).reshape(-1)).mul_(
-            self.scene.x_ref
-        )
+        cells, grids = np.asarray(cell_ids).reshape(-1), np.asarray(grid_ids).reshape(-1)
+        aps = mix.apply(zeros, cells, grids, owned=True).mul_(self.scene.x_ref)
         weight = torch.zeros(len(rows), device=self.device)
         found = torch.as_tensor(np.flatnonzero(rows >= 0), dtype=torch.long, device=self.device)
         weight[found] = mix.weight.to(self.device)[

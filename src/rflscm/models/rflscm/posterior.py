@@ -231,8 +231,9 @@ class PairPosterior:
     atom_scores: dict[int, float] = field(default_factory=dict)
     groups: list[dict[str, float]] = field(default_factory=list)
 
-    def apply(self, aps: torch.Tensor, cell_ids: np.ndarray, grid_ids: np.ndarray) -> torch.Tensor:
-        """``aps [N, K]`` of pairs (``cell_ids``, ``grid_ids`` [N]) with each training pair's gains applied."""
+    def apply(self, aps: torch.Tensor, cell_ids: np.ndarray, grid_ids: np.ndarray, owned: bool = False) -> torch.Tensor:
+        """``aps [N, K]`` of pairs (``cell_ids``, ``grid_ids`` [N]) with each training pair's gains applied; in place
+        where the caller ``owned`` ``aps``, else on a copy."""
         if not len(self.index) or not len(aps):
             return aps
         at = self.index.get_indexer(
@@ -247,7 +248,7 @@ class PairPosterior:
         gain_db = torch.zeros(rows.size, aps.shape[1], dtype=aps.dtype, device=aps.device)
         bins = self.bins[src].to(aps.device)
         gain_db.scatter_add_(1, bins, self.gain_db[src].to(aps.device, aps.dtype))
-        out = aps.clone()
+        out = aps if owned else aps.clone()
         dst = torch.as_tensor(rows, dtype=torch.long, device=aps.device)
         before = aps[dst]
         if self.base is not None:
