@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 
 from rflscm.data import load_scenario
+from rflscm.data.measurements import reported_pairs
 from rflscm.eval.metrics import changed_cells
 from rflscm.eval.protocols import AdjustProtocol
 from rflscm.models import load_model
@@ -24,9 +25,7 @@ scenario = load_scenario(sys.argv[1])
 model = load_model(sys.argv[2], scenario, device="cpu")
 protocol = AdjustProtocol()
 test, train = protocol.test_set(scenario), protocol.training_scenario(scenario)
-m = train.measurements
-reported = m[((m["round"] == 1) & m["rsrp_dbm"].notna()).to_numpy()]
-seen = pd.MultiIndex.from_frame(reported[["cell_id", "grid_id"]].drop_duplicates())
+seen = pd.MultiIndex.from_frame(reported_pairs(train.measurements))
 changed = changed_cells(scenario, 1, 2)
 
 for beam_type in ("ssb", "csi"):

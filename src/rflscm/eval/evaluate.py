@@ -284,9 +284,9 @@ def _predict_tests(
 
     Cell by cell, both beam types of a cell one after the other (they share its sensing matrices and most of its
     pairs), each cell's APS remembered only while its pairs are predicted (a fresh :class:`APSCache` per cell), so
-    that this memory grows with a cell's test pairs and not the network's.  The pairs the APS metrics will draw (:func:`_aps_sample` of those
-    asked) are kept as they go by.  A ``model`` that is an :class:`APSCache` already (filled by workers, or shared by
-    a benchmark) is read as it is, for every cell."""
+    that this memory grows with a cell's test pairs and not the network's.  The pairs the APS metrics will draw
+    (:func:`_aps_sample` of those asked) are kept as they go by.  A ``model`` that is an :class:`APSCache` already
+    (filled by workers, or shared by a benchmark) is read as it is, for every cell."""
     shared = isinstance(model, APSCache)
     kept = APSCache.of(model)
     inner = kept.inner

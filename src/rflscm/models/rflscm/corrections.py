@@ -478,13 +478,13 @@ def fit_corrections(
         groups = group_of(data.observed[candidates].sum(1), plan.edges).cpu()
         weights = {bt: torch.tensor(w, dtype=torch.float32)[groups] for bt, (_, w, _) in plans.items()}
         solves: dict[WNOMPConfig, PairFallback] = {}  # one solve per setting: the beam types often choose the same
+        candidate_index = _pair_index(data, cell_ids, candidates)
         for solver, wanted in _mix_wanted(data, candidates, plans, plan).items():
             # WNOMP's APS solved before the loop (the first pairs' for the mix; the later pairs' with the fallback's
             # settings) is taken from there (_with_solved) rather than solved twice: the time left goes to the rest
             have = [early.get(solver), solved if solver == fallback_solver(cfg) else None]
             for done_ in (h for h in have if h is not None and len(h.index)):
-                known = _pair_index(data, cell_ids, candidates).isin(done_.index)
-                wanted &= torch.as_tensor(~known, device=wanted.device)
+                wanted &= torch.as_tensor(~candidate_index.isin(done_.index), device=wanted.device)
             if bool(wanted.any()):
                 pairs_ = candidates[wanted.to(candidates.device)]
                 solves[solver] = fit.fallback(pairs_, cell_ids, levels, {}, time_left, clock, solver)
@@ -495,9 +495,7 @@ def fit_corrections(
             with_mix = candidates[(weight > 0).to(candidates.device)]
             if not with_mix.numel():
                 continue
-            mixed_index = pd.MultiIndex.from_arrays(
-                [np.asarray(cell_ids, np.int64)[data.cell_index[with_mix].cpu().numpy()], data.grid_ids[with_mix.cpu()]]
-            )
+            mixed_index = _pair_index(data, cell_ids, with_mix)
             mix = _with_solved(
                 _with_solved(solves[solver].only(mixed_index), early.get(solver), mixed_index), solved, mixed_index
             )
