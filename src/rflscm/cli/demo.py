@@ -48,19 +48,45 @@ def _fmt(value: float | None) -> str:
     return "—" if value is None else f"{value:.2f}"
 
 
+def _same_pairs(results: dict[str, dict]) -> bool:
+    """Whether every model scored the same test pairs: all answer unseen grids, or none do, or there are none."""
+    first = next(iter(results.values()))
+    unseen = sum((first.get("unseen", {}).get("pairs") or {}).values())
+    answers = {bool(r.get("model", {}).get("supports_unseen_grids")) for r in results.values()}
+    return unseen == 0 or len(answers) == 1 or any("seen" not in r for r in results.values())
+
+
 def demo_rows(results: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
     """The comparison as plain text: columns (metric, each model, model floor, noise floor, trivial) and rows (the
-    four MAEs, the models' mean signed errors, training time)."""
+    four MAEs, the models' mean signed errors, training time).
+
+    Every MAE row scores each model and the floors on the same pairs.  Where one model answers grids without a
+    round-1 report and another does not (RF-LSCM against WNOMP), the four rows are over the pairs with a round-1
+    report (each metrics' ``seen`` block), and two more rows give the grids without one (``unseen``), where a model
+    that cannot answer shows —."""
     columns = ["metric", *results, "model floor", "noise floor", "trivial"]
     first = next(iter(results.values()))
+    same = _same_pairs(results)
     rows = []
     for label, (bt, subset) in ROWS:
-        cells = [_fmt(r["mae_db"][bt][subset]) for r in results.values()]
-        floors = (first["oracle_mae_db"][bt][subset], first.get("noise_floor_mae_db", {}).get(bt, {}).get(subset))
-        rows.append([label, *cells, *(_fmt(f) for f in floors), _fmt(first["trivial_mae_db"][bt][subset])])
+        blocks = [r if same else r["seen"] for r in results.values()]
+        ref = first if same else first["seen"]
+        cells = [_fmt(b["mae_db"][bt][subset]) for b in blocks]
+        floors = (ref["oracle_mae_db"][bt][subset], ref.get("noise_floor_mae_db", {}).get(bt, {}).get(subset))
+        if not same:
+            label = label.replace(" (dB)", ", grids with round-1 reports (dB)")
+        rows.append([label, *cells, *(_fmt(f) for f in floors), _fmt(ref["trivial_mae_db"][bt][subset])])
+    if not same:
+        unseen = first["unseen"]
+        for bt, name in (("ssb", "SSB"), ("csi", "CSI-RS")):
+            cells = [_fmt(r["unseen"]["mae_db"][bt]) for r in results.values()]
+            floors = (unseen["oracle_mae_db"][bt], unseen["noise_floor_mae_db"][bt], unseen["trivial_mae_db"][bt])
+            n = unseen["pairs"][bt]
+            rows.append([f"{name} MAE, grids without round-1 reports, {n} pairs (dB)", *cells, *map(_fmt, floors)])
     for bt, name in (("ssb", "SSB"), ("csi", "CSI-RS")):
-        bias = [_fmt(r.get("bias_db", {}).get(bt, {}).get("all")) for r in results.values()]
-        rows.append([f"{name} mean signed error (dB)", *bias, "", "", ""])
+        bias = [_fmt((r if same else r["seen"]).get("bias_db", {}).get(bt, {}).get("all")) for r in results.values()]
+        where = "" if same else ", grids with round-1 reports"
+        rows.append([f"{name} mean signed error{where} (dB)", *bias, "", "", ""])
     times = [f"{(r['model']['fit'] or {}).get('train_time_s', float('nan')):.0f}" for r in results.values()]
     rows.append(["training time (s)", *times, "", "", ""])
     return columns, rows
@@ -89,7 +115,8 @@ def save_comparison(results: dict[str, dict], title: str, out: Path) -> list[Pat
     md += [
         "",
         "Model floor: the oracle (true APS through the nominal antenna model); noise floor: the noiseless "
-        "RSRP through the real antenna against the measurements; trivial: each pair's mean round-1 RSRP. "
+        "RSRP through the real antenna against the measurements; trivial: each pair's mean round-1 RSRP (the "
+        "cell's mean where the grid has no round-1 report). Every MAE row scores the models on the same pairs. "
         "— marks a value that does not apply.",
     ]
     paths = [out / "comparison.md", out / "comparison.csv", out / "comparison.json"]

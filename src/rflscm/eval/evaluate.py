@@ -40,6 +40,10 @@ key                                    meaning
 ``unseen.{oracle,trivial}_mae_db.*``   oracle / trivial MAE over those pairs
 ``unseen.bias_db.{ssb,csi}``           the model's mean signed error (prediction − measurement) [dB] over them
 ``unseen.pairs.{ssb,csi}``             number of such pairs
+``seen.{mae_db,oracle_mae_db,trivial_mae_db,noise_floor_mae_db,bias_db}.{ssb,csi}.{all,changed}``  the same
+                                       blocks as above over the scored pairs that *had* training data: the pairs
+                                       every model answers, so two models compare on the same pairs whatever their
+                                       notion of unseen grids (``seen.pairs.{ssb,csi}``: their number)
 ``counts.{ssb,csi}.test_pairs``        (cell, grid) pairs with a reported beam in the test set
 ``counts.{ssb,csi}.scored_pairs``      pairs the model answered (MAEs are over these)
 ``counts.{ssb,csi}.beams``             reported beams scored; ``changed_beams`` those of changed cells
@@ -453,11 +457,13 @@ def _split_blocks(
     any_changed: bool,
     score: Callable[[BeamResult, np.ndarray], dict[str, float | None]],
     keys: tuple[str, ...],
+    seen_only: bool = False,
 ) -> dict[str, dict[str, dict[str, float | None]]]:
-    """``{key: {ssb|csi: {all, changed}}}`` of ``score`` over every scored row and over the changed cells' rows."""
+    """``{key: {ssb|csi: {all, changed}}}`` of ``score`` over every scored row (only those with training data when
+    ``seen_only``) and over the changed cells' rows."""
     out: dict[str, dict[str, dict[str, float | None]]] = {k: {} for k in keys}
     for beam_type, res in beams.items():
-        rows = res.rows()
+        rows = res.rows() & res.seen if seen_only else res.rows()
         every = score(res, rows)
         changed = score(res, rows & res.changed) if any_changed else dict.fromkeys(every)
         for k in out:
@@ -501,6 +507,17 @@ def _per_cell(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, An
             entry["noise_floor"][beam_type] = trip["noise_floor"]
             entry["counts"][beam_type] = M.count_finite(err["model"], rows)  # type: ignore[arg-type]
         out[str(cell)] = entry
+    return out
+
+
+def _seen_block(beams: dict[str, BeamResult], any_changed: bool) -> dict[str, Any]:
+    """The MAE blocks of :func:`_mae_blocks` over the scored pairs that had training data, and their number."""
+    keys = ("model", "oracle", "trivial", "noise_floor", "bias")
+    blocks = _split_blocks(beams, any_changed, _mae_triplet, keys, seen_only=True)
+    out: dict[str, Any] = {
+        ("bias_db" if k == "bias" else "mae_db" if k == "model" else f"{k}_mae_db"): blocks[k] for k in keys
+    }
+    out["pairs"] = {bt: int((res.rows() & res.seen).sum()) for bt, res in beams.items()}
     return out
 
 
@@ -630,6 +647,7 @@ def _assemble(
         "per_cell": _per_cell(beams, changed),
         "aps": aps,
         "unseen": _unseen_block(model, beams),
+        "seen": _seen_block(beams, any_changed=len(changed) > 0),
         "counts": _counts(beams, changed),
         "model": {
             "name": model.name,

@@ -265,3 +265,22 @@ def test_each_cells_aps_are_remembered_only_while_its_pairs_are_predicted(adjust
     }
     for key in ("mae_db", "oracle_mae_db", "trivial_mae_db", "per_cell", "unseen"):
         assert evaluation.metrics[key] == shared.metrics[key]
+
+
+def test_seen_block_scores_an_unseen_capable_model_on_the_pairs_wnomp_answers(sim_scenario) -> None:
+    """The oracle answers every pair; its ``seen`` block is over the pairs WNOMP scores, and WNOMP's equals its own
+    all-pairs block (it answers nothing else)."""
+    from rflscm.eval.oracle import OracleModel
+
+    oracle = OracleModel.for_scenario(sim_scenario, GRID, "cpu")
+    evaluation = run_evaluation(oracle, sim_scenario, AdjustProtocol(), oracle=None)
+    wnomp = evaluate(_wnomp(sim_scenario), sim_scenario)
+    for beam_type, res in evaluation.beams.items():
+        seen = evaluation.metrics["seen"]
+        err = np.abs(res.model - res.measured)[res.seen]
+        assert seen["mae_db"][beam_type]["all"] == pytest.approx(float(np.nanmean(err)))
+        assert seen["mae_db"][beam_type]["all"] != pytest.approx(evaluation.metrics["mae_db"][beam_type]["all"])
+        assert seen["pairs"][beam_type] == wnomp["counts"][beam_type]["scored_pairs"]
+        assert seen["pairs"][beam_type] + evaluation.metrics["unseen"]["pairs"][beam_type] == len(res.pairs)
+        assert wnomp["seen"]["mae_db"][beam_type] == wnomp["mae_db"][beam_type]
+        assert wnomp["seen"]["trivial_mae_db"][beam_type] == wnomp["trivial_mae_db"][beam_type]
