@@ -26,6 +26,7 @@ import pandas as pd
 import torch
 
 from rflscm.config import from_dict, load_yaml, to_dict
+from rflscm.data.pair_lookup import PairLookup
 from rflscm.errors import CheckpointError, ConfigError
 from rflscm.geometry import AngleGrid
 from rflscm.models.base import LSCMModel, UnsupportedError, register_model, require_round1_reports
@@ -124,7 +125,7 @@ class WNOMPModel(LSCMModel):
         self.grid_ids = np.zeros(0, dtype=np.int64)  # [num_pairs]
         self.indices = torch.zeros((0, config.k_max), dtype=torch.int32)  # [num_pairs, k_max], −1 = unused
         self.values = torch.zeros((0, config.k_max), dtype=torch.float32)  # [num_pairs, k_max] path gain
-        self._lookup = pd.Index([], dtype=np.int64)
+        self._lookup = PairLookup(self.cell_ids, self.grid_ids)
 
     @classmethod
     def build(
@@ -185,15 +186,14 @@ class WNOMPModel(LSCMModel):
         self.grid_ids = np.asarray(grid_ids, dtype=np.int64)[order]
         self.indices = torch.as_tensor(indices[order], dtype=torch.int32)
         self.values = torch.as_tensor(np.clip(values[order], 0.0, None), dtype=torch.float32)
-        self._lookup = pd.MultiIndex.from_arrays([self.cell_ids, self.grid_ids])
+        self._lookup = PairLookup(self.cell_ids, self.grid_ids)
 
     # --- answering ----------------------------------------------------------------------------
     def aps(self, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz: np.ndarray | None = None) -> torch.Tensor:
         """Dense APS ``[num_pairs, num_bins]`` (float32, linear path gain) of fitted pairs only."""
         cell_ids = np.asarray(cell_ids, dtype=np.int64).reshape(-1)
         grid_ids = np.asarray(grid_ids, dtype=np.int64).reshape(-1)
-        keys = pd.MultiIndex.from_arrays([cell_ids, grid_ids])
-        rows = self._lookup.get_indexer(keys) if len(self.cell_ids) else np.full(len(cell_ids), -1)
+        rows = self._lookup.rows(cell_ids, grid_ids)
         if (rows < 0).any():
             bad = np.flatnonzero(rows < 0)
             examples = ", ".join(f"(cell {cell_ids[i]}, grid {grid_ids[i]})" for i in bad[:3])

@@ -38,6 +38,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from rflscm.data.pair_lookup import PairLookup
 from rflscm.errors import CheckpointError
 from rflscm.models.pairs import PairData
 from rflscm.models.rflscm.borrow import borrowed_reports, nearest_of_cell, own_anchor
@@ -118,8 +119,7 @@ class RoundOneCensor:
         """``[N]`` the cap [mW] of each pair, NaN where round 1 reported it or never visited its grid."""
         cells = np.asarray(cell_ids, np.int64).reshape(-1)
         grids = np.asarray(grid_ids, np.int64).reshape(-1)
-        # get_indexer: the reported pairs' hash table is built once and kept by the index (isin builds it per call)
-        known = self.reported.get_indexer(pd.MultiIndex.from_arrays([cells, grids])) >= 0
+        known = PairLookup.kept_by(self, self.reported).rows(cells, grids) >= 0
         silent = np.isin(grids, self.visited) & ~known
         return np.where(silent, 10.0 ** (self.cap_dbm / 10.0), np.nan)
 
@@ -199,8 +199,9 @@ class PairCorrections:
             index = torch.as_tensor(np.asarray(cell_index), device=aps.device)
             factor = torch.pow(10.0, self.levels.to(aps.device)[index, 0] / 10.0)
         if self.anchors is not None and len(self.anchors) and len(cells):
-            at = pd.MultiIndex.from_arrays([cells, grids])
-            shift = self.anchors.reindex(at).fillna(0.0).to_numpy(np.float32, copy=True)
+            at = PairLookup.kept_by(self, self.anchors.index).rows(cells, grids)
+            shift = np.where(at >= 0, self.anchors.to_numpy(np.float32)[np.maximum(at, 0)], 0.0).astype(np.float32)
+            shift = np.nan_to_num(shift, nan=0.0)
             anchor = torch.pow(10.0, torch.as_tensor(shift, device=aps.device) / 10.0)
             factor = anchor if factor is None else factor * anchor
         out = aps

@@ -26,6 +26,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from rflscm.data.pair_lookup import PairLookup
 from rflscm.errors import CheckpointError
 from rflscm.models.rflscm.posterior import pair_rows
 from rflscm.models.wnomp import CellMatrices, WNOMPConfig, solve_jobs
@@ -112,12 +113,7 @@ class PairFallback:
 
     def rows(self, cell_ids: np.ndarray, grid_ids: np.ndarray) -> np.ndarray:
         """Row of each pair (``cell_ids``, ``grid_ids`` [N]) in :attr:`index`, −1 where it has none."""
-        if not len(self.index):
-            return np.full(len(np.asarray(cell_ids).reshape(-1)), -1)
-        at = pd.MultiIndex.from_arrays(
-            [np.asarray(cell_ids, np.int64).reshape(-1), np.asarray(grid_ids, np.int64).reshape(-1)]
-        )
-        return np.asarray(self.index.get_indexer(at))
+        return PairLookup.kept_by(self, self.index).rows(cell_ids, grid_ids)
 
     def apply(self, aps: torch.Tensor, cell_ids: np.ndarray, grid_ids: np.ndarray, owned: bool = False) -> torch.Tensor:
         """``aps [N, K]`` with each left-over pair's row replaced by its WNOMP APS; in place where the caller ``owned``
@@ -128,10 +124,12 @@ class PairFallback:
             return aps
         src = torch.as_tensor(at[dst], dtype=torch.long)
         bins, gains = self.bins[src].to(aps.device), self.gains[src].to(aps.device, aps.dtype)
-        rows = torch.zeros(dst.size, aps.shape[1], dtype=aps.dtype, device=aps.device)
-        rows.scatter_add_(1, bins.clamp_min(0), torch.where(bins >= 0, gains, torch.zeros_like(gains)))
         out = aps if owned else aps.clone()
-        out[torch.as_tensor(dst, dtype=torch.long, device=aps.device)] = rows
+        # the rows cleared where they are and the atoms added there: no [rows, K] tensor of their own
+        where = torch.as_tensor(dst, dtype=torch.long, device=aps.device)
+        out[where] = 0.0
+        values = torch.where(bins >= 0, gains, torch.zeros_like(gains))
+        out.index_put_((where[:, None].expand_as(bins), bins.clamp_min(0)), values, accumulate=True)
         return out
 
     def without(self, index: pd.MultiIndex) -> PairFallback:

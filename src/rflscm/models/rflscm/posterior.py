@@ -27,6 +27,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from rflscm.data.pair_lookup import PairLookup
 from rflscm.errors import CheckpointError
 
 POSTERIOR_BINS = 256
@@ -236,11 +237,7 @@ class PairPosterior:
         where the caller ``owned`` ``aps``, else on a copy."""
         if not len(self.index) or not len(aps):
             return aps
-        at = self.index.get_indexer(
-            pd.MultiIndex.from_arrays(
-                [np.asarray(cell_ids, np.int64).reshape(-1), np.asarray(grid_ids, np.int64).reshape(-1)]
-            )
-        )
+        at = PairLookup.kept_by(self, self.index).rows(cell_ids, grid_ids)
         rows = np.flatnonzero(at >= 0)
         if not rows.size:
             return aps
