@@ -378,9 +378,32 @@ def test_a_short_deadline_measures_the_levels_on_fewer_pairs_per_cell() -> None:
     cfg = CorrectionsConfig(pair_posterior=False)
     args = (cfg, data(rsrp, cells), 1, np.array([7, 8, 9, 10]), costly, columns)
     cut = fit_corrections(*args, seed=0, time_left=lambda: 0.3 - now[0], clock=lambda: now[0])
-    # 4 pairs first (0.04 s), then FIRST_SHARE of the 0.26 s left: 13 pairs, so 3 per cell (12)
-    assert rendered[:2] == [4, 8] and int(FIRST_SHARE * 26) == 13
+    # one pair per cell first (0.04 s: 2 to warm up, 2 timed), then FIRST_SHARE of the 0.26 s left: 13 pairs, so 3
+    # per cell (12)
+    assert rendered[:3] == [2, 2, 8] and int(FIRST_SHARE * 26) == 13
     assert cut.anchors is not None and len(cut.anchors) == 12 and now[0] <= 0.3
+
+
+def test_the_first_renders_set_up_is_not_charged_to_every_pair() -> None:
+    """A model's first render sets up what later ones reuse (here 0.5 s of the fake clock once): the pass times its
+    renders past ``WARM_PAIRS`` pairs, so the levels' pairs per cell follow the steady cost; timing the set-up too
+    would have left one pair per cell."""
+    from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL, WARM_PAIRS
+
+    rsrp, cells, timed, now = timed_problem(400, 4, seed=2)
+    rendered: list[int] = []
+
+    def first_is_slow(pairs: torch.Tensor):
+        if not rendered:
+            now[0] += 0.5
+        rendered.append(pairs.numel())
+        return timed(pairs)
+
+    cfg = CorrectionsConfig(pair_posterior=False)
+    args = (cfg, data(rsrp, cells), 1, np.array([7, 8, 9, 10]), first_is_slow, columns)
+    fit_corrections(*args, seed=0, time_left=lambda: 3.0 - now[0], clock=lambda: now[0])
+    # 4 + 2.5 s left at 10 ms a pair: room for every level pair (64 = 16 per cell, 0.64 s of the 1.25 s share)
+    assert rendered[:3] == [WARM_PAIRS, 4 - WARM_PAIRS, 4 * (LEVEL_PAIRS_PER_CELL - 1)]
 
 
 def test_the_later_pairs_come_in_random_blocks_each_sorted_and_the_estimate_times_such_a_chunk() -> None:
@@ -943,7 +966,9 @@ def test_pairs_left_over_borrow_the_nearest_rendered_pairs_aps_with_their_own_an
         now[0] += 0.01 * p.numel()
         calls[0] += 1
         b, x = torch.arange(bins).expand(len(p), bins), field[p]
-        if wide_later and calls[0] > 2:  # the same APS with empty bins beyond: wider than the pass keeps
+        # past the first pairs' renders (the warm-up, one pair per cell, the levels' and λ's others): the same APS
+        # with empty bins beyond, wider than the pass keeps
+        if wide_later and calls[0] > 3:
             b, x = torch.cat([b, b[:, :4]], 1), torch.cat([x, torch.zeros(len(p), 4)], 1)
         return b, x, torch.einsum("bmk,bk->bm", a[cells[p]], field[p])
 

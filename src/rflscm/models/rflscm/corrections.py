@@ -84,6 +84,9 @@ TimeLeftFn = Callable[[], float]
 """Seconds left for the pass (a budget run's deadline); the pass stops starting chunks that would not fit."""
 FIRST_SHARE = 0.5
 """Within a budget, the levels' and λ's pairs may take this share of the pass's time (fewer of them when short)."""
+WARM_PAIRS = 2
+"""A budget's pass renders this many pairs before it times a render (:func:`_first_pairs`): the first render sets up
+what later ones reuse."""
 FALLBACK_CHUNK = 1024
 """Pairs per WNOMP solve of the held-aside choice between the field and WNOMP's APS (:mod:`.fallback`)."""
 FALLBACK_SOLVE = 4096
@@ -706,18 +709,23 @@ def _first_pairs(
     fit: _Fit, subset: torch.Tensor, time_left: TimeLeftFn, clock: Callable[[], float], bar: object
 ) -> tuple[torch.Tensor, _Rendered, float, torch.Tensor]:
     """Within a budget, the pairs rendered before any other: the levels' and λ's, ``(pairs, rendered, seconds per
-    pair, λ's pairs)``.  One pair per cell first (every cell needs its level), timed; then the levels' other pairs
-    (up to ``LEVEL_PAIRS_PER_CELL`` per cell) and λ's ``subset`` as far as ``FIRST_SHARE`` of the time left allows,
-    once the time of the fallback's WNOMP solve of every other pair (timed on a spread sample) is kept aside.
+    pair, λ's pairs)``.  One pair per cell first (every cell needs its level), timed past its first ``WARM_PAIRS``
+    (a model's first render sets up what every later one reuses: 1.3 s on the shipped scenario, 15 s at 222 cells);
+    then the levels' other pairs (up to ``LEVEL_PAIRS_PER_CELL`` per cell) and λ's ``subset`` as far as
+    ``FIRST_SHARE`` of the time left allows, once the time of the fallback's WNOMP solve of every other pair (timed on
+    a spread sample) is kept aside.
     When it does not, λ's pairs shrink first (to ``PAIR_CHUNK``), then the levels' pairs per cell: a CSI-RS level
     measured on too few pairs is off by many dB on every pair of its cells, which no later correction undoes (a
     tile measured on one pair per cell: +15 dB), while λ chosen on fewer pairs is only a coarser choice."""
     cfg = fit.cfg
     top = cfg.pair_posterior
     one = fit.level_picks(1)
+    warm = min(WARM_PAIRS, one.numel() - 1) if one.numel() > 1 else 0
+    rendered = fit.render_pairs(one[:warm], top=top, bar=bar) if warm else None
     begun = clock()
-    rendered = fit.render_pairs(one, top=top, bar=bar)
-    render_s = (clock() - begun) / max(one.numel(), 1)
+    rest = fit.render_pairs(one[warm:], top=top, bar=bar)
+    render_s = (clock() - begun) / max(one.numel() - warm, 1)
+    rendered = rest if rendered is None else _merged(rendered, rest)
     # a chunk's preparation (residuals, columns, the most WNOMP atoms λ's choice may try), timed on the same pairs
     atoms = max(WNOMP_ATOMS) if top and cfg.wnomp_atoms and fit.visible is not None else 0
     fit.plan = _Plan.uniform(atoms, 0, LAMBDAS[0])
@@ -729,7 +737,7 @@ def _first_pairs(
     fit.plan = _Plan()
     fit._atom_cache.clear()  # timed with held=None: the choice's held-aside atoms are other ones
     options = 1 + (len(WNOMP_ATOMS) * len(WNOMP_PRIORS) if top and cfg.wnomp_atoms else 0)  # as PassTimes counts
-    each = render_s + prep_s  # a pair rendered and corrected; λ's pairs are also prepared once per option
+    each = render_s + prep_s  # a pair rendered and corrected
     safety_net = 0.0  # the fallback's WNOMP solve of every other pair comes after these: its time is kept
     if cfg.wnomp_fallback and fit.visible is not None:
         every = torch.nonzero(fit.data.observed.any(1)).squeeze(1)
@@ -743,7 +751,11 @@ def _first_pairs(
     cells = max(one.numel(), 1)
 
     def cost(per_cell: int, lam_pairs: int) -> float:
-        return (per_cell * cells + lam_pairs) * each + lam_pairs * options * prep_s
+        # λ's choice and the dB mix's: every option on each of λ's pairs, the options sharing a cell's set-up (its
+        # columns, its WNOMP solves), so a cell's first pair costs them all (as timed: one pair per cell) and its others
+        # about one preparation each (shipped scenario: 5.0 s for 512 pairs; options × the timing said 14–19 s)
+        choice = options * prep_s * min(lam_pairs, cells) + prep_s * max(lam_pairs - cells, 0)
+        return (per_cell * cells + lam_pairs) * each + choice
 
     least = min(PAIR_CHUNK, subset.numel())  # λ's pairs when short of time
     for per_cell in range(LEVEL_PAIRS_PER_CELL, 0, -1):
@@ -751,7 +763,11 @@ def _first_pairs(
         if cost(per_cell, least) <= room:
             break
     if cost(fit.level_per_cell, subset.numel()) > room and subset.numel():
-        fits = (room - cost(fit.level_per_cell, 0)) / max(each + options * prep_s, 1e-12)
+        spread = min(max(least, cells), subset.numel())  # one pair per cell: each costs every option
+        if cost(fit.level_per_cell, spread) > room:
+            fits = (room - cost(fit.level_per_cell, 0)) / max(each + options * prep_s, 1e-12)
+        else:  # past one pair per cell each more costs a render and a preparation
+            fits = spread + (room - cost(fit.level_per_cell, spread)) / max(each + prep_s, 1e-12)
         subset = _spread(subset, max(least, int(fits)))
     first = torch.cat([fit.level_picks(), subset]).unique()
     more = first[~torch.isin(first, one)]
