@@ -62,8 +62,8 @@ def demo_rows(results: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
 
     Every MAE row scores each model and the floors on the same pairs.  Where one model answers grids without a
     round-1 report and another does not (RF-LSCM against WNOMP), the four rows are over the pairs with a round-1
-    report (each metrics' ``seen`` block), and two more rows give the grids without one (``unseen``), where a model
-    that cannot answer shows —."""
+    report (each metrics' ``seen`` block), and a row per beam type with such grids gives them (``unseen``), where a
+    model that cannot answer shows —."""
     columns = ["metric", *results, "model floor", "noise floor", "trivial"]
     first = next(iter(results.values()))
     same = _same_pairs(results)
@@ -79,6 +79,8 @@ def demo_rows(results: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
     if not same:
         unseen = first["unseen"]
         for bt, name in (("ssb", "SSB"), ("csi", "CSI-RS")):
+            if not unseen["pairs"][bt]:
+                continue
             cells = [_fmt(r["unseen"]["mae_db"][bt]) for r in results.values()]
             floors = (unseen["oracle_mae_db"][bt], unseen["noise_floor_mae_db"][bt], unseen["trivial_mae_db"][bt])
             n = unseen["pairs"][bt]

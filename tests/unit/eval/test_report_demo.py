@@ -61,6 +61,9 @@ def test_comparison_scores_both_models_on_the_same_pairs(tmp_path) -> None:
     assert "| SSB MAE, grids without round-1 reports, 10 pairs (dB) | — | 6.00 | 2.00 | 1.50 | 9.00 |" in md
     assert "| CSI-RS mean signed error, grids with round-1 reports (dB) | 0.10 | 0.10 |" in md
     assert "3.40" not in md
+    results["wnomp"]["unseen"]["pairs"]["csi"] = 0  # no CSI-RS pair without a report: no row for it
+    md = save_comparison(results, "Antenna adjustment", tmp_path)[0].read_text()
+    assert "SSB MAE, grids without round-1 reports" in md and "CSI-RS MAE, grids without" not in md
 
 
 def test_comparison_of_models_alike_keeps_every_pair(tmp_path) -> None:

@@ -381,7 +381,7 @@ def test_a_short_deadline_measures_the_levels_on_fewer_pairs_per_cell() -> None:
     # one pair per cell first (0.04 s: 2 to warm up, 2 timed), then FIRST_SHARE of the 0.26 s left: 13 pairs, so 3
     # per cell (12)
     assert rendered[:3] == [2, 2, 8] and int(FIRST_SHARE * 26) == 13
-    assert cut.anchors is not None and len(cut.anchors) == 12 and now[0] <= 0.3
+    assert cut.anchors is not None and len(cut.anchors) == 12 and now[0] <= 0.3 and cut.level_pairs == 3
 
 
 def test_the_first_renders_set_up_is_not_charged_to_every_pair() -> None:
@@ -401,7 +401,8 @@ def test_the_first_renders_set_up_is_not_charged_to_every_pair() -> None:
 
     cfg = CorrectionsConfig(pair_posterior=False)
     args = (cfg, data(rsrp, cells), 1, np.array([7, 8, 9, 10]), first_is_slow, columns)
-    fit_corrections(*args, seed=0, time_left=lambda: 3.0 - now[0], clock=lambda: now[0])
+    fitted = fit_corrections(*args, seed=0, time_left=lambda: 3.0 - now[0], clock=lambda: now[0])
+    assert fitted.level_pairs == LEVEL_PAIRS_PER_CELL
     # 4 + 2.5 s left at 10 ms a pair: room for every level pair (64 = 16 per cell, 0.64 s of the 1.25 s share)
     assert rendered[:3] == [WARM_PAIRS, 4 - WARM_PAIRS, 4 * (LEVEL_PAIRS_PER_CELL - 1)]
 

@@ -183,6 +183,9 @@ class PairCorrections:
     that borrowed its APS (:mod:`.borrow`) holds the borrowed row here and its own anchor in :attr:`anchors`."""
     borrowed: int = 0
     """How many of the pairs in :attr:`anchors` borrowed their APS from a rendered neighbour (not corrected)."""
+    level_pairs: int = 0
+    """The training pairs per cell the levels were measured on (up to ``LEVEL_PAIRS_PER_CELL``; fewer where a budget's
+    pass was short of time); the run's summary reports it, a checkpoint does not keep it (0 once loaded)."""
 
     def mix_for(self, beam_type: str) -> PairFallback | None:
         """The dB mix of ``beam_type``'s predictions (:attr:`mix_csi` for CSI-RS where there is one, else :attr:`mix`)."""
@@ -451,7 +454,15 @@ def fit_corrections(
     if left_over is not None:
         left_over = left_over.without(index)
     if not cfg.pair_posterior:
-        return PairCorrections(levels, anchor_series, None, left_over, rendered=renders, borrowed=int(borrowed.numel()))
+        return PairCorrections(
+            levels,
+            anchor_series,
+            None,
+            left_over,
+            rendered=renders,
+            borrowed=int(borrowed.numel()),
+            level_pairs=fit.level_per_cell,
+        )
     if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
         empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
         posterior = PairPosterior(
@@ -464,7 +475,13 @@ def fit_corrections(
             plan.groups,
         )
         return PairCorrections(
-            levels, anchor_series, posterior, left_over, rendered=renders, borrowed=int(borrowed.numel())
+            levels,
+            anchor_series,
+            posterior,
+            left_over,
+            rendered=renders,
+            borrowed=int(borrowed.numel()),
+            level_pairs=fit.level_per_cell,
         )
     # a chunk's width is the field's bins and the most WNOMP atoms of its pairs' groups: chunks differ
     gain_db = _widened(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
@@ -517,6 +534,7 @@ def fit_corrections(
         mix_csi=mix_csi,
         rendered=renders,
         borrowed=int(borrowed.numel()),
+        level_pairs=fit.level_per_cell,
     )
 
 

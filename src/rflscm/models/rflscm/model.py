@@ -628,6 +628,7 @@ class RFLSCM(LSCMModel):
             self.run_info["unseen_blend"] = {"weight": UNSEEN_WEIGHT, "held_out_grids": 0.0, "held_out_pairs": 0.0}
         if cfg.pair_anchors or cfg.pair_posterior:  # per-pair corrections: how many pairs the pass reached
             fallback, mix, kept = self.corrections.fallback, self.corrections.mix, self.corrections.rendered
+            post = self.corrections.posterior
             self.run_info["corrections"] = {
                 "training_pairs": float(int(train.data.observed.any(1).sum())),
                 "corrected_pairs": self.corrections.corrected_pairs(),
@@ -636,6 +637,8 @@ class RFLSCM(LSCMModel):
                 "mixed_pairs": float(len(mix.index)) if mix is not None else 0.0,
                 "rendered_pairs": float(len(kept.index) - self.corrections.borrowed) if kept is not None else 0.0,
                 "borrowed_pairs": float(self.corrections.borrowed),
+                "level_pairs_per_cell": float(self.corrections.level_pairs),
+                "lambda_pairs": float(sum(g["pairs"] for g in post.groups)) if post is not None else 0.0,
             }
 
     @torch.no_grad()
