@@ -6,8 +6,8 @@ with λ (and the dB mix) chosen on each of COUNTS pairs, each scored on round 2 
 A budget's pass chooses λ on as many pairs as its time allows (``_first_pairs``: 64–100 in a 4-minute demo on the
 shipped scenario, 512 without a budget). Each count here is a whole pass without a clock (every pair corrected, the
 levels on 16 pairs per cell), so the rows differ only in λ's pairs. Prints per count the groups' λ and the round-2
-MAE over the pairs with round-1 reports (SSB all / changed, CSI-RS all / changed) (DECISIONS, "λ's choice is priced
-per cell").
+MAE over the pairs with round-1 reports (SSB all / changed, CSI-RS all / changed) (DECISIONS, "λ is chosen on all
+its pairs where the whole pass fits").
 """
 
 import sys

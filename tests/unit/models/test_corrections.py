@@ -378,10 +378,10 @@ def test_a_short_deadline_measures_the_levels_on_fewer_pairs_per_cell() -> None:
     cfg = CorrectionsConfig(pair_posterior=False)
     args = (cfg, data(rsrp, cells), 1, np.array([7, 8, 9, 10]), costly, columns)
     cut = fit_corrections(*args, seed=0, time_left=lambda: 0.3 - now[0], clock=lambda: now[0])
-    # one pair per cell first (0.04 s: 2 to warm up, 2 timed), then FIRST_SHARE of the 0.26 s left: 13 pairs, so 3
-    # per cell (12)
-    assert rendered[:3] == [2, 2, 8] and int(FIRST_SHARE * 26) == 13
-    assert cut.anchors is not None and len(cut.anchors) == 12 and now[0] <= 0.3 and cut.level_pairs == 3
+    # one pair per cell first (0.04 s: 2 to warm up, 2 timed), then FIRST_SHARE of the 0.26 s left: 13 pairs more, so
+    # 3 more per cell (12): the levels on 4 pairs per cell
+    assert rendered[:3] == [2, 2, 12] and int(FIRST_SHARE * 26) == 13
+    assert cut.anchors is not None and len(cut.anchors) == 16 and now[0] <= 0.3 and cut.level_pairs == 4
 
 
 def test_the_first_renders_set_up_is_not_charged_to_every_pair() -> None:
@@ -1145,3 +1145,20 @@ def test_corrections_change_an_owned_aps_in_place_and_leave_any_other_alone() ->
         in_place = parts.apply(mine, c, np.array([7, 8])[c], rows, owned=True)
         assert in_place.data_ptr() == mine.data_ptr()
         torch.testing.assert_close(in_place, copied, rtol=1e-6, atol=0.0)
+
+
+def test_a_pass_whose_whole_fits_by_its_measured_cost_takes_every_level_pair() -> None:
+    """``known`` (the pass's cost as ``measure_pass`` measured it on a chunk as the pass takes its pairs) prices a pair
+    past a cell's first: where the whole pass fits the time left by it, the levels get all their pairs per cell, where
+    the first renders' own cost (set-up included) would have left fewer."""
+    from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL, PassTimes
+
+    def levels_per_cell(known: PassTimes | None) -> int:
+        rsrp, cells, timed, now = timed_problem(400, 4, seed=2)
+        cfg = CorrectionsConfig(pair_posterior=False)
+        args = (cfg, data(rsrp, cells), 1, np.array([7, 8, 9, 10]), timed, columns)
+        fitted = fit_corrections(*args, seed=0, time_left=lambda: 1.0 - now[0], clock=lambda: now[0], known=known)
+        return fitted.level_pairs
+
+    assert levels_per_cell(None) < LEVEL_PAIRS_PER_CELL  # 10 ms a pair: 15 more per cell need 0.6 s of a 0.48 s share
+    assert levels_per_cell(PassTimes(0.0, 0.001, 0.0, 0.0)) == LEVEL_PAIRS_PER_CELL  # 396 pairs × 1 ms fit in 0.96 s

@@ -311,6 +311,7 @@ def fit_corrections(
     visible: torch.Tensor | None = None,
     render_rest: bool = False,
     extra_left: TimeLeftFn | None = None,
+    known: PassTimes | None = None,
 ) -> PairCorrections:
     """Fit the switched-on corrections of the training ``data`` (``num_ssb`` SSB beams first, ``cell_ids`` of its
     cell indices) from one render of its pairs with reports (``render``, ``columns`` at the final weights;
@@ -325,7 +326,9 @@ def fit_corrections(
     still renders every pair left after it; where its time cannot render them all, they get the better of WNOMP's
     APS and a borrowed APS (the budget's choice, ``PairFallback.scores["budget"]``).  ``extra_left``: the time left for the pairs
     corrected beyond the least (the levels' and λ's pairs and the fallback), where ``time_left`` runs past the
-    budget's end to keep that least: a pass over its budget corrects no more pairs than its least needs."""
+    budget's end to keep that least: a pass over its budget corrects no more pairs than its least needs.  ``known``: the
+    pass's cost as :func:`measure_pass` last measured it (per pair on a chunk as the pass takes them), which sizes the
+    levels' and λ's pairs (:func:`_first_pairs`; without it, the pass's own first renders do)."""
     from tqdm.auto import tqdm
 
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
@@ -363,7 +366,7 @@ def fit_corrections(
         rendered = fit.render_pairs(first, top=cfg.pair_posterior, bar=bar)
         render_s = 0.0
     else:
-        first, rendered, render_s, subset = _first_pairs(fit, subset, time_left, clock, bar)
+        first, rendered, render_s, subset = _first_pairs(fit, subset, time_left, clock, bar, known, pairs.numel())
         corrected[0] = first.numel()
         each[0] = fit.render_s
     levels = fit.levels(rendered) if cfg.calibrate_levels else None
@@ -724,14 +727,22 @@ def _spread(pairs: torch.Tensor, count: int) -> torch.Tensor:
 
 
 def _first_pairs(
-    fit: _Fit, subset: torch.Tensor, time_left: TimeLeftFn, clock: Callable[[], float], bar: object
+    fit: _Fit,
+    subset: torch.Tensor,
+    time_left: TimeLeftFn,
+    clock: Callable[[], float],
+    bar: object,
+    known: PassTimes | None = None,
+    total: int = 0,
 ) -> tuple[torch.Tensor, _Rendered, float, torch.Tensor]:
     """Within a budget, the pairs rendered before any other: the levels' and λ's, ``(pairs, rendered, seconds per
     pair, λ's pairs)``.  One pair per cell first (every cell needs its level), timed past its first ``WARM_PAIRS``
     (a model's first render sets up what every later one reuses: 1.3 s on the shipped scenario, 15 s at 222 cells);
     then the levels' other pairs (up to ``LEVEL_PAIRS_PER_CELL`` per cell) and λ's ``subset`` as far as
     ``FIRST_SHARE`` of the time left allows, once the time of the fallback's WNOMP solve of every other pair (timed on
-    a spread sample) is kept aside.
+    a spread sample) is kept aside; every one of them where the whole pass over its ``total`` pairs fits the time left.
+    One pair per cell pays each cell's set-up (the renderer's, the columns'); a pair past it costs what ``known``
+    measured on a chunk as the pass takes them (``render_s + prep_s``), or without it what that first pair did.
     When it does not, λ's pairs shrink first (to ``PAIR_CHUNK``), then the levels' pairs per cell: a CSI-RS level
     measured on too few pairs is off by many dB on every pair of its cells, which no later correction undoes (a
     tile measured on one pair per cell: +15 dB), while λ chosen on fewer pairs is only a coarser choice."""
@@ -755,7 +766,10 @@ def _first_pairs(
     fit.plan = _Plan()
     fit._atom_cache.clear()  # timed with held=None: the choice's held-aside atoms are other ones
     options = 1 + (len(WNOMP_ATOMS) * len(WNOMP_PRIORS) if top and cfg.wnomp_atoms else 0)  # as PassTimes counts
-    each = render_s + prep_s  # a pair rendered and corrected
+    each = render_s + prep_s  # a pair rendered and corrected, its cell's set-up paid
+    pair_s = known.render_s + known.prep_s if known is not None else each  # a further pair of a cell
+    # a further λ pair: every option's preparation and a fit per λ (without ``known``, one set-up-paying preparation)
+    choice_pair = options * (known.prep_s + len(LAMBDAS) * known.fit_s) if known is not None else prep_s
     safety_net = 0.0  # the fallback's WNOMP solve of every other pair comes after these: its time is kept
     if cfg.wnomp_fallback and fit.visible is not None:
         every = torch.nonzero(fit.data.observed.any(1)).squeeze(1)
@@ -768,24 +782,29 @@ def _first_pairs(
     room = FIRST_SHARE * (left - min(safety_net, FIRST_SHARE * max(left, 0.0)))
     cells = max(one.numel(), 1)
 
-    def cost(per_cell: int, lam_pairs: int) -> float:
+    def choice(lam_pairs: int) -> float:
         # λ's choice and the dB mix's: every option on each of λ's pairs, the options sharing a cell's set-up (its
-        # columns, its WNOMP solves), so a cell's first pair costs them all (as timed: one pair per cell) and its others
-        # about one preparation each (shipped scenario: 5.0 s for 512 pairs; options × the timing said 14–19 s)
-        choice = options * prep_s * min(lam_pairs, cells) + prep_s * max(lam_pairs - cells, 0)
-        return (per_cell * cells + lam_pairs) * each + choice
+        # columns, its WNOMP solves), so a cell's first pair costs them all with that set-up (as timed: one pair per
+        # cell) and its others without it (shipped scenario: 5.0 s for 512 pairs, 4.6 s priced so; options × the
+        # first preparation priced 14–19 s)
+        return options * prep_s * min(lam_pairs, cells) + choice_pair * max(lam_pairs - cells, 0)
 
+    def cost(per_cell: int, lam_pairs: int) -> float:  # beyond the pair per cell rendered already
+        return ((per_cell - 1) * cells + lam_pairs) * pair_s + choice(lam_pairs)
+
+    fit_pair = known.fit_s if known is not None and cfg.pair_posterior else 0.0  # a posterior fit per pair
+    whole = (total - cells) * (pair_s + fit_pair) + choice(subset.numel()) + safety_net  # every pair corrected
     least = min(PAIR_CHUNK, subset.numel())  # λ's pairs when short of time
     for per_cell in range(LEVEL_PAIRS_PER_CELL, 0, -1):
         fit.level_per_cell = per_cell
-        if cost(per_cell, least) <= room:
+        if whole <= left or cost(per_cell, least) <= room:
             break
-    if cost(fit.level_per_cell, subset.numel()) > room and subset.numel():
+    if whole > left and cost(fit.level_per_cell, subset.numel()) > room and subset.numel():
         spread = min(max(least, cells), subset.numel())  # one pair per cell: each costs every option
         if cost(fit.level_per_cell, spread) > room:
-            fits = (room - cost(fit.level_per_cell, 0)) / max(each + options * prep_s, 1e-12)
+            fits = (room - cost(fit.level_per_cell, 0)) / max(pair_s + options * prep_s, 1e-12)
         else:  # past one pair per cell each more costs a render and a preparation
-            fits = spread + (room - cost(fit.level_per_cell, spread)) / max(each + prep_s, 1e-12)
+            fits = spread + (room - cost(fit.level_per_cell, spread)) / max(pair_s + choice_pair, 1e-12)
         subset = _spread(subset, max(least, int(fits)))
     first = torch.cat([fit.level_picks(), subset]).unique()
     more = first[~torch.isin(first, one)]

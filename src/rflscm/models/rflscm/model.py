@@ -53,6 +53,7 @@ from rflscm.models.rflscm.corrections import (
     PAIR_CHUNK,
     UNSEEN_WEIGHT,
     PairCorrections,
+    PassTimes,
     RoundOneCensor,
     TimeLeftFn,
     blend_grids,
@@ -131,6 +132,7 @@ class RFLSCM(LSCMModel):
         self._train: TrainContext | None = None
         self._silence_dbm: float | None = None  # round 1's SSB bound for a wholly unreported pair (None: rule sinr)
         self._blend_grids = np.zeros(0, np.int64)
+        self._pass_times: PassTimes | None = None  # the pass's latest measured cost (finish_seconds), which sizes it
         """Training grids held out of the field's training to choose the unseen-grid blend (``unseen_blend_grids``)."""
 
     @classmethod
@@ -610,6 +612,7 @@ class RFLSCM(LSCMModel):
             visible=torch.as_tensor(self.scene.visible, device=self.device),
             render_rest=render_rest,
             extra_left=extra_left,
+            known=self._pass_times,
         )
         if self._silence_dbm is not None:
             reported = train.data.observed.any(1).cpu().numpy()
@@ -706,6 +709,7 @@ class RFLSCM(LSCMModel):
             clock,
             torch.as_tensor(self.scene.visible, device=self.device),
         )
+        self._pass_times = times
         pairs = int(train.data.observed.any(1).sum())
         cfg, cells = self.config.corrections, len(self.scene.cell_ids)
         fresh_s = None if fresh is None else self._fresh_render_s(fresh, final, clock)
