@@ -456,16 +456,24 @@ def fit_corrections(
     solved = left_over  # WNOMP's APS of every later pair, before the pass's own pairs leave it
     if left_over is not None:
         left_over = left_over.without(index)
-    if not cfg.pair_posterior:
+
+    def corrections(
+        posterior: PairPosterior | None, mix: PairFallback | None = None, mix_csi: PairFallback | None = None
+    ) -> PairCorrections:  # what every outcome below returns, with its own posterior and dB mixes
         return PairCorrections(
             levels,
             anchor_series,
-            None,
+            posterior,
             left_over,
+            mix=mix,
+            mix_csi=mix_csi,
             rendered=renders,
             borrowed=int(borrowed.numel()),
             level_pairs=fit.level_per_cell,
         )
+
+    if not cfg.pair_posterior:
+        return corrections(None)
     if not gains:  # no choice of λ beat the field on held-aside reports: nothing to apply
         empty = pd.MultiIndex.from_arrays([np.zeros(0, np.int64)] * 2, names=["cell_id", "grid_id"])
         posterior = PairPosterior(
@@ -477,15 +485,7 @@ def fit_corrections(
             plan.atom_scores,
             plan.groups,
         )
-        return PairCorrections(
-            levels,
-            anchor_series,
-            posterior,
-            left_over,
-            rendered=renders,
-            borrowed=int(borrowed.numel()),
-            level_pairs=fit.level_per_cell,
-        )
+        return corrections(posterior)
     # a chunk's width is the field's bins and the most WNOMP atoms of its pairs' groups: chunks differ
     gain_db = _widened(gains).half().float()  # as a checkpoint stores it: a loaded model predicts the same
     with_base = [b if b is not None else torch.zeros_like(g) for b, g in zip(bases, gains, strict=True)]
@@ -528,17 +528,7 @@ def fit_corrections(
     mix_csi = mixes.get("csi")
     if mix_csi is None and mixes.get("ssb") is not None:  # CSI-RS chose no mix: not SSB's either
         mix_csi = _no_mix()
-    return PairCorrections(
-        levels,
-        anchor_series,
-        posterior,
-        left_over,
-        mix=mixes.get("ssb"),
-        mix_csi=mix_csi,
-        rendered=renders,
-        borrowed=int(borrowed.numel()),
-        level_pairs=fit.level_per_cell,
-    )
+    return corrections(posterior, mix=mixes.get("ssb"), mix_csi=mix_csi)
 
 
 def _mix_wanted(
