@@ -378,10 +378,10 @@ def test_a_short_deadline_measures_the_levels_on_fewer_pairs_per_cell() -> None:
     cfg = CorrectionsConfig(pair_posterior=False)
     args = (cfg, data(rsrp, cells), 1, np.array([7, 8, 9, 10]), costly, columns)
     cut = fit_corrections(*args, seed=0, time_left=lambda: 0.3 - now[0], clock=lambda: now[0])
-    # one pair per cell first (0.04 s: 2 to warm up, 2 timed), then FIRST_SHARE of the 0.26 s left: 13 pairs more, so
-    # 3 more per cell (12): the levels on 4 pairs per cell
-    assert rendered[:3] == [2, 2, 12] and int(FIRST_SHARE * 26) == 13
-    assert cut.anchors is not None and len(cut.anchors) == 16 and now[0] <= 0.3 and cut.level_pairs == 4
+    # one pair per cell first (0.04 s: 2 to warm up, 2 timed), then FIRST_SHARE of the 0.26 s left: 13 pairs, so 3
+    # per cell (12)
+    assert rendered[:3] == [2, 2, 8] and int(FIRST_SHARE * 26) == 13
+    assert cut.anchors is not None and len(cut.anchors) == 12 and now[0] <= 0.3 and cut.level_pairs == 3
 
 
 def test_the_first_renders_set_up_is_not_charged_to_every_pair() -> None:

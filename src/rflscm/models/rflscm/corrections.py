@@ -772,18 +772,22 @@ def _first_pairs(
     room = FIRST_SHARE * (left - min(safety_net, FIRST_SHARE * max(left, 0.0)))
     cells = max(one.numel(), 1)
 
-    def choice(lam_pairs: int) -> float:
+    def choice(lam_pairs: int, further: float = prep_s) -> float:
         # λ's choice and the dB mix's: every option on each of λ's pairs, the options sharing a cell's set-up (its
         # columns, its WNOMP solves), so a cell's first pair costs them all with that set-up (as timed: one pair per
-        # cell) and its others without it (shipped scenario: 5.0 s for 512 pairs, 4.6 s priced so; options × the
-        # first preparation priced 14–19 s)
-        return options * prep_s * min(lam_pairs, cells) + choice_pair * max(lam_pairs - cells, 0)
+        # cell) and its others ``further`` each (shipped scenario: 5.0 s for 512 pairs, 4.6 s priced with ``known``;
+        # options × the first preparation priced 14–19 s)
+        return options * prep_s * min(lam_pairs, cells) + further * max(lam_pairs - cells, 0)
 
-    def cost(per_cell: int, lam_pairs: int) -> float:  # beyond the pair per cell rendered already
-        return ((per_cell - 1) * cells + lam_pairs) * pair_s + choice(lam_pairs)
+    def cost(per_cell: int, lam_pairs: int) -> float:
+        # priced as the first pairs cost, each cell's set-up included: the levels' pairs of a cell share chunks with
+        # other cells' (priced at ``known``'s chunk of one block, a 222-cell demo's pass took 7 pairs per cell and ran
+        # 13 s past its share)
+        return (per_cell * cells + lam_pairs) * each + choice(lam_pairs)
 
     fit_pair = known.fit_s if known is not None and cfg.pair_posterior else 0.0  # a posterior fit per pair
-    whole = (total - cells) * (pair_s + fit_pair) + choice(subset.numel()) + safety_net  # every pair corrected
+    # the whole pass as the loop takes its pairs (chunks of a block, ``known``'s measure): every pair corrected
+    whole = (total - cells) * (pair_s + fit_pair) + choice(subset.numel(), choice_pair) + safety_net
     least = min(PAIR_CHUNK, subset.numel())  # λ's pairs when short of time
     for per_cell in range(LEVEL_PAIRS_PER_CELL, 0, -1):
         fit.level_per_cell = per_cell
@@ -794,7 +798,7 @@ def _first_pairs(
         if cost(fit.level_per_cell, spread) > room:
             fits = (room - cost(fit.level_per_cell, 0)) / max(pair_s + options * prep_s, 1e-12)
         else:  # past one pair per cell each more costs a render and a preparation
-            fits = spread + (room - cost(fit.level_per_cell, spread)) / max(pair_s + choice_pair, 1e-12)
+            fits = spread + (room - cost(fit.level_per_cell, spread)) / max(each + prep_s, 1e-12)
         subset = _spread(subset, max(least, int(fits)))
     first = torch.cat([fit.level_picks(), subset]).unique()
     more = first[~torch.isin(first, one)]
