@@ -327,8 +327,8 @@ def fit_corrections(
     APS and a borrowed APS (the budget's choice, ``PairFallback.scores["budget"]``).  ``extra_left``: the time left for the pairs
     corrected beyond the least (the levels' and λ's pairs and the fallback), where ``time_left`` runs past the
     budget's end to keep that least: a pass over its budget corrects no more pairs than its least needs.  ``known``: the
-    pass's cost as :func:`measure_pass` last measured it (per pair on a chunk as the pass takes them), which sizes the
-    levels' and λ's pairs (:func:`_first_pairs`; without it, the pass's own first renders do)."""
+    pass's cost as :func:`measure_pass` last measured it (per pair on a chunk as the pass takes them), which prices the
+    whole pass where :func:`_first_pairs` asks whether it fits (without it, the pass's own first renders do)."""
     from tqdm.auto import tqdm
 
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
@@ -730,9 +730,10 @@ def _first_pairs(
     (a model's first render sets up what every later one reuses: 1.3 s on the shipped scenario, 15 s at 222 cells);
     then the levels' other pairs (up to ``LEVEL_PAIRS_PER_CELL`` per cell) and λ's ``subset`` as far as
     ``FIRST_SHARE`` of the time left allows, once the time of the fallback's WNOMP solve of every other pair (timed on
-    a spread sample) is kept aside; every one of them where the whole pass over its ``total`` pairs fits the time left.
-    One pair per cell pays each cell's set-up (the renderer's, the columns'); a pair past it costs what ``known``
-    measured on a chunk as the pass takes them (``render_s + prep_s``), or without it what that first pair did.
+    a spread sample) is kept aside; every one of them where the whole pass over its ``total`` pairs fits the time left,
+    priced as its loop takes them: a pair at what ``known`` measured on a chunk of a block (``render_s + prep_s``, a
+    posterior fit), or without it at what the first pairs cost.  The first pairs are priced at their own cost, which
+    pays each cell's set-up (the renderer's, the columns'): their chunks span many cells.
     When it does not, λ's pairs shrink first (to ``PAIR_CHUNK``), then the levels' pairs per cell: a CSI-RS level
     measured on too few pairs is off by many dB on every pair of its cells, which no later correction undoes (a
     tile measured on one pair per cell: +15 dB), while λ chosen on fewer pairs is only a coarser choice."""
@@ -796,7 +797,7 @@ def _first_pairs(
     if whole > left and cost(fit.level_per_cell, subset.numel()) > room and subset.numel():
         spread = min(max(least, cells), subset.numel())  # one pair per cell: each costs every option
         if cost(fit.level_per_cell, spread) > room:
-            fits = (room - cost(fit.level_per_cell, 0)) / max(pair_s + options * prep_s, 1e-12)
+            fits = (room - cost(fit.level_per_cell, 0)) / max(each + options * prep_s, 1e-12)
         else:  # past one pair per cell each more costs a render and a preparation
             fits = spread + (room - cost(fit.level_per_cell, spread)) / max(each + prep_s, 1e-12)
         subset = _spread(subset, max(least, int(fits)))
