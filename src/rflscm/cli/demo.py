@@ -82,9 +82,9 @@ def demo_rows(results: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
             if not unseen["pairs"][bt]:
                 continue
             cells = [_fmt(r["unseen"]["mae_db"][bt]) for r in results.values()]
-            floors = (unseen["oracle_mae_db"][bt], unseen["noise_floor_mae_db"][bt], unseen["trivial_mae_db"][bt])
+            others = [_fmt(unseen[k][bt]) for k in ("oracle_mae_db", "noise_floor_mae_db", "trivial_mae_db")]
             n = unseen["pairs"][bt]
-            rows.append([f"{name} MAE, grids without round-1 reports, {n} pairs (dB)", *cells, *map(_fmt, floors)])
+            rows.append([f"{name} MAE, grids without round-1 reports, {n} pairs (dB)", *cells, *others])
     for bt, name in (("ssb", "SSB"), ("csi", "CSI-RS")):
         bias = [_fmt((r if same else r["seen"]).get("bias_db", {}).get(bt, {}).get("all")) for r in results.values()]
         where = "" if same else ", grids with round-1 reports"
