@@ -447,9 +447,23 @@ def _above_bound(beams: dict[str, BeamResult]) -> dict[str, dict[str, float | No
     return out
 
 
-def _mae_blocks(beams: dict[str, BeamResult], any_changed: bool) -> dict[str, dict[str, dict[str, float | None]]]:
-    """``{model|oracle|trivial|noise_floor|bias: {ssb|csi: {all, changed}}}``."""
-    return _split_blocks(beams, any_changed, _mae_triplet, ("model", "oracle", "trivial", "noise_floor", "bias"))
+MAE_KEYS = {
+    "model": "mae_db",
+    "oracle": "oracle_mae_db",
+    "noise_floor": "noise_floor_mae_db",
+    "trivial": "trivial_mae_db",
+    "bias": "bias_db",
+}
+"""Each :func:`_mae_triplet` entry's key in the metrics."""
+
+
+def _mae_blocks(
+    beams: dict[str, BeamResult], any_changed: bool, seen_only: bool = False
+) -> dict[str, dict[str, dict[str, float | None]]]:
+    """``{mae_db|oracle_mae_db|trivial_mae_db|noise_floor_mae_db|bias_db: {ssb|csi: {all, changed}}}`` over every
+    scored row (only those with training data when ``seen_only``)."""
+    blocks = _split_blocks(beams, any_changed, _mae_triplet, tuple(MAE_KEYS), seen_only)
+    return {MAE_KEYS[k]: block for k, block in blocks.items()}
 
 
 def _split_blocks(
@@ -512,13 +526,8 @@ def _per_cell(beams: dict[str, BeamResult], changed: np.ndarray) -> dict[str, An
 
 def _seen_block(beams: dict[str, BeamResult], any_changed: bool) -> dict[str, Any]:
     """The MAE blocks of :func:`_mae_blocks` over the scored pairs that had training data, and their number."""
-    keys = ("model", "oracle", "trivial", "noise_floor", "bias")
-    blocks = _split_blocks(beams, any_changed, _mae_triplet, keys, seen_only=True)
-    out: dict[str, Any] = {
-        ("bias_db" if k == "bias" else "mae_db" if k == "model" else f"{k}_mae_db"): blocks[k] for k in keys
-    }
-    out["pairs"] = {bt: int((res.rows() & res.seen).sum()) for bt, res in beams.items()}
-    return out
+    pairs = {bt: int((res.rows() & res.seen).sum()) for bt, res in beams.items()}
+    return {**_mae_blocks(beams, any_changed, seen_only=True), "pairs": pairs}
 
 
 def _unseen_block(model: APSSource, beams: dict[str, BeamResult]) -> dict[str, Any]:
@@ -635,13 +644,8 @@ def _assemble(
     unsupported: str | None,
     timing: dict[str, float],
 ) -> dict[str, Any]:
-    maes = _mae_blocks(beams, any_changed=len(changed) > 0)
     return {
-        "mae_db": maes["model"],
-        "oracle_mae_db": maes["oracle"],
-        "noise_floor_mae_db": maes["noise_floor"],
-        "trivial_mae_db": maes["trivial"],
-        "bias_db": maes["bias"],
+        **_mae_blocks(beams, any_changed=len(changed) > 0),
         "missing_above_bound": _above_bound(beams),
         "truth_mae_db": _truth_block(beams, any_changed=len(changed) > 0),
         "per_cell": _per_cell(beams, changed),
