@@ -236,9 +236,12 @@ def test_each_cells_aps_are_remembered_only_while_its_pairs_are_predicted(adjust
     model, shared = adjust_run
     asked: list[tuple[int, int]] = []
     held: dict[int, set[int]] = {}  # per cache: the cells it was asked for
+    alive: list[APSCache] = []  # a freed cache's id can be reused by the next one; holding each keeps ids distinct
     aps = APSCache.aps
 
     def spy(self, cell_ids, grid_ids, grid_xyz=None):  # type: ignore[no-untyped-def]
+        if id(self) not in held:
+            alive.append(self)
         held.setdefault(id(self), set()).update(np.asarray(cell_ids).tolist())
         return aps(self, cell_ids, grid_ids, grid_xyz)
 
