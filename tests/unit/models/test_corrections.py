@@ -378,10 +378,10 @@ def test_a_short_deadline_measures_the_levels_on_fewer_pairs_per_cell() -> None:
     cfg = CorrectionsConfig(pair_posterior=False)
     args = (cfg, data(rsrp, cells), 1, np.array([7, 8, 9, 10]), costly, columns)
     cut = fit_corrections(*args, seed=0, time_left=lambda: 0.3 - now[0], clock=lambda: now[0])
-    # one pair per cell first (0.04 s: 2 to warm up, 2 timed), then FIRST_SHARE of the 0.26 s left: 13 pairs, so 3
-    # per cell (12)
-    assert rendered[:3] == [2, 2, 8] and int(FIRST_SHARE * 26) == 13
-    assert cut.anchors is not None and len(cut.anchors) == 12 and now[0] <= 0.3 and cut.level_pairs == 3
+    # one pair per cell first (0.04 s: 2 to warm up, 2 timed), then FIRST_SHARE of the 0.26 s left: 13 more pairs, so
+    # 3 more per cell (12), 4 per cell in all
+    assert rendered[:3] == [2, 2, 12] and int(FIRST_SHARE * 26) == 13
+    assert cut.anchors is not None and len(cut.anchors) == 16 and now[0] <= 0.3 and cut.level_pairs == 4
 
 
 def test_the_first_renders_set_up_is_not_charged_to_every_pair() -> None:
@@ -452,6 +452,50 @@ def test_the_later_pairs_come_in_random_blocks_each_sorted_and_the_estimate_time
     assert times.render_s < 0.001 + 0.01 * 4 / module.PAIR_CHUNK  # at most four cells in the chunk
     spread = 0.001 + 0.01 * cells / module.PAIR_CHUNK  # what a chunk spread over every cell costs a pair
     assert times.render_s < 0.5 * spread
+
+
+def test_the_first_pairs_are_priced_by_the_cells_their_chunks_span() -> None:
+    """A render costs per pair and per cell its chunk spans. The first pairs (one per cell) pay a cell per pair, a
+    block's chunk (``known``) a few: from the two the pass prices the levels' further pairs (sorted, so a cell's pairs
+    share chunks) at what their chunks span. Priced at the first pairs' cost it would take 3 pairs per cell; so priced
+    it takes all 16 within its share of the time left, and ends by the deadline."""
+    import rflscm.models.rflscm.corrections as module
+
+    cells, per_cell = 40, 100
+    n = cells * per_cell
+    cell_of = torch.arange(n) // per_cell
+    now = [0.0]
+
+    def render(p: torch.Tensor):
+        now[0] += 0.001 * p.numel() + 0.01 * cell_of[p].unique().numel()  # per pair, and per cell in the chunk
+        return torch.zeros(p.numel(), 1, dtype=torch.long), torch.ones(p.numel(), 1), torch.ones(p.numel(), 4)
+
+    pair_data = PairData(
+        cell_index=cell_of,
+        grid_ids=np.arange(n, dtype=np.int64),
+        grid_xyz=torch.zeros(n, 3),
+        rsrp=torch.ones(n, 4),
+        beam_mask=torch.ones(n, 4, dtype=torch.bool),
+        val_mask=torch.zeros(n, 4, dtype=torch.bool),
+        x_scale=torch.ones(n),
+        bound=torch.full((n, 4), float("nan")),
+        val_pairs=torch.zeros(0, dtype=torch.long),
+    )
+    cfg = CorrectionsConfig(pair_posterior=False, wnomp_fallback=False)
+    known = module.measure_pass(cfg, pair_data, 2, cells, render, columns, lambda: now[0])
+    assert known.cells_per_pair <= 4 / module.PAIR_CHUNK  # a chunk of a block spans a few cells
+
+    def level_pairs(times: module.PassTimes | None) -> tuple[int, float]:
+        now[0] = 0.0
+        args = (cfg, pair_data, 2, np.arange(cells), render, columns)
+        fitted = fit_corrections(*args, seed=0, time_left=lambda: 2.8 - now[0], clock=lambda: now[0], known=times)
+        return fitted.level_pairs, now[0]
+
+    # one pair per cell: 38 timed in one chunk of 38 cells, 11 ms a pair; 15 more per cell (600 pairs in 10 chunks of
+    # about 5 cells each) cost about 1.1 s, within half of the 2.4 s left, where 11 ms a pair would price them 6.6 s
+    assert level_pairs(None)[0] == 3
+    taken, ended = level_pairs(known)
+    assert taken == module.LEVEL_PAIRS_PER_CELL and ended <= 2.8
 
 
 def test_wnomp_fallback_solves_chunks_of_consecutive_pairs_and_the_estimate_times_such_a_chunk(

@@ -624,6 +624,9 @@ class PassTimes:
     fit_s: float
     solve_s: float = 0.0
     """Per pair, WNOMP's solve of its own reports (the fallback of a pair the pass does not reach)."""
+    cells_per_pair: float = 1.0
+    """The cells the timed chunk spans per pair (a chunk of a block: a few cells for 64 pairs); with a chunk of one pair
+    per cell (1.0) it prices how a chunk's cost grows with the cells it spans (:func:`_first_pairs`)."""
 
     def total_s(self, cfg: CorrectionsConfig, pairs: int) -> float:
         """The whole pass over ``pairs`` pairs with reports: setup, each pair once, and the λ (and atoms) choice:
@@ -690,7 +693,8 @@ def measure_pass(
     cells_first = int(data.cell_index[first].unique().numel())
     setup = max(0.0, (t1 - t0) - (t2 - t1) * n_first / n_second) * num_cells / max(cells_first, 1)
     render_s, prep_s, fit_s = ((b - a) / n_second for a, b in ((t1, t2), (t2, t3), (t3, t4)))
-    return PassTimes(setup, render_s, prep_s, fit_s, (t5 - t4) / sample.numel())
+    spanned = int(data.cell_index[second].unique().numel()) / max(n_second, 1)
+    return PassTimes(setup, render_s, prep_s, fit_s, (t5 - t4) / sample.numel(), spanned)
 
 
 def _solve_chunks(pairs: torch.Tensor, size: int, seed: int = 0) -> list[torch.Tensor]:
@@ -772,6 +776,29 @@ def _first_pairs(
     left = time_left()  # the fallback's time kept, up to half: the levels' pairs keep a quarter of the pass at least
     room = FIRST_SHARE * (left - min(safety_net, FIRST_SHARE * max(left, 0.0)))
     cells = max(one.numel(), 1)
+    # a chunk costs ``per_pair`` a pair and ``per_span`` a cell it spans (that cell's set-up: the renderer's, the
+    # columns'): the first pairs (one per cell, a chunk spans a cell per pair) cost both a pair, ``known``'s chunk of a
+    # block (a few cells) the first and its share of the second; so priced, a set of pairs costs what its chunks span
+    per_pair, per_span = each, 0.0
+    if known is not None and known.cells_per_pair < 1.0:
+        per_span = max(each - (known.render_s + known.prep_s), 0.0) / (1.0 - known.cells_per_pair)
+        per_pair = each - per_span
+    reported = fit.data.cell_index[torch.nonzero(fit.data.observed.any(1)).squeeze(1)]
+    per_cell_pairs = torch.bincount(reported, minlength=fit.num_cells)
+    spread_cells: dict[int, torch.Tensor] = {}
+
+    def priced(counts: torch.Tensor) -> float:
+        # ``counts[c]`` pairs of cell c, in cell order (as sorted pairs are), rendered PAIR_CHUNK at a time
+        counts = counts[counts > 0]
+        start = torch.cumsum(counts, 0) - counts
+        spans = (start + counts - 1) // PAIR_CHUNK - start // PAIR_CHUNK + 1
+        return per_pair * float(counts.sum()) + per_span * float(spans.sum())
+
+    def lambda_cells(lam_pairs: int) -> torch.Tensor:
+        if lam_pairs not in spread_cells:
+            picked = fit.data.cell_index[_spread(subset, lam_pairs)] if lam_pairs else reported[:0]
+            spread_cells[lam_pairs] = torch.bincount(picked, minlength=fit.num_cells)
+        return spread_cells[lam_pairs]
 
     def choice(lam_pairs: int, further: float = prep_s) -> float:
         # λ's choice and the dB mix's: every option on each of λ's pairs, the options sharing a cell's set-up (its
@@ -781,10 +808,11 @@ def _first_pairs(
         return options * prep_s * min(lam_pairs, cells) + further * max(lam_pairs - cells, 0)
 
     def cost(per_cell: int, lam_pairs: int) -> float:
-        # priced as the first pairs cost, each cell's set-up included: the levels' pairs of a cell share chunks with
-        # other cells' (priced at ``known``'s chunk of one block, a 222-cell demo's pass took 7 pairs per cell and ran
-        # 13 s past its share)
-        return (per_cell * cells + lam_pairs) * each + choice(lam_pairs)
+        # the levels' pairs past each cell's first (timed above) and λ's, priced by the pairs and the cells their
+        # chunks span: priced at ``known``'s chunk of one block alone, a 222-cell demo's pass took 7 pairs per cell and
+        # ran 13 s past its share; at the first pairs' own cost alone, a 10-minute shipped run's pass took 6 of 16
+        levels = (per_cell_pairs.clamp(max=per_cell) - 1).clamp_min(0)
+        return priced(levels) + priced(lambda_cells(lam_pairs)) + choice(lam_pairs)
 
     fit_pair = known.fit_s if known is not None and cfg.pair_posterior else 0.0  # a posterior fit per pair
     # the whole pass as the loop takes its pairs (chunks of a block, ``known``'s measure): every pair corrected
