@@ -109,6 +109,11 @@ def test_b1_adjust(tmp_path: Path, scenario_dir: Path) -> None:
         tp = res["models"][name]["throughput"]
         assert tp["ray_samples_per_s"] > 0 and res["models"][name]["parameters"] > 0
     assert res["oracle"]["mae_db"]["csi"]["all"] is not None and res["changed_cells"]
+    # over the pairs with round-1 reports every model scores the same pairs: WNOMP's equal its all-pairs MAE (it
+    # answers nothing else)
+    wnomp = res["models"]["wnomp"]
+    assert wnomp["seen_mae_db"] == wnomp["mae_db"] and res["models"]["rflscm"]["seen_mae_db"]["ssb"]["all"] is not None
+    assert set(res["seen"]) == {"oracle", "trivial"} and res["seen"]["oracle"]["ssb"]["all"] is not None
     # chosen on held-aside round-1 beams of the adjust protocol's training data, as the demo chooses them
     from rflscm.bench.harness import build_model, selected_wnomp
     from rflscm.eval import AdjustProtocol

@@ -26,6 +26,7 @@ def record(result: RunResult) -> dict[str, Any]:
     aps = m.get("aps") or {}
     return {
         "mae_db": mae_summary(m)["model"] if m else None,
+        "seen_mae_db": mae_summary(m.get("seen") or {})["model"] if m else None,
         "truth_mae_db": truth_summary(m)["model"] if m else None,
         "unseen_mae_db": {bt: unseen.get(bt) for bt in BEAM_TYPES},
         "unseen_bias_db": {bt: ((m.get("unseen") or {}).get("bias_db") or {}).get(bt) for bt in BEAM_TYPES},
