@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import io
 import math
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -407,6 +409,31 @@ def test_the_first_renders_set_up_is_not_charged_to_every_pair() -> None:
     assert rendered[:3] == [WARM_PAIRS, 4 - WARM_PAIRS, 4 * (LEVEL_PAIRS_PER_CELL - 1)]
 
 
+def per_cell_cost_problem(cells: int, per_cell: int) -> tuple[PairData, Callable[..., Any], list[float]]:
+    """``cells × per_cell`` pairs (sorted by cell, every beam reported at 1) and a render on a fake clock that costs
+    1 ms a pair and 10 ms a cell its chunk spans: ``(pairs, render, clock)``."""
+    n = cells * per_cell
+    cell_of = torch.arange(n) // per_cell
+    now = [0.0]
+
+    def render(p: torch.Tensor):  # type: ignore[no-untyped-def]
+        now[0] += 0.001 * p.numel() + 0.01 * cell_of[p].unique().numel()
+        return torch.zeros(p.numel(), 1, dtype=torch.long), torch.ones(p.numel(), 1), torch.ones(p.numel(), 4)
+
+    pair_data = PairData(
+        cell_index=cell_of,
+        grid_ids=np.arange(n, dtype=np.int64),
+        grid_xyz=torch.zeros(n, 3),
+        rsrp=torch.ones(n, 4),
+        beam_mask=torch.ones(n, 4, dtype=torch.bool),
+        val_mask=torch.zeros(n, 4, dtype=torch.bool),
+        x_scale=torch.ones(n),
+        bound=torch.full((n, 4), float("nan")),
+        val_pairs=torch.zeros(0, dtype=torch.long),
+    )
+    return pair_data, render, now
+
+
 def test_the_later_pairs_come_in_random_blocks_each_sorted_and_the_estimate_times_such_a_chunk() -> None:
     """The pass takes the pairs it has not rendered in a seeded random order of ``PASS_BLOCK``-pair blocks, each sorted
     (so a render chunk spans few cells); ``measure_pass`` times its per-pair render on a chunk of such a block, not on
@@ -427,24 +454,8 @@ def test_the_later_pairs_come_in_random_blocks_each_sorted_and_the_estimate_time
     assert torch.equal(order, module._later_pairs(pairs, first, seed=3))
     assert not torch.equal(order, module._later_pairs(pairs, first, seed=4))
 
-    cell_of = pairs // per_cell
-    now = [0.0]
-
-    def render(p: torch.Tensor):
-        now[0] += 0.001 * p.numel() + 0.01 * cell_of[p].unique().numel()  # per pair, and per cell in the chunk
-        return torch.zeros(p.numel(), 1, dtype=torch.long), torch.ones(p.numel(), 1), torch.ones(p.numel(), 4)
-
-    pair_data = PairData(
-        cell_index=cell_of,
-        grid_ids=np.arange(n, dtype=np.int64),
-        grid_xyz=torch.zeros(n, 3),
-        rsrp=torch.ones(n, 4),
-        beam_mask=torch.ones(n, 4, dtype=torch.bool),
-        val_mask=torch.zeros(n, 4, dtype=torch.bool),
-        x_scale=torch.ones(n),
-        bound=torch.full((n, 4), float("nan")),
-        val_pairs=torch.zeros(0, dtype=torch.long),
-    )
+    pair_data, render, now = per_cell_cost_problem(cells, per_cell)
+    cell_of = pair_data.cell_index
     cfg = CorrectionsConfig(pair_posterior=False, wnomp_fallback=False)
     times = module.measure_pass(cfg, pair_data, 2, cells, render, columns, lambda: now[0])
     block_cells = int(cell_of[module._later_pairs(pairs, pairs[:0], 0)[: module.PASS_BLOCK]].unique().numel())
@@ -461,26 +472,8 @@ def test_the_first_pairs_are_priced_by_the_cells_their_chunks_span() -> None:
     it takes all 16 within its share of the time left, and ends by the deadline."""
     import rflscm.models.rflscm.corrections as module
 
-    cells, per_cell = 40, 100
-    n = cells * per_cell
-    cell_of = torch.arange(n) // per_cell
-    now = [0.0]
-
-    def render(p: torch.Tensor):
-        now[0] += 0.001 * p.numel() + 0.01 * cell_of[p].unique().numel()  # per pair, and per cell in the chunk
-        return torch.zeros(p.numel(), 1, dtype=torch.long), torch.ones(p.numel(), 1), torch.ones(p.numel(), 4)
-
-    pair_data = PairData(
-        cell_index=cell_of,
-        grid_ids=np.arange(n, dtype=np.int64),
-        grid_xyz=torch.zeros(n, 3),
-        rsrp=torch.ones(n, 4),
-        beam_mask=torch.ones(n, 4, dtype=torch.bool),
-        val_mask=torch.zeros(n, 4, dtype=torch.bool),
-        x_scale=torch.ones(n),
-        bound=torch.full((n, 4), float("nan")),
-        val_pairs=torch.zeros(0, dtype=torch.long),
-    )
+    cells = 40
+    pair_data, render, now = per_cell_cost_problem(cells, 100)
     cfg = CorrectionsConfig(pair_posterior=False, wnomp_fallback=False)
     known = module.measure_pass(cfg, pair_data, 2, cells, render, columns, lambda: now[0])
     assert known.cells_per_pair <= 4 / module.PAIR_CHUNK  # a chunk of a block spans a few cells
