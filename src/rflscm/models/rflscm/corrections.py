@@ -736,8 +736,10 @@ def _first_pairs(
     ``FIRST_SHARE`` of the time left allows, once the time of the fallback's WNOMP solve of every other pair (timed on
     a spread sample) is kept aside; every one of them where the whole pass over its ``total`` pairs fits the time left,
     priced as its loop takes them: a pair at what ``known`` measured on a chunk of a block (``render_s + prep_s``, a
-    posterior fit), or without it at what the first pairs cost.  The first pairs are priced at their own cost, which
-    pays each cell's set-up (the renderer's, the columns'): their chunks span many cells.
+    posterior fit), or without it at what the first pairs cost.  The first pairs are priced by the pairs and the cells
+    their chunks span, a chunk paying each cell's set-up (the renderer's, the columns'): the per-pair and per-cell
+    parts come from the first pairs' own cost (a cell per pair) and ``known``'s (a few cells per chunk; without it,
+    every pair at the first pairs' cost).
     When it does not, λ's pairs shrink first (to ``PAIR_CHUNK``), then the levels' pairs per cell: a CSI-RS level
     measured on too few pairs is off by many dB on every pair of its cells, which no later correction undoes (a
     tile measured on one pair per cell: +15 dB), while λ chosen on fewer pairs is only a coarser choice."""
