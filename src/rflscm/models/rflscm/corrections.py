@@ -327,8 +327,9 @@ def fit_corrections(
     APS and a borrowed APS (the budget's choice, ``PairFallback.scores["budget"]``).  ``extra_left``: the time left for the pairs
     corrected beyond the least (the levels' and λ's pairs and the fallback), where ``time_left`` runs past the
     budget's end to keep that least: a pass over its budget corrects no more pairs than its least needs.  ``known``: the
-    pass's cost as :func:`measure_pass` last measured it (per pair on a chunk as the pass takes them), which prices the
-    whole pass where :func:`_first_pairs` asks whether it fits (without it, the pass's own first renders do)."""
+    pass's cost as :func:`measure_pass` last measured it (per pair on a chunk as the pass takes them, and the cells that
+    chunk spans), which prices the whole pass where :func:`_first_pairs` asks whether it fits and, with the first
+    renders, splits a chunk's cost into its pairs' and its cells' (without it, the pass's own first renders price all)."""
     from tqdm.auto import tqdm
 
     if not (cfg.calibrate_levels or cfg.pair_anchors or cfg.pair_posterior):
