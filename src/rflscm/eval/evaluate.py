@@ -236,12 +236,18 @@ def _oracle(
 def tested_pairs(scenario: Scenario, protocol: Protocol) -> tuple[int, FreshPairs]:
     """How many distinct (cell, grid) pairs ``protocol``'s test set of ``scenario`` asks for that have training
     reports, and those that have none, with their grids' positions (a field model renders the latter whatever its
-    pass did)."""
-    tested = protocol.test_set(scenario).pairs()[["cell_id", "grid_id"]].drop_duplicates()
-    known = pd.MultiIndex.from_frame(tested).isin(_trained_pairs(protocol.training_scenario(scenario)))
+    pass did) and the calls :func:`run_evaluation` asks for them in: cell by cell, a pair in the call of the first
+    beam type of ``BEAM_TYPES`` that tests it."""
+    test = protocol.test_set(scenario)
+    tables = [test.tables[bt][0][["cell_id", "grid_id"]].assign(first=i) for i, bt in enumerate(BEAM_TYPES)]
+    tested = pd.concat(tables, ignore_index=True).drop_duplicates(["cell_id", "grid_id"])
+    trained = _trained_pairs(protocol.training_scenario(scenario))
+    known = pd.MultiIndex.from_frame(tested[["cell_id", "grid_id"]]).isin(trained)
     fresh = tested[~known]
     xyz = scenario.grids.set_index("grid_id").loc[fresh["grid_id"].to_numpy(), ["x", "y", "z"]].to_numpy(np.float64)
-    return int(known.sum()), FreshPairs(fresh["cell_id"].to_numpy(np.int64), xyz)
+    cells = fresh["cell_id"].to_numpy(np.int64)
+    calls = cells * len(BEAM_TYPES) + fresh["first"].to_numpy(np.int64)
+    return int(known.sum()), FreshPairs(cells, xyz, calls)
 
 
 def _trained_pairs(train: Scenario) -> pd.MultiIndex:

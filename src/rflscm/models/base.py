@@ -104,10 +104,15 @@ class FreshPairs:
     """``[n]`` cell ids."""
     grid_xyz: np.ndarray
     """``[n, 3]`` grid positions [m] (local frame)."""
+    calls: np.ndarray | None = None
+    """``[n]`` the caller's call per pair: the pairs it will ask for in one :meth:`LSCMModel.aps` call share a key (the
+    evaluation asks cell by cell, a beam type at a time), and keys sort by cell.  None: one call of them all."""
 
     def __post_init__(self) -> None:
         if len(self.cell_ids) != len(self.grid_xyz):
             raise ValueError(f"{len(self.cell_ids)} cells for {len(self.grid_xyz)} grid positions")
+        if self.calls is not None and len(self.calls) != len(self.cell_ids):
+            raise ValueError(f"{len(self.calls)} call keys for {len(self.cell_ids)} pairs")
 
     def __len__(self) -> int:
         return len(self.cell_ids)

@@ -227,6 +227,49 @@ def test_missing_above_bound_counts_each_type_and_pools_them_by_beams() -> None:
     assert out["trivial"]["pooled"] == 0.0 and out["oracle"]["ssb"] is None and out["oracle"]["pooled"] is None
 
 
+def test_the_fresh_pairs_are_grouped_by_the_calls_the_evaluation_makes(sim_scenario) -> None:
+    """``tested_pairs`` keys each test pair without a round-1 report by the ``aps`` call ``run_evaluation`` will ask
+    for it in (a budget's fit prices their renders by those calls): a model that answers unseen grids is asked for
+    each key's pairs together, and for no two keys' pairs in one call."""
+    from rflscm.eval.evaluate import tested_pairs
+    from rflscm.eval.oracle import OracleModel
+
+    # more fresh pairs: round 1 of some round-2 pairs dropped, and round 2's SSB of every other one (tested on CSI-RS
+    # alone, a cell's second call)
+    m = sim_scenario.measurements
+    keys = pd.MultiIndex.from_frame(m[["cell_id", "grid_id"]])
+    both = m[m["round"] == 2].groupby(["cell_id", "grid_id"])["beam_type"].nunique()
+    picked = both[both == 2].index[::7]
+    hit = keys.isin(picked)
+    csi_only = keys.isin(picked[::2]) & (m["round"] == 2).to_numpy() & (m["beam_type"] == "ssb").to_numpy()
+    scenario = sim_scenario.with_measurements(m[~((hit & (m["round"] == 1).to_numpy()) | csi_only)])
+    known, fresh = tested_pairs(scenario, AdjustProtocol())
+    assert fresh.calls is not None and known > len(fresh) >= len(picked) >= 4
+    per_cell = pd.Series(fresh.calls).groupby(fresh.cell_ids).nunique()
+    assert (per_cell == 2).any()  # some cells' fresh pairs come in two calls (SSB's, then CSI-RS's own)
+    where = scenario.grids.set_index("grid_id")[["x", "y", "z"]]
+    key_of = {
+        (int(c), *np.round(xyz, 3).tolist()): int(k)
+        for c, xyz, k in zip(fresh.cell_ids, fresh.grid_xyz, fresh.calls, strict=True)
+    }
+    model = OracleModel.for_scenario(scenario, GRID)
+    asked: list[set[int]] = []
+    inner_aps = model.aps
+
+    def spy(cell_ids, grid_ids, grid_xyz=None):  # type: ignore[no-untyped-def]
+        xyz = where.loc[np.asarray(grid_ids)].to_numpy() if grid_xyz is None else np.asarray(grid_xyz)
+        pairs = [(int(c), *np.round(p, 3).tolist()) for c, p in zip(cell_ids, xyz, strict=True)]
+        asked.append({key_of[p] for p in pairs if p in key_of})
+        return inner_aps(cell_ids, grid_ids, grid_xyz)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(model, "aps", spy)
+        run_evaluation(model, scenario, AdjustProtocol(), oracle=None)
+    keys = [k for k in asked if k]
+    assert all(len(k) == 1 for k in keys)  # no call mixes two keys' pairs
+    assert sorted(k.pop() for k in keys) == sorted(np.unique(fresh.calls).tolist())  # each key asked in one call
+
+
 def test_each_cells_aps_are_remembered_only_while_its_pairs_are_predicted(adjust_run, sim_scenario) -> None:
     """A plain model is asked for each distinct test pair once, its APS cached per cell (memory grows with a cell's
     pairs, not the network's) and only the APS metrics' pairs kept; the metrics equal those read through one shared

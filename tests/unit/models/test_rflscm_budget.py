@@ -286,38 +286,56 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
     assert estimate.least_s < estimate.total_s
 
 
-def test_a_callers_fresh_pairs_are_timed_on_chunks_of_them(scenario) -> None:
-    """Given a caller's fresh pairs, ``finish_seconds`` also times ``FRESH_CHUNKS`` render chunks of them as ``aps``
-    takes them (one clock read before and after: 1 s here), skipping pairs of cells the model does not know; without
-    any known cell nothing is timed and the pass's own render rate stands in."""
+def test_a_callers_fresh_pairs_are_priced_by_the_chunks_of_its_calls(scenario) -> None:
+    """Given a caller's fresh pairs, ``finish_seconds`` also times render chunks of them, cut as the caller's ``aps``
+    calls will cut them, about ``FRESH_PAIRS`` pairs' worth (at least 2, at most ``FRESH_CHUNKS`` chunks), and prices
+    every chunk there is at a set-up plus a rate per pair fitted to those times: a caller asking a few pairs at a
+    time pays a set-up per call, not per ``PAIR_CHUNK`` pairs.  Pairs of cells the model does not know are skipped;
+    without any known cell nothing is timed and the pass's own render rate stands in."""
     from rflscm.models.rflscm.corrections import PAIR_CHUNK
     from rflscm.models.rflscm.model import FRESH_CHUNKS
 
     model = RFLSCM.build(tiny_config(), GRID)
     model.prepare(scenario)
     cells = model.scene.cell_ids
-    count = 3 * PAIR_CHUNK
+    count = 5 * PAIR_CHUNK
     ids = np.concatenate([np.resize(cells, count), [cells.max() + 1]])  # the last pair's cell is unknown
-    fresh = FreshPairs(ids, np.tile([5.0, -3.0, 1.5], (count + 1, 1)))
-    calls: list[int] = []
+    xyz = np.tile([5.0, -3.0, 1.5], (count + 1, 1))
+    now, rendered = [0.0], []
     output = model.renderer.output
-    model.renderer.output = lambda c, g, p: calls.append(len(c)) or output(c, g, p)  # type: ignore[method-assign]
-    ticks = iter(range(1000))
-    assert model._fresh_render_s(fresh, 8.0, lambda: float(next(ticks))) == pytest.approx(
-        1 / (FRESH_CHUNKS * PAIR_CHUNK)
-    )
-    assert calls == [PAIR_CHUNK] * FRESH_CHUNKS
-    calls.clear()
-    few = FreshPairs(ids[:5], fresh.grid_xyz[:5])  # fewer than a chunk: one chunk of them all
-    assert model._fresh_render_s(few, 8.0, lambda: float(next(ticks))) == pytest.approx(1 / 5) and calls == [5]
-    stranger = FreshPairs(ids[-1:], fresh.grid_xyz[-1:])
-    assert model._fresh_render_s(stranger, 8.0, lambda: float(next(ticks))) is None
+
+    def render(c, g, p):  # type: ignore[no-untyped-def]
+        now[0] += 1.0 + 0.5 * len(c)  # a chunk's set-up 1 s, 0.5 s a pair
+        rendered.append(len(c))
+        return output(c, g, p)
+
+    model.renderer.output = render  # type: ignore[method-assign]
+
+    def priced(fresh: FreshPairs) -> float | None:
+        rendered.clear()
+        return model._fresh_render_s(fresh, 8.0, lambda: now[0])
+
+    # one call: 5 full chunks, 2 of them timed
+    assert priced(FreshPairs(ids, xyz)) == pytest.approx((5 * 1.0 + 0.5 * count) / count)
+    assert rendered == [PAIR_CHUNK] * 2
+    # 4 pairs a call: 80 chunks of 4, FRESH_CHUNKS of them timed, each chunk paying its set-up
+    assert priced(FreshPairs(ids, xyz, np.arange(count + 1) // 4)) == pytest.approx((80 + 0.5 * count) / count)
+    assert rendered == [4] * FRESH_CHUNKS
+    # calls of 2 and 6 pairs in turn: the set-up and the rate fitted to chunks of both sizes
+    mixed = np.repeat(np.arange(40), np.tile([2, 6], 20))
+    assert priced(FreshPairs(ids[:160], xyz[:160], mixed)) == pytest.approx((40 + 0.5 * 160) / 160)
+    assert sorted(set(rendered)) == [2, 6] and len(rendered) == FRESH_CHUNKS
+    few = FreshPairs(ids[:5], xyz[:5])  # fewer than a chunk: one chunk of them all
+    assert priced(few) == pytest.approx((1.0 + 2.5) / 5) and rendered == [5]
+    stranger = FreshPairs(ids[-1:], xyz[-1:])
+    assert priced(stranger) is None and rendered == []
     ticks = iter(range(1000))
     cost = model.finish_seconds(lambda: float(next(ticks)), stranger)
     assert cost.fresh_s is None and cost.fresh_pair_s == cost.per_pair_s
-    ticks = iter(range(1000))
-    cost = model.finish_seconds(lambda: float(next(ticks)), few)
-    assert cost.fresh_pair_s == cost.fresh_s == pytest.approx(1 / 5)
+    cost = model.finish_seconds(lambda: now[0], few)
+    assert cost.fresh_pair_s == cost.fresh_s == pytest.approx(3.5 / 5)
+    with pytest.raises(ValueError, match="call keys"):
+        FreshPairs(ids, xyz, np.zeros(3, np.int64))
 
 
 def test_work_after_the_fit_is_kept_out_of_the_budget(scenario) -> None:

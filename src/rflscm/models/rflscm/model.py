@@ -87,9 +87,12 @@ from rflscm.models.source import RsrpMix
 if TYPE_CHECKING:
     from rflscm.data.scenario import Scenario
 
-FRESH_CHUNKS = 2
-"""Render chunks of a caller's fresh pairs timed at each measurement of the pass (:meth:`RFLSCM._fresh_render_s`):
-two of 64 pairs cost about 1.5 s on the 222-cell city, at its 9–12 ms a pair."""
+FRESH_PAIRS = 128
+"""Pairs of a caller's fresh pairs rendered, in their calls' chunks, at each measurement of the pass
+(:meth:`RFLSCM._fresh_render_s`): on the 222-cell city the evaluation's chunks are one cell's 5–10 pairs, about 30 ms
+each, and a full one of 64 takes about 0.2 s, so about 0.5 s either way."""
+FRESH_CHUNKS = 16
+"""At most this many chunks are timed (and at least two), whatever their size."""
 
 
 @register_model
@@ -717,26 +720,41 @@ class RFLSCM(LSCMModel):
 
     @torch.no_grad()
     def _fresh_render_s(self, fresh: FreshPairs, position: float, clock: Callable[[], float]) -> float | None:
-        """Seconds per pair [s of ``clock``] of rendering ``fresh`` pairs at schedule ``position`` as :meth:`aps` does
-        (sorted by cell, ``PAIR_CHUNK`` at a time), timed on ``FRESH_CHUNKS`` such chunks evenly spaced over that
-        order; None when no pair's cell is the model's (the caller's renders then fail, costing nothing)."""
+        """Seconds per pair [s of ``clock``] of rendering ``fresh`` pairs at schedule ``position`` as the caller's
+        :meth:`aps` calls will (:attr:`FreshPairs.calls`: each call's pairs sorted by cell, ``PAIR_CHUNK`` at a time,
+        so a call of a few pairs pays a chunk's set-up alone); None when no pair's cell is the model's (the caller's
+        renders then fail, costing nothing).
+
+        Chunks evenly spaced over the calls' order are timed one by one, about ``FRESH_PAIRS`` pairs of them (at
+        least two chunks, at most ``FRESH_CHUNKS``), and every chunk is priced as ``set-up + pairs × rate``, both
+        fitted to those times by least squares (where the timed chunks differ in size; else their mean time each)."""
         assert self.scene is not None
         known = np.isin(np.asarray(fresh.cell_ids, np.int64), self.scene.cell_ids)
         if not known.any():
             return None
         cells = self.scene.cell_index(np.asarray(fresh.cell_ids, np.int64)[known])
         xyz = np.asarray(fresh.grid_xyz, np.float64).reshape(-1, 3)[known]
-        order = np.argsort(cells, kind="stable")
-        last = max(order.size - PAIR_CHUNK, 0)
-        starts = np.unique(np.linspace(0, last, FRESH_CHUNKS).round().astype(np.int64))
-        chunks = [order[a : a + PAIR_CHUNK] for a in starts]
-        R, rendered = self._renderer(), 0
-        begun = clock()
-        for rows in chunks:
-            c = torch.as_tensor(cells[rows], device=self.device)
-            R.output(c, torch.as_tensor(xyz[rows], dtype=torch.float32, device=self.device), position)
-            rendered += rows.size
-        return (clock() - begun) / rendered
+        calls = np.zeros(cells.size, np.int64) if fresh.calls is None else np.asarray(fresh.calls, np.int64)[known]
+        order = np.lexsort((cells, calls))
+        bounds = np.flatnonzero(np.diff(calls[order])) + 1
+        chunks = [part[a : a + PAIR_CHUNK] for part in np.split(order, bounds) for a in range(0, part.size, PAIR_CHUNK)]
+        count = int(np.clip(round(FRESH_PAIRS * len(chunks) / cells.size), 2, FRESH_CHUNKS))
+        picked = np.unique(np.linspace(0, len(chunks) - 1, count).round().astype(np.int64))
+        R = self._renderer()
+        sizes, times = np.array([chunks[i].size for i in picked], np.float64), np.zeros(picked.size)
+        for j, i in enumerate(picked):
+            begun = clock()
+            c = torch.as_tensor(cells[chunks[i]], device=self.device)
+            R.output(c, torch.as_tensor(xyz[chunks[i]], dtype=torch.float32, device=self.device), position)
+            times[j] = clock() - begun
+        setup, rate = float(times.mean()), 0.0
+        if np.ptp(sizes) > 0:
+            setup, rate = np.linalg.lstsq(np.column_stack([np.ones_like(sizes), sizes]), times, rcond=None)[0]
+            if setup < 0.0:
+                setup, rate = 0.0, float(times.sum() / sizes.sum())
+            elif rate < 0.0:
+                setup, rate = float(times.mean()), 0.0
+        return (setup * len(chunks) + rate * cells.size) / cells.size
 
     @torch.no_grad()
     def _render_training(
