@@ -746,6 +746,8 @@ class RFLSCM(LSCMModel):
             begun = clock()
             c = torch.as_tensor(cells[chunks[i]], device=self.device)
             R.output(c, torch.as_tensor(xyz[chunks[i]], dtype=torch.float32, device=self.device), position)
+            if self.device.type == "cuda":  # each chunk's own time, not its kernels' launch
+                torch.cuda.synchronize(self.device)
             times[j] = clock() - begun
         setup, rate = float(times.mean()), 0.0
         if np.ptp(sizes) > 0:
