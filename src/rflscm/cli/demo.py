@@ -281,8 +281,8 @@ def demo(
             console.print(note)
         t0 = time.perf_counter()
         model.save(out / f"{name}.ckpt")
-        with console.status(f"evaluating {name}…"):
-            evaluation = run_evaluation(model, scen, AdjustProtocol(), oracle="auto")
+        console.print(f"evaluating {name}…")
+        evaluation = run_evaluation(model, scen, AdjustProtocol(), oracle="auto", progress=progress)
         metrics = evaluation.metrics
         write_text_atomic(out / f"{name}.json", json_text(metrics), "metrics JSON")
         write_report(evaluation, scen, model, out / f"report-{name}")

@@ -38,6 +38,9 @@ def evaluate(
     oracle: bool = typer.Option(
         True, "--oracle/--no-oracle", help="Compute the oracle floor where ground truth exists."
     ),
+    progress: bool = typer.Option(
+        True, "--progress/--no-progress", help="Show a progress bar over the cells, with its ETA (on a terminal)."
+    ),
     device: Device = DeviceOption,
     seed: int = SeedOption,
     workers: int = WorkersOption,
@@ -75,8 +78,8 @@ def evaluate(
             "[yellow]note:[/yellow] this checkpoint was saved by a training run that was interrupted (or is still "
             "running); it is not fully trained — continue it with `rflscm train … --resume`."
         )
-    with console.status(f"evaluating {model.name} ({chosen.name} protocol)…"):
-        evaluation = run_evaluation(source, sc, chosen, oracle="auto" if oracle else None)
+    console.print(f"evaluating {model.name} ({chosen.name} protocol) on {len(sc.cell_ids())} cells…")
+    evaluation = run_evaluation(source, sc, chosen, oracle="auto" if oracle else None, progress=progress)
     metrics = evaluation.metrics
     table = Table(title=f"{model.name} on {sc.meta.name} — {chosen.name} protocol, round {metrics['test_round']}")
     table.add_column("metric", justify="left")

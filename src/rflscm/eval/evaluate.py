@@ -70,6 +70,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 import pandas as pd
 import torch
+from tqdm.auto import tqdm
 
 from rflscm.data import BEAM_TYPES
 from rflscm.data.measurements import reported_pairs
@@ -172,6 +173,7 @@ def run_evaluation(
     oracle: APSSource | str | None = "auto",
     top_k: int = 5,
     max_aps_pairs: int = MAX_APS_PAIRS,
+    progress: bool = False,
 ) -> Evaluation:
     """Like :func:`evaluate`, keeping the predictions for the report.
 
@@ -180,6 +182,7 @@ def run_evaluation(
             truth), an already fitted source, or ``None`` (no oracle, no APS metrics).
         top_k: bins per APS compared by the angular error.
         max_aps_pairs: APS metrics use at most this many test pairs (seeded subsample).
+        progress: a progress bar over the test's cells, with its ETA (on a terminal only).
     """
     protocol = resolve_protocol(model, protocol)
     timing: dict[str, float] = {}
@@ -191,8 +194,9 @@ def run_evaluation(
     seen_index = _trained_pairs(train)
     changed = M.changed_cells(scenario, 1, test.round)
     t0 = time.perf_counter()
+    aps_pairs = max_aps_pairs if oracle_model is not None else 0
     beams, unsupported, kept = _predict_tests(
-        model, oracle_model, scenario, train, test, seen_index, max_aps_pairs if oracle_model is not None else 0
+        model, oracle_model, scenario, train, test, seen_index, aps_pairs, progress
     )
     for beam_type, res in beams.items():
         pairs, measured = test.tables[beam_type]
@@ -288,6 +292,7 @@ def _predict_tests(
     test: TestSet,
     seen_index: pd.MultiIndex,
     max_aps_pairs: int,
+    progress: bool = False,
 ) -> tuple[dict[str, BeamResult], str | None, APSCache]:
     """Model, oracle and trivial predictions of every beam type's test pairs, the first refusal (SSB's before CSI-RS's),
     and the cache the APS metrics read.
@@ -296,7 +301,8 @@ def _predict_tests(
     pairs), each cell's APS remembered only while its pairs are predicted (a fresh :class:`APSCache` per cell), so
     that this memory grows with a cell's test pairs and not the network's.  The pairs the APS metrics will draw
     (:func:`_aps_sample` of those asked) are kept as they go by.  A ``model`` that is an :class:`APSCache` already
-    (filled by workers, or shared by a benchmark) is read as it is, for every cell."""
+    (filled by workers, or shared by a benchmark) is read as it is, for every cell.  With ``progress`` a bar counts
+    the cells (on a terminal only)."""
     shared = isinstance(model, APSCache)
     kept = APSCache.of(model)
     inner = kept.inner
@@ -305,7 +311,8 @@ def _predict_tests(
     sample_cells = sample["cell_id"].to_numpy() if sample is not None else np.zeros(0, np.int64)
     view = cast("Scenario", SensingCache(scenario, size=4))  # the scenario, with its sensing matrices kept
     cells = np.unique(np.concatenate([run.cells for run in runs.values()]))
-    for cell in cells:  # cell by cell: model and oracle share the sensing matrices
+    bar = tqdm(cells, desc=f"evaluating {inner.name}", unit="cell", leave=False, disable=None if progress else True)
+    for cell in bar:  # cell by cell: model and oracle share the sensing matrices
         source = kept if shared else APSCache(inner)
         for run in runs.values():
             run.predict(cell, source, oracle, view, test.round)

@@ -227,6 +227,29 @@ def test_missing_above_bound_counts_each_type_and_pools_them_by_beams() -> None:
     assert out["trivial"]["pooled"] == 0.0 and out["oracle"]["ssb"] is None and out["oracle"]["pooled"] is None
 
 
+def test_a_progress_bar_counts_the_cells_only_when_asked(adjust_run, sim_scenario, monkeypatch) -> None:
+    """``run_evaluation(progress=True)`` counts the test's cells on a bar shown on a terminal only (tqdm's
+    ``disable=None``); without it the bar is off."""
+    import importlib
+
+    module = importlib.import_module("rflscm.eval.evaluate")
+    model, evaluation = adjust_run
+    made: list[dict] = []
+    real = module.tqdm
+
+    def spy(iterable, **kwargs):  # type: ignore[no-untyped-def]
+        items = list(iterable)
+        made.append({**kwargs, "count": len(items)})
+        return real(items, **kwargs)
+
+    monkeypatch.setattr(module, "tqdm", spy)
+    run_evaluation(model, sim_scenario, max_aps_pairs=0, progress=True)
+    run_evaluation(model, sim_scenario, max_aps_pairs=0)
+    cells = pd.concat([res.pairs for res in evaluation.beams.values()])["cell_id"].nunique()
+    assert [m["disable"] for m in made] == [None, True]
+    assert made[0]["count"] == cells >= 2 and made[0]["unit"] == "cell"
+
+
 def test_the_fresh_pairs_are_grouped_by_the_calls_the_evaluation_makes(sim_scenario) -> None:
     """``tested_pairs`` keys each test pair without a round-1 report by the ``aps`` call ``run_evaluation`` will ask
     for it in (a budget's fit prices their renders by those calls): a model that answers unseen grids is asked for
