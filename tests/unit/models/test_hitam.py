@@ -38,6 +38,29 @@ def test_topk_selects_exactly_the_largest_coarse_bins() -> None:
     assert parents.numel() == int(valid.sum())
 
 
+def test_a_gain_selects_the_blocks_the_beams_receive_most_from() -> None:
+    h = HiTAM(GRID, beta=3, top_k=1)
+    power = torch.tensor([[4.0, 3.0, 0, 0, 0, 0, 0, 0, 0]])  # block 0 is the strongest direction
+    gain = torch.tensor([[0.01, 1.0, 1, 1, 1, 1, 1, 1, 1]])  # but the beams barely see it: block 1 carries more
+    by_power, _ = h.expand(power)
+    by_reception, _ = h.expand(power, gain)
+    parent = h.mapping.parent_of()
+    assert set(parent[by_power[0]].tolist()) == {0} and set(parent[by_reception[0]].tolist()) == {1}
+    assert torch.equal(h.expand(power, torch.ones_like(power))[0], by_power)  # a flat gain changes nothing
+
+
+def test_reception_is_the_best_beams_block_mean_gain_relative_to_its_best_block() -> None:
+    h = HiTAM(GRID, beta=3, top_k=2)
+    a = torch.rand(2, 5, GRID.num_bins)  # [cells, beams, bins]
+    columns = h.coarse_columns(a)
+    got = h.reception(columns)
+    best = columns.max(-2).values
+    assert got.shape == (2, h.num_coarse)
+    assert torch.allclose(got, best / best.max(-1, keepdim=True).values)
+    assert torch.allclose(got.max(-1).values, torch.ones(2))
+    assert torch.allclose(h.reception(7.0 * columns), got)  # a cell's scale does not change its ranking
+
+
 def test_coarse_columns_and_directions_are_block_means_and_centres() -> None:
     h = HiTAM(GRID, beta=3, top_k=2)
     a = torch.rand(2, 5, GRID.num_bins)

@@ -203,6 +203,29 @@ def test_coarse_model_is_frozen_once_alpha_is_one_and_its_selection_is_remembere
     assert torch.equal(remembered[0][fresh[1]], fresh[0][fresh[1]])
 
 
+def test_hitam_refines_the_blocks_the_cells_beams_receive_most_from(scenario) -> None:
+    model = RFLSCM.build(tiny_config(train={"steps": 5}, hitam={"selection": "received"}), GRID)
+    fit(model, scenario, progress=False)
+    renderer, d, hitam = model.renderer, model._train.data, model.hitam
+    assert model.scene.reception.shape == (len(model.scene.cell_ids), hitam.num_coarse)
+    cells, coarse = d.cell_index[:1], renderer.coarse_power(d.cell_index[:1], d.grid_xyz[:1])
+    visible = renderer.visible("coarse")[cells]
+    strongest = int(torch.where(visible, coarse, torch.full_like(coarse, -1.0)).argmax())
+
+    def blocks() -> set[int]:
+        renderer.cache.reception = None  # re-read the scene's reception
+        bins, valid = renderer.expand(cells, coarse)
+        return set(hitam.mapping.parent_of()[bins[0][valid[0]]].tolist())
+
+    model.scene.reception = np.ones_like(model.scene.reception)  # a flat gain: the paper's rule
+    assert strongest in blocks()
+    model.scene.reception[int(cells[0]), strongest] = 1e-6  # the beams barely receive from the strongest block
+    assert strongest not in blocks()
+    power = RFLSCM.build(tiny_config(train={"steps": 5}), GRID)
+    fit(power, scenario, progress=False)
+    assert power.config.hitam.selection == "power" and power.scene.reception is None  # the paper's rule, the default
+
+
 def test_iterative_models_are_trained_by_the_trainer_not_by_model_fit(scenario) -> None:
     with pytest.raises(UnsupportedError, match="trained iteratively"):
         RFLSCM.build(tiny_config(), GRID).fit(scenario, progress=False)

@@ -74,6 +74,8 @@ FLOOR_DB = -80.0
 """Predictions are floored at this level relative to the median measured RSRP before logs [dB]."""
 VAL_BEAM_FRACTION = 0.25
 """Fraction of a validation pair's reported beams held aside (never trained on)."""
+SPARSITY = 1e-3
+"""β_pen, the weight of the L1 term on x̃ (the paper's value; issue 28: 0 tied and 1e-2 lost at 10 CPU-minutes)."""
 
 
 def _positive(where: str, value: float, allow_zero: bool = False) -> None:
@@ -246,8 +248,16 @@ class HiTAMConfig:
     """Coarse-only steps before α starts rising."""
     ramp_steps: int = 500
     """Steps over which α rises linearly from 0 to 1."""
+    selection: Literal["power", "received"] = "power"
+    """Which K_C coarse blocks are refined: ``power``, those of largest coarse power (the paper's form); ``received``,
+    those whose coarse power times the cell's best round-1 beam gain there (the block-mean column) is largest, the
+    power the cell's beams can receive from them: better at 10 CPU-minutes in the field regime, but its renders cost
+    more, which a short budget pays in steps and in its pass (docs/DECISIONS.md, "HiTAM's selection by received
+    power")."""
 
     def __post_init__(self) -> None:
+        if self.selection not in ("received", "power"):
+            raise ConfigError(f"`model.hitam.selection` must be power or received (got {self.selection!r}).")
         if self.beta < 2:
             raise ConfigError(f"`model.hitam.beta` must be >= 2 (got {self.beta}).")
         if self.top_k < 1:
@@ -262,18 +272,16 @@ class LossConfig:
 
     REMOVED: ClassVar[dict[str, tuple[Any, str]]] = {
         "floor_db": (FLOOR_DB, "issue 11: fixed at -80 dB"),
+        "sparsity": (SPARSITY, "issue 28: fixed at the paper's 1e-3; 0 tied and 1e-2 lost"),
     }
     """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
 
     fidelity: Literal["linear", "log"] = "log"
     """‖r − A x̃‖² in normalised linear power (paper) or in bels (dB/10)."""
-    sparsity: float = 1e-3
-    """β_pen (L1 on x̃)."""
     missing_penalty: float = 0.5
     """α_P (one-sided penalty on missing beams predicted above r_th)."""
 
     def __post_init__(self) -> None:
-        _positive("model.loss.sparsity", self.sparsity, allow_zero=True)
         _positive("model.loss.missing_penalty", self.missing_penalty, allow_zero=True)
 
 

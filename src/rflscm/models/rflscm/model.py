@@ -43,6 +43,7 @@ from rflscm.models.rflscm.config import (
     INIT_LEVEL_DB,
     INIT_LOSS_DB,
     LEARN_MU,
+    SPARSITY,
     VAL_BEAM_FRACTION,
     RFLSCMConfig,
     TrainConfig,
@@ -200,6 +201,7 @@ class RFLSCM(LSCMModel):
         lo, hi = scene_box(scenario, cfg.render.step_m)
         check_scene_box(cfg, lo, hi)
         grids = scenario.grids
+        a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
         self.scene = SceneInfo(
             cell_ids,
             cell_xyz,
@@ -210,6 +212,7 @@ class RFLSCM(LSCMModel):
             a_ref,
             make_frame(cfg, lo, hi, cell_xyz, wavelengths, dist),
             visible_bins(a_mw, cfg.render.min_gain_db),
+            self._reception(a_coarse),
         )
         prior = make_prior(cfg, scenario, lo, hi)
         self.prior = prior.to(self.device) if prior is not None else None
@@ -219,13 +222,19 @@ class RFLSCM(LSCMModel):
         targets = building_targets(cfg, scenario, prior, seed=cfg.train.seed) if prior is not None else None
         if targets is not None:
             self._init_attenuation(*targets)
-        a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
         self._train = TrainContext(data.to(self.device), a_norm, a_coarse, num_ssb)
         ssb_rule = rule_of(scenario, "ssb").rule
         self._silence_dbm = None if ssb_rule == "sinr" else float(scenario.meta.rsrp_threshold_dbm)
         self.corrections = PairCorrections()
         self.position = -1.0
         self._calibrate_level(INIT_LEVEL_DB)
+
+    def _reception(self, a_coarse: torch.Tensor | None) -> np.ndarray | None:
+        """:attr:`SceneInfo.reception` of the round-1 coarse columns ``a_coarse [C, M, N_c]`` (None where HiTAM's
+        selection does not use it)."""
+        if a_coarse is None or self.config.hitam.selection != "received":
+            return None
+        return HiTAM.reception(a_coarse).float().cpu().numpy()
 
     @property
     def train_config(self) -> TrainConfig:
@@ -322,7 +331,7 @@ class RFLSCM(LSCMModel):
             d.x_scale[pairs],
             d.bound[pairs],
             c.fidelity,
-            c.sparsity,
+            SPARSITY,
             c.missing_penalty,
             floor=10.0 ** (FLOOR_DB / 10.0),
         )

@@ -16,6 +16,7 @@ from typing import Literal
 import torch
 from torch import nn
 
+from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
 from rflscm.models.pairs import PairData
 from rflscm.models.rflscm.config import RFLSCMConfig
@@ -50,6 +51,8 @@ class RayCache:
     cells: tuple[torch.Tensor, torch.Tensor] | None = None
     """Cell positions ``[C, 3]`` and wavelengths ``[C]`` on the device (float32)."""
     rays: dict[RayKind, RaySet] = field(default_factory=dict)
+    reception: torch.Tensor | None = None
+    """``[num_cells, num_coarse]`` :attr:`SceneInfo.reception` on the device (``hitam.selection: received``)."""
 
 
 class APSRenderer:
@@ -197,11 +200,22 @@ class APSRenderer:
         bins = torch.arange(self.angle_grid.num_bins, device=self.device).expand(cells.numel(), -1)
         return self.power_on("fine", "fine", cells, grid_xyz, bins, torch.ones_like(bins, dtype=torch.bool))
 
+    def reception(self) -> torch.Tensor | None:
+        """``[num_cells, num_coarse]`` the scene's :attr:`SceneInfo.reception` on the device (None: HiTAM refines the
+        blocks of largest coarse power)."""
+        if self.cache.reception is None and self.config.hitam.selection == "received":
+            if self.scene.reception is None:
+                raise ConfigError("`model.hitam.selection: received` needs the scene's reception; refit the model.")
+            self.cache.reception = torch.as_tensor(self.scene.reception, dtype=torch.float32, device=self.device)
+        return self.cache.reception
+
     def expand(self, cells: torch.Tensor, coarse: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """HiTAM's Ω′ ``(bins, valid) [B, β² K_C]`` among the directions each cell sees."""
+        """HiTAM's Ω′ ``(bins, valid) [B, β² K_C]`` among the directions each cell sees (``hitam.selection``)."""
         assert self.hitam is not None
         visible = self.visible("coarse")[cells]
-        bins, valid = self.hitam.expand(torch.where(visible, coarse, torch.full_like(coarse, -1.0)))
+        reception = self.reception()
+        gain = None if reception is None else reception[cells].to(coarse.dtype)
+        bins, valid = self.hitam.expand(torch.where(visible, coarse, torch.full_like(coarse, -1.0)), gain)
         return bins, valid & self.visible("fine")[cells[:, None], bins]
 
     def output(self, cells: torch.Tensor, grid_xyz: torch.Tensor, position: float) -> tuple[torch.Tensor, torch.Tensor]:
