@@ -256,8 +256,6 @@ class HiTAMConfig:
     power")."""
 
     def __post_init__(self) -> None:
-        if self.selection not in ("received", "power"):
-            raise ConfigError(f"`model.hitam.selection` must be power or received (got {self.selection!r}).")
         if self.beta < 2:
             raise ConfigError(f"`model.hitam.beta` must be >= 2 (got {self.beta}).")
         if self.top_k < 1:
