@@ -38,27 +38,22 @@ def test_topk_selects_exactly_the_largest_coarse_bins() -> None:
     assert parents.numel() == int(valid.sum())
 
 
-def test_a_gain_selects_the_blocks_the_beams_receive_most_from() -> None:
-    h = HiTAM(GRID, beta=3, top_k=1)
-    power = torch.tensor([[4.0, 3.0, 0, 0, 0, 0, 0, 0, 0]])  # block 0 is the strongest direction
-    gain = torch.tensor([[0.01, 1.0, 1, 1, 1, 1, 1, 1, 1]])  # but the beams barely see it: block 1 carries more
-    by_power, _ = h.expand(power)
-    by_reception, _ = h.expand(power, gain)
-    parent = h.mapping.parent_of()
-    assert set(parent[by_power[0]].tolist()) == {0} and set(parent[by_reception[0]].tolist()) == {1}
-    assert torch.equal(h.expand(power, torch.ones_like(power))[0], by_power)  # a flat gain changes nothing
-
-
-def test_reception_is_the_best_beams_block_mean_gain_relative_to_its_best_block() -> None:
+def test_ranked_blocks_continue_the_selection_and_spread_keeps_each_blocks_power() -> None:
     h = HiTAM(GRID, beta=3, top_k=2)
-    a = torch.rand(2, 5, GRID.num_bins)  # [cells, beams, bins]
-    columns = h.coarse_columns(a)
-    got = h.reception(columns)
-    best = columns.max(-2).values
-    assert got.shape == (2, h.num_coarse)
-    assert torch.allclose(got, best / best.max(-1, keepdim=True).values)
-    assert torch.allclose(got.max(-1).values, torch.ones(2))
-    assert torch.allclose(h.reception(7.0 * columns), got)  # a cell's scale does not change its ranking
+    power = torch.tensor([[4.0, 3.0, 0.5, 2.0, 0, 0, 0, 1.0, 0]])
+    order = h.ranked(power, 5)
+    assert order[0].tolist() == [0, 1, 3, 7, 2]  # strongest first; the first K_C are Ω′'s blocks
+    bins, _ = h.expand(power)
+    parent = h.mapping.parent_of()
+    assert set(parent[bins[0]].tolist()) == {0, 1}
+    fine, values, valid = h.spread(power, order[:, 2:])
+    assert fine.shape == values.shape == valid.shape == (1, 3 * 9)
+    assert set(parent[fine[0][valid[0]]].tolist()) == {3, 7, 2}
+    for block in (3, 7, 2):  # each block's power spread evenly over its valid bins, nothing on invalid slots
+        mine = valid[0] & (parent[fine[0]] == block)
+        assert torch.isclose(values[0][mine].sum(), power[0, block])
+        assert torch.allclose(values[0][mine], values[0][mine][0].expand(int(mine.sum())))
+    assert float(values[0][~valid[0]].abs().sum()) == 0.0
 
 
 def test_coarse_columns_and_directions_are_block_means_and_centres() -> None:

@@ -203,27 +203,42 @@ def test_coarse_model_is_frozen_once_alpha_is_one_and_its_selection_is_remembere
     assert torch.equal(remembered[0][fresh[1]], fresh[0][fresh[1]])
 
 
-def test_hitam_refines_the_blocks_the_cells_beams_receive_most_from(scenario) -> None:
-    model = RFLSCM.build(tiny_config(train={"steps": 5}, hitam={"selection": "received"}), GRID)
-    fit(model, scenario, progress=False)
-    renderer, d, hitam = model.renderer, model._train.data, model.hitam
-    assert model.scene.reception.shape == (len(model.scene.cell_ids), hitam.num_coarse)
-    cells, coarse = d.cell_index[:1], renderer.coarse_power(d.cell_index[:1], d.grid_xyz[:1])
-    visible = renderer.visible("coarse")[cells]
-    strongest = int(torch.where(visible, coarse, torch.full_like(coarse, -1.0)).argmax())
+def test_the_coarse_fill_holds_the_next_blocks_coarse_power_outside_the_refined_ones(scenario) -> None:
+    from rflscm.models.rflscm.renderer import FILL_BLOCKS
 
-    def blocks() -> set[int]:
-        renderer.cache.reception = None  # re-read the scene's reception
-        bins, valid = renderer.expand(cells, coarse)
-        return set(hitam.mapping.parent_of()[bins[0][valid[0]]].tolist())
-
-    model.scene.reception = np.ones_like(model.scene.reception)  # a flat gain: the paper's rule
-    assert strongest in blocks()
-    model.scene.reception[int(cells[0]), strongest] = 1e-6  # the beams barely receive from the strongest block
-    assert strongest not in blocks()
-    power = RFLSCM.build(tiny_config(train={"steps": 5}), GRID)
-    fit(power, scenario, progress=False)
-    assert power.config.hitam.selection == "power" and power.scene.reception is None  # the paper's rule, the default
+    runs = {}
+    for outside in ("zero", "coarse"):
+        torch.manual_seed(0)
+        runs[outside] = RFLSCM.build(tiny_config(train={"steps": 9}, hitam={"outside": outside}), GRID)
+        fit(runs[outside], scenario, progress=False)
+    model, hitam = runs["coarse"], runs["coarse"].hitam
+    renderer, d = model.renderer, model._train.data
+    cells, xyz = d.cell_index, d.grid_xyz
+    with torch.no_grad():
+        coarse = renderer.coarse_power(cells, xyz)
+        bins, values = renderer.output(cells, xyz, model.position)
+        zero_bins, zero_values = runs["zero"].renderer.output(cells, xyz, model.position)
+    refined = hitam.top_k * hitam.beta**2
+    assert bins.shape[1] == refined * (1 + FILL_BLOCKS) and zero_bins.shape[1] == refined
+    assert torch.equal(bins[:, :refined], zero_bins) and torch.equal(values[:, :refined], zero_values)  # Ω′ as before
+    parent = hitam.mapping.parent_of()
+    chosen = renderer.expand(cells, coarse)
+    for b in range(len(cells)):
+        inside = set(parent[chosen[0][b][chosen[1][b]]].tolist())
+        filled = parent[bins[b, refined:]][values[b, refined:] > 0]
+        assert inside.isdisjoint(filled.tolist())  # the fill lies outside Ω′
+        for block in filled.unique().tolist():  # a filled block holds at most its coarse power (the bins it sees)
+            power = values[b, refined:][parent[bins[b, refined:]] == block].sum()
+            assert float(power) <= float(coarse[b, block]) * (1 + 1e-5)
+    assert float(values[:, refined:].sum()) > 0.0
+    # training is the same; the pass after training and the predictions read the fill
+    for name in ("coarse", "fine"):
+        pairs_of_weights = zip(runs["zero"].stages[name].parameters(), model.stages[name].parameters())
+        assert all(torch.equal(a, b) for a, b in pairs_of_weights)
+    kept = {k: r.corrections.rendered for k, r in runs.items()}
+    assert kept["zero"] is not None and kept["coarse"] is not None
+    assert kept["zero"].bins.shape[1] == refined and kept["coarse"].bins.shape[1] == refined * (1 + FILL_BLOCKS)
+    assert float(kept["coarse"].gains[:, refined:].sum()) > 0.0
 
 
 def test_iterative_models_are_trained_by_the_trainer_not_by_model_fit(scenario) -> None:

@@ -49,6 +49,7 @@ CHANGES = [
     ("hitam", "top_k", 1),
     ("hitam", "warmup_steps", 2),
     ("hitam", "ramp_steps", 4),
+    ("hitam", "outside", "coarse"),
     ("loss", "fidelity", "linear"),
     ("loss", "missing_penalty", 5.0),
     ("train", "steps", 6),
@@ -75,9 +76,6 @@ NEUTRAL = [
     ("train", "finish_share", 0.3),
     ("corrections", "wnomp_fallback", False),
 ]
-# options whose effect the tiny run cannot show, each tested on its own: hitam.selection (the tiny scene's top blocks are
-# the same under both rules; test_rflscm.py forces a block the beams cannot see to the top of the coarse power)
-SEPARATE = [("hitam", "selection", "received")]
 EXTRA = {("field", "upsample_at"): {"init_voxel_m": 30.0}}
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # deterministic: a difference is the option's, not the threads'
@@ -111,8 +109,8 @@ def reference(scenario) -> str:
 
 
 def test_every_option_is_listed_once() -> None:
-    assert len(CHANGES) + len(NEUTRAL) + len(SEPARATE) + 1 == 40  # issue 11: at most 40
-    listed = [(s, k) for s, k, _ in CHANGES + NEUTRAL + SEPARATE] + [("field", "init_voxel_m")]  # with upsample_at
+    assert len(CHANGES) + len(NEUTRAL) + 1 == 40  # issue 11: at most 40
+    listed = [(s, k) for s, k, _ in CHANGES + NEUTRAL] + [("field", "init_voxel_m")]  # with upsample_at
     sections = typing.get_type_hints(RFLSCMConfig)
     options = [(f.name, g.name) for f in dataclasses.fields(RFLSCMConfig) for g in dataclasses.fields(sections[f.name])]
     assert sorted(listed) == sorted(options) and len(set(listed)) == len(listed)

@@ -8,6 +8,7 @@ from the config sections' ``REMOVED`` tables (:func:`rflscm.config.from_dict`).
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -116,6 +117,10 @@ def check_resume(model: RFLSCM, payload: dict[str, Any], path: str | Path) -> di
     except CheckpointError as exc:
         raise CheckpointError(f"{path}: cannot resume: {exc}") from None
     theirs, ours = state["config"], to_dict(model.config)
+    # an option added since the checkpoint was written reads as its default, the behaviour it was trained with (a
+    # removed or invalid option is reported below as a change)
+    with contextlib.suppress(ConfigError):
+        theirs = to_dict(from_dict(type(model.config), theirs))
     steps_now, steps_then = ours["train"]["steps"], dict(theirs.get("train") or {}).get("steps")
     if steps_now != steps_then:
         raise CheckpointError(

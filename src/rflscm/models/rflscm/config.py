@@ -236,6 +236,10 @@ class HiTAMConfig:
     REMOVED: ClassVar[dict[str, tuple[Any, str]]] = {
         "fine_init": ("copy_coarse", "issue 11: the refinement model always starts from the coarse one"),
         "coarse_bins": ("block", "issue 11: always block sums"),
+        "selection": (
+            "power",
+            "issue 28: the coarse fill, `hitam.outside: coarse`, gains as much without its costlier renders",
+        ),
     }
     """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
 
@@ -248,12 +252,11 @@ class HiTAMConfig:
     """Coarse-only steps before α starts rising."""
     ramp_steps: int = 500
     """Steps over which α rises linearly from 0 to 1."""
-    selection: Literal["power", "received"] = "power"
-    """Which K_C coarse blocks are refined: ``power``, those of largest coarse power (the paper's form); ``received``,
-    those whose coarse power times the cell's best round-1 beam gain there (the block-mean column) is largest, the
-    power the cell's beams can receive from them: better at 10 CPU-minutes in the field regime, but its renders cost
-    more, which a short budget pays in steps and in its pass (docs/DECISIONS.md, "HiTAM's selection by received
-    power")."""
+    outside: Literal["zero", "coarse"] = "zero"
+    """The model's APS outside the refined blocks Ω′ once the refinement model has trained: ``zero`` (the paper's
+    form) or ``coarse``, the coarse model's power in the :data:`~rflscm.models.rflscm.renderer.FILL_BLOCKS` × K_C
+    blocks HiTAM ranks next, spread evenly over each block's bins.  Training is the same either way; the pass after
+    training and every prediction read the fill (docs/DECISIONS.md, "The coarse fill outside Ω′")."""
 
     def __post_init__(self) -> None:
         if self.beta < 2:

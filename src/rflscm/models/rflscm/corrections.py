@@ -98,10 +98,10 @@ the pass is cut) this many at a time, each block sorted by pair (so by cell): a 
 cells it spans (800-grid city: 5.5 ms a pair for a chunk of 64 pairs over 42 cells, 3.5 ms for chunks of a few)."""
 CHUNK_MARGIN = 1.25
 """A further chunk is started only when the time left exceeds this many times the slowest chunk so far."""
-KEPT_BINS = 1024
+KEPT_BINS = 1152
 """A corrected pair's render is kept (:attr:`PairCorrections.rendered`) when it holds at most this many bins: HiTAM's
-refined APS (β² K_C: 144 at the quick preset, 288 at the default, 8 bytes a bin), not the warm-up's coarse APS
-spread over every bin of the angle grid."""
+refined APS (β² K_C: 144 at the quick preset, 288 at the default, 8 bytes a bin; four times that with the coarse fill,
+``hitam.outside: coarse``), not the warm-up's coarse APS spread over every bin of the angle grid."""
 
 
 @dataclass

@@ -2,9 +2,9 @@
 
 A coarse model renders one ray per β×β block of the angle grid (partial blocks at the edges);
 the top-K_C blocks of each (cell, grid) are expanded into their fine bins Ω′, which a separate
-refinement model renders (with ``hitam.selection: received``, the top-K_C of coarse power times the
-cell's best beam gain in the block: the blocks its beams receive most from).  L_total = (1 − α) L⁽¹⁾ + α L⁽²⁾,
-α rising from 0 to 1 after a coarse-only warm-up.  The fine APS (zeros outside Ω′) is the model's output.
+refinement model renders.  L_total = (1 − α) L⁽¹⁾ + α L⁽²⁾, α rising from 0 to 1 after a coarse-only warm-up.
+The fine APS (zeros outside Ω′, or with ``hitam.outside: coarse`` the coarse power of the blocks ranked next) is the
+model's output.
 
 Coarse columns (A⁽¹⁾): a coarse value x̃⁽¹⁾_J is read as the total power of block J spread over the
 block, so its column is the *mean* of the block's fine columns and its ray goes through the block's
@@ -46,13 +46,6 @@ class HiTAM:
         centre = (fine[self.children] * weights[..., None]).sum(1)
         return (centre / centre.norm(dim=-1, keepdim=True)).float()
 
-    @staticmethod
-    def reception(columns: torch.Tensor) -> torch.Tensor:
-        """``[..., num_coarse]`` the best beam's gain per coarse block, from :meth:`coarse_columns`' ``[..., num_beams,
-        num_coarse]``, relative to its largest (1 at the best block): what :meth:`expand`'s ``gain`` weighs by."""
-        best = columns.max(-2).values
-        return best / best.max(-1, keepdim=True).values.clamp_min(1e-30)
-
     def coarse_columns(self, a_full: torch.Tensor) -> torch.Tensor:
         """A⁽¹⁾ ``[..., num_beams, num_coarse]`` from the full ``A [..., num_beams, num_bins]``."""
         children = self.children.to(a_full.device)
@@ -60,13 +53,27 @@ class HiTAM:
         block = a_full[..., children] * weights  # [..., M, Nc, β²]
         return block.sum(-1) / weights.sum(-1)
 
-    def expand(self, coarse_power: torch.Tensor, gain: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Top-K_C coarse bins of ``coarse_power [B, num_coarse]`` → fine bins and validity ``[B, β² K_C]``; with
-        ``gain [B, num_coarse]`` (≥ 0) the top-K_C of ``coarse_power · gain``: the power the beams receive."""
-        score = coarse_power if gain is None else coarse_power * gain
-        top = torch.topk(score, self.top_k, dim=-1).indices  # [B, K_C]
-        fine, valid = self.mapping.children(top)  # [B, K_C, β²]
+    def ranked(self, coarse_power: torch.Tensor, count: int | None = None) -> torch.Tensor:
+        """The ``count`` (default K_C) coarse bins ``[B, count]`` of largest ``coarse_power [B, num_coarse]``, largest
+        first."""
+        k = min(self.top_k if count is None else count, coarse_power.shape[-1])
+        return torch.topk(coarse_power, k, dim=-1).indices
+
+    def expand(self, coarse_power: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Top-K_C coarse bins of ``coarse_power [B, num_coarse]`` (:meth:`ranked`) → fine bins and validity
+        ``[B, β² K_C]``."""
+        fine, valid = self.mapping.children(self.ranked(coarse_power))  # [B, K_C, β²]
         return fine.flatten(1), valid.flatten(1)
+
+    def spread(
+        self, coarse_power: torch.Tensor, blocks: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Coarse ``blocks [B, J]`` as fine bins: ``(fine bins, values, valid) [B, β² J]``, each block's power of
+        ``coarse_power [B, num_coarse]`` spread evenly over its bins (the coarse value is a block's total power)."""
+        fine, valid = self.mapping.children(blocks)  # [B, J, β²]
+        share = valid / valid.sum(-1, keepdim=True).clamp_min(1)
+        values = coarse_power.gather(1, blocks)[..., None] * share
+        return fine.flatten(1), values.flatten(1), valid.flatten(1)
 
     def alpha(self, position: float) -> float:
         """α at schedule ``position`` (a step, 0-based, or a fractional position of a time-budget run): 0 during

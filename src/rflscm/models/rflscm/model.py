@@ -212,7 +212,6 @@ class RFLSCM(LSCMModel):
             a_ref,
             make_frame(cfg, lo, hi, cell_xyz, wavelengths, dist),
             visible_bins(a_mw, cfg.render.min_gain_db),
-            self._reception(a_coarse),
         )
         prior = make_prior(cfg, scenario, lo, hi)
         self.prior = prior.to(self.device) if prior is not None else None
@@ -228,13 +227,6 @@ class RFLSCM(LSCMModel):
         self.corrections = PairCorrections()
         self.position = -1.0
         self._calibrate_level(INIT_LEVEL_DB)
-
-    def _reception(self, a_coarse: torch.Tensor | None) -> np.ndarray | None:
-        """:attr:`SceneInfo.reception` of the round-1 coarse columns ``a_coarse [C, M, N_c]`` (None where HiTAM's
-        selection does not use it)."""
-        if a_coarse is None or self.config.hitam.selection != "received":
-            return None
-        return HiTAM.reception(a_coarse).float().cpu().numpy()
 
     @property
     def train_config(self) -> TrainConfig:

@@ -16,7 +16,6 @@ from typing import Literal
 import torch
 from torch import nn
 
-from rflscm.errors import ConfigError
 from rflscm.geometry import AngleGrid
 from rflscm.models.pairs import PairData
 from rflscm.models.rflscm.config import RFLSCMConfig
@@ -26,6 +25,10 @@ from rflscm.models.rflscm.scene import SceneInfo
 from rflscm.render import RaySamples, build_ray_samples, chunk_bounds, chunked, gather_samples
 
 RayKind = Literal["coarse", "fine"]
+
+FILL_BLOCKS = 3
+"""With ``hitam.outside: coarse``, the coarse blocks per refined block (× K_C) ranked after Ω′ whose coarse power fills
+the APS (every other block stays zero): on a 10-minute field checkpoint 3 × 16 blocks gave what all of them did."""
 
 
 @dataclass
@@ -51,8 +54,6 @@ class RayCache:
     cells: tuple[torch.Tensor, torch.Tensor] | None = None
     """Cell positions ``[C, 3]`` and wavelengths ``[C]`` on the device (float32)."""
     rays: dict[RayKind, RaySet] = field(default_factory=dict)
-    reception: torch.Tensor | None = None
-    """``[num_cells, num_coarse]`` :attr:`SceneInfo.reception` on the device (``hitam.selection: received``)."""
 
 
 class APSRenderer:
@@ -200,34 +201,43 @@ class APSRenderer:
         bins = torch.arange(self.angle_grid.num_bins, device=self.device).expand(cells.numel(), -1)
         return self.power_on("fine", "fine", cells, grid_xyz, bins, torch.ones_like(bins, dtype=torch.bool))
 
-    def reception(self) -> torch.Tensor | None:
-        """``[num_cells, num_coarse]`` the scene's :attr:`SceneInfo.reception` on the device (None: HiTAM refines the
-        blocks of largest coarse power)."""
-        if self.cache.reception is None and self.config.hitam.selection == "received":
-            if self.scene.reception is None:
-                raise ConfigError("`model.hitam.selection: received` needs the scene's reception; refit the model.")
-            self.cache.reception = torch.as_tensor(self.scene.reception, dtype=torch.float32, device=self.device)
-        return self.cache.reception
-
     def expand(self, cells: torch.Tensor, coarse: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """HiTAM's Ω′ ``(bins, valid) [B, β² K_C]`` among the directions each cell sees (``hitam.selection``)."""
+        """HiTAM's Ω′ ``(bins, valid) [B, β² K_C]``: the K_C blocks of largest coarse power among the directions each
+        cell sees."""
         assert self.hitam is not None
         visible = self.visible("coarse")[cells]
-        reception = self.reception()
-        gain = None if reception is None else reception[cells].to(coarse.dtype)
-        bins, valid = self.hitam.expand(torch.where(visible, coarse, torch.full_like(coarse, -1.0)), gain)
+        bins, valid = self.hitam.expand(torch.where(visible, coarse, torch.full_like(coarse, -1.0)))
         return bins, valid & self.visible("fine")[cells[:, None], bins]
+
+    def fill(self, cells: torch.Tensor, coarse: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The coarse fill ``(fine bins, values) [B, β² J]`` of pairs (``cells [B]``, coarse APS ``coarse [B, num_coarse]``)
+        outside Ω′ (``hitam.outside: coarse``; None with ``zero``): the J = :data:`FILL_BLOCKS` × K_C visible blocks
+        HiTAM ranks after its K_C, each one's coarse power spread evenly over its bins the cell sees."""
+        h = self.hitam
+        if h is None or self.config.hitam.outside == "zero":
+            return None
+        visible = self.visible("coarse")[cells]
+        order = h.ranked(torch.where(visible, coarse, torch.full_like(coarse, -1.0)), h.top_k * (1 + FILL_BLOCKS))
+        blocks = order[:, h.top_k :]
+        bins, values, valid = h.spread(coarse * visible, blocks)
+        seen = valid & self.visible("fine")[cells[:, None], bins]
+        return bins, values * seen
 
     def output(self, cells: torch.Tensor, grid_xyz: torch.Tensor, position: float) -> tuple[torch.Tensor, torch.Tensor]:
         """The model's APS in sparse form ``(fine bins [B, K], values [B, K])`` (normalised) once its latest training
-        step began at schedule ``position`` (−1: none): the refinement model's from the warm-up's end on."""
+        step began at schedule ``position`` (−1: none): the refinement model's from the warm-up's end on (and the
+        coarse fill outside Ω′ with ``hitam.outside: coarse``)."""
         if self.hitam is None:
             x = self.full_power(cells, grid_xyz)
             return torch.arange(x.shape[1], device=self.device).expand_as(x), x
         coarse = self.coarse_power(cells, grid_xyz)
         if position >= self.hitam.warmup_steps:
             bins, valid = self.expand(cells, coarse)
-            return bins, self.fine_power(cells, grid_xyz, bins, valid)
+            x = self.fine_power(cells, grid_xyz, bins, valid)
+            fill = self.fill(cells, coarse)
+            if fill is None:
+                return bins, x
+            return torch.cat([bins, fill[0]], 1), torch.cat([x, fill[1]], 1)
         return self.coarse_as_fine(coarse)
 
     def stage_output(

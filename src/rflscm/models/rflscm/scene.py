@@ -39,10 +39,6 @@ class SceneInfo:
     a_ref_mw: float  # median over cells of max A [mW per unit gain]
     frame: SceneFrame
     visible: np.ndarray  # bool [C, num_bins]: fine bins a cell's round-1 beams see (render.min_gain_db)
-    reception: np.ndarray | None = None
-    """float32 ``[C, num_coarse]``: each cell's best round-1 beam gain per HiTAM coarse block, relative to its best
-    block (:meth:`~rflscm.models.rflscm.hitam.HiTAM.reception`); None without HiTAM or with ``hitam.selection:
-    power``."""
 
     @property
     def x_ref(self) -> float:
@@ -80,13 +76,13 @@ class SceneInfo:
             "a_ref_mw": self.a_ref_mw,
             "frame": self.frame.to_dict(),
             "visible": self.visible,
-            "reception": self.reception,
         }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SceneInfo:
         frame = d["frame"]
         frame = SceneFrame(**{**frame, "box_lo": tuple(frame["box_lo"]), "box_hi": tuple(frame["box_hi"])})
+        d = {k: v for k, v in d.items() if k != "reception"}  # hitam.selection's gains (95f1610 to 2026-11-29): unused
         return cls(**{**d, "frame": frame})
 
 
