@@ -62,7 +62,11 @@ class HiTAM:
     def expand(self, coarse_power: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Top-K_C coarse bins of ``coarse_power [B, num_coarse]`` (:meth:`ranked`) → fine bins and validity
         ``[B, β² K_C]``."""
-        fine, valid = self.mapping.children(self.ranked(coarse_power))  # [B, K_C, β²]
+        return self.refined(self.ranked(coarse_power))
+
+    def refined(self, blocks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Fine bins and validity ``[B, β² J]`` of coarse ``blocks [B, J]``."""
+        fine, valid = self.mapping.children(blocks)  # [B, J, β²]
         return fine.flatten(1), valid.flatten(1)
 
     def spread(

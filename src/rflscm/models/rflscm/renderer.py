@@ -201,25 +201,31 @@ class APSRenderer:
         bins = torch.arange(self.angle_grid.num_bins, device=self.device).expand(cells.numel(), -1)
         return self.power_on("fine", "fine", cells, grid_xyz, bins, torch.ones_like(bins, dtype=torch.bool))
 
-    def expand(self, cells: torch.Tensor, coarse: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def expand(
+        self, cells: torch.Tensor, coarse: torch.Tensor, order: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """HiTAM's Ω′ ``(bins, valid) [B, β² K_C]``: the K_C blocks of largest coarse power among the directions each
-        cell sees."""
-        assert self.hitam is not None
-        visible = self.visible("coarse")[cells]
-        bins, valid = self.hitam.expand(torch.where(visible, coarse, torch.full_like(coarse, -1.0)))
+        cell sees (the first K_C of ``order``, :meth:`ranking`'s, where given)."""
+        h = self.hitam
+        assert h is not None
+        order = self.ranking(cells, coarse, h.top_k) if order is None else order
+        bins, valid = h.refined(order[:, : h.top_k])
         return bins, valid & self.visible("fine")[cells[:, None], bins]
 
-    def fill(self, cells: torch.Tensor, coarse: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """The coarse fill ``(fine bins, values) [B, β² J]`` of pairs (``cells [B]``, coarse APS ``coarse [B, num_coarse]``)
-        outside Ω′ (``hitam.outside: coarse``; None with ``zero``): the J = :data:`FILL_BLOCKS` × K_C visible blocks
-        HiTAM ranks after its K_C, each one's coarse power spread evenly over its bins the cell sees."""
-        h = self.hitam
-        if h is None or self.config.hitam.outside == "zero":
-            return None
+    def ranking(self, cells: torch.Tensor, coarse: torch.Tensor, count: int) -> torch.Tensor:
+        """The ``count`` coarse blocks ``[B, count]`` of largest coarse power ``coarse [B, num_coarse]`` among those each
+        cell sees, largest first (then blocks the cell does not see, where it sees fewer)."""
+        assert self.hitam is not None
         visible = self.visible("coarse")[cells]
-        order = h.ranked(torch.where(visible, coarse, torch.full_like(coarse, -1.0)), h.top_k * (1 + FILL_BLOCKS))
-        blocks = order[:, h.top_k :]
-        bins, values, valid = h.spread(coarse * visible, blocks)
+        return self.hitam.ranked(torch.where(visible, coarse, torch.full_like(coarse, -1.0)), count)
+
+    def fill(self, cells: torch.Tensor, coarse: torch.Tensor, order: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The coarse fill ``(fine bins, values) [B, β² J]`` outside Ω′ (``hitam.outside: coarse``) of pairs (``cells [B]``,
+        coarse APS ``coarse [B, num_coarse]``): the blocks of ``order`` (:meth:`ranking`'s) after its first K_C, each
+        one's coarse power spread evenly over its bins the cell sees."""
+        h = self.hitam
+        assert h is not None
+        bins, values, valid = h.spread(coarse * self.visible("coarse")[cells], order[:, h.top_k :])
         seen = valid & self.visible("fine")[cells[:, None], bins]
         return bins, values * seen
 
@@ -232,12 +238,14 @@ class APSRenderer:
             return torch.arange(x.shape[1], device=self.device).expand_as(x), x
         coarse = self.coarse_power(cells, grid_xyz)
         if position >= self.hitam.warmup_steps:
-            bins, valid = self.expand(cells, coarse)
+            filled = self.config.hitam.outside == "coarse"
+            order = self.ranking(cells, coarse, self.hitam.top_k * (1 + FILL_BLOCKS if filled else 1))
+            bins, valid = self.expand(cells, coarse, order)
             x = self.fine_power(cells, grid_xyz, bins, valid)
-            fill = self.fill(cells, coarse)
-            if fill is None:
+            if not filled:
                 return bins, x
-            return torch.cat([bins, fill[0]], 1), torch.cat([x, fill[1]], 1)
+            fill_bins, fill_x = self.fill(cells, coarse, order)
+            return torch.cat([bins, fill_bins], 1), torch.cat([x, fill_x], 1)
         return self.coarse_as_fine(coarse)
 
     def stage_output(
