@@ -107,6 +107,27 @@ def test_resume_continues_exactly(scenario, tmp_path) -> None:
         )
 
 
+def test_resume_reads_an_option_added_since_the_checkpoint_as_its_default(scenario, tmp_path) -> None:
+    from rflscm.models.base import content_hash
+
+    cfg = tiny_config()
+    reference = []
+    fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=lambda m: reference.append(m["total"]))
+    ckpt = tmp_path / "old.ckpt"
+    with pytest.raises(Interrupt):
+        fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=stop_at(4), checkpoint_path=ckpt)
+    archive = torch.load(ckpt, weights_only=True)  # as written before `hitam.outside` existed
+    del archive["payload"]["state"]["config"]["hitam"]["outside"]
+    archive["sha256"] = content_hash(archive["payload"])
+    torch.save(archive, ckpt)
+    run = dict(progress=False, checkpoint_path=ckpt, resume=True)
+    with pytest.raises(CheckpointError, match=r"another config \(changed: hitam.outside"):  # not its default
+        fit(RFLSCM.build(tiny_config(hitam={"outside": "coarse"}), GRID), scenario, **run)
+    resumed = []
+    fit(RFLSCM.build(cfg, GRID), scenario, callback=lambda m: resumed.append(m["total"]), **run)
+    assert resumed == reference[4:]
+
+
 def test_save_load_round_trip_and_contract(scenario, tmp_path) -> None:
     model = RFLSCM.build(tiny_config(), GRID)
     fit(model, scenario, progress=False)
