@@ -82,7 +82,6 @@ class SceneInfo:
     def from_dict(cls, d: dict[str, Any]) -> SceneInfo:
         frame = d["frame"]
         frame = SceneFrame(**{**frame, "box_lo": tuple(frame["box_lo"]), "box_hi": tuple(frame["box_hi"])})
-        d = {k: v for k, v in d.items() if k != "reception"}  # hitam.selection's gains (95f1610 to 2026-11-29): unused
         return cls(**{**d, "frame": frame})
 
 
