@@ -79,53 +79,43 @@ def test_loss_falls_by_a_large_factor(scenario) -> None:
     assert last < first / 8, (first, last)
 
 
-def test_resume_continues_exactly(scenario, tmp_path) -> None:
-    cfg = tiny_config()
-    reference = []
-    fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=lambda m: reference.append(m["total"]))
-
-    ckpt = tmp_path / "run.ckpt"
+def killed_after_four_steps(scenario, ckpt) -> list[float]:
+    """The tiny run's loss history; the same run killed after 4 steps leaves its checkpoint at ``ckpt``."""
+    reference: list[float] = []
+    fit(RFLSCM.build(tiny_config(), GRID), scenario, progress=False, callback=lambda m: reference.append(m["total"]))
     with pytest.raises(Interrupt):
-        fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=stop_at(4), checkpoint_path=ckpt)
-    resumed = []
-    fit(
-        RFLSCM.build(cfg, GRID),
-        scenario,
-        progress=False,
-        callback=lambda m: resumed.append(m["total"]),
-        checkpoint_path=ckpt,
-        resume=True,
-    )
-    assert resumed == reference[4:]
+        fit(RFLSCM.build(tiny_config(), GRID), scenario, progress=False, callback=stop_at(4), checkpoint_path=ckpt)
+    return reference
+
+
+def resumed(scenario, config: dict, ckpt) -> list[float]:
+    """The loss history of a run of ``config`` resumed from ``ckpt``."""
+    losses: list[float] = []
+    run = dict(progress=False, checkpoint_path=ckpt, resume=True)
+    fit(RFLSCM.build(config, GRID), scenario, callback=lambda m: losses.append(m["total"]), **run)
+    return losses
+
+
+def test_resume_continues_exactly(scenario, tmp_path) -> None:
+    ckpt = tmp_path / "run.ckpt"
+    reference = killed_after_four_steps(scenario, ckpt)
+    assert resumed(scenario, tiny_config(), ckpt) == reference[4:]
     with pytest.raises(CheckpointError, match="another config"):
-        fit(
-            RFLSCM.build(tiny_config(decoder={"hidden": 8}), GRID),
-            scenario,
-            progress=False,
-            checkpoint_path=ckpt,
-            resume=True,
-        )
+        resumed(scenario, tiny_config(decoder={"hidden": 8}), ckpt)
 
 
 def test_resume_reads_an_option_added_since_the_checkpoint_as_its_default(scenario, tmp_path) -> None:
     from rflscm.models.base import content_hash
 
-    cfg = tiny_config()
-    reference = []
-    fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=lambda m: reference.append(m["total"]))
     ckpt = tmp_path / "old.ckpt"
-    with pytest.raises(Interrupt):
-        fit(RFLSCM.build(cfg, GRID), scenario, progress=False, callback=stop_at(4), checkpoint_path=ckpt)
+    reference = killed_after_four_steps(scenario, ckpt)
     archive = torch.load(ckpt, weights_only=True)  # as written before `hitam.outside` existed
     del archive["payload"]["state"]["config"]["hitam"]["outside"]
     archive["sha256"] = content_hash(archive["payload"])
     torch.save(archive, ckpt)
-    run = dict(progress=False, checkpoint_path=ckpt, resume=True)
     with pytest.raises(CheckpointError, match=r"another config \(changed: hitam.outside"):  # not its default
-        fit(RFLSCM.build(tiny_config(hitam={"outside": "coarse"}), GRID), scenario, **run)
-    resumed = []
-    fit(RFLSCM.build(cfg, GRID), scenario, callback=lambda m: resumed.append(m["total"]), **run)
-    assert resumed == reference[4:]
+        resumed(scenario, tiny_config(hitam={"outside": "coarse"}), ckpt)
+    assert resumed(scenario, tiny_config(), ckpt) == reference[4:]
 
 
 def test_save_load_round_trip_and_contract(scenario, tmp_path) -> None:
