@@ -201,7 +201,6 @@ class RFLSCM(LSCMModel):
         lo, hi = scene_box(scenario, cfg.render.step_m)
         check_scene_box(cfg, lo, hi)
         grids = scenario.grids
-        a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
         self.scene = SceneInfo(
             cell_ids,
             cell_xyz,
@@ -221,6 +220,7 @@ class RFLSCM(LSCMModel):
         targets = building_targets(cfg, scenario, prior, seed=cfg.train.seed) if prior is not None else None
         if targets is not None:
             self._init_attenuation(*targets)
+        a_coarse = self.hitam.coarse_columns(a_norm) if self.hitam is not None else None
         self._train = TrainContext(data.to(self.device), a_norm, a_coarse, num_ssb)
         ssb_rule = rule_of(scenario, "ssb").rule
         self._silence_dbm = None if ssb_rule == "sinr" else float(scenario.meta.rsrp_threshold_dbm)

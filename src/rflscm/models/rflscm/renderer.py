@@ -225,7 +225,7 @@ class APSRenderer:
         one's coarse power spread evenly over its bins the cell sees."""
         h = self.hitam
         assert h is not None
-        bins, values, valid = h.spread(coarse * self.visible("coarse")[cells], order[:, h.top_k :])
+        bins, values, valid = h.spread(coarse, order[:, h.top_k :])  # coarse: 0 at blocks the cell does not see
         seen = valid & self.visible("fine")[cells[:, None], bins]
         return bins, values * seen
 
