@@ -18,6 +18,7 @@ from rflscm.geometry import AngleGrid
 from rflscm.models import MODEL_REGISTRY, UnsupportedError, load_model
 from rflscm.models.rflscm import RFLSCM
 from rflscm.models.rflscm.config import RFLSCMConfig, load_rflscm_config, preset_path
+from rflscm.models.rflscm.renderer import FILL_BLOCKS
 from rflscm.train import fit
 
 GRID = AngleGrid.full_sphere(10, 12)
@@ -114,7 +115,7 @@ def test_resume_reads_an_option_added_since_the_checkpoint_as_its_default(scenar
     archive["sha256"] = content_hash(archive["payload"])
     torch.save(archive, ckpt)
     with pytest.raises(CheckpointError, match=r"another config \(changed: hitam.outside"):  # not its default
-        resumed(scenario, tiny_config(hitam={"outside": "coarse"}), ckpt)
+        resumed(scenario, tiny_config(hitam={"outside": "zero"}), ckpt)
     assert resumed(scenario, tiny_config(), ckpt) == reference[4:]
 
 
@@ -129,7 +130,7 @@ def test_save_load_round_trip_and_contract(scenario, tmp_path) -> None:
     x = model.aps(cells, grids)
     assert x.shape == (len(pairs), GRID.num_bins) and bool((x >= 0).all())
     assert torch.equal(x, loaded.aps(cells, grids))
-    assert int((x > 0).sum(1).max()) <= 3 * 9  # zeros outside Ω′ (K_C β² bins)
+    assert int((x > 0).sum(1).max()) <= 3 * 9 * (1 + FILL_BLOCKS)  # zeros outside Ω′ (K_C β² bins) and the fill
     pred = loaded.predict_rsrp(scenario, 2, "ssb", pairs)
     assert pred.shape == measured.shape and np.isfinite(pred).all()
     with pytest.raises(UnsupportedError):
@@ -215,8 +216,6 @@ def test_coarse_model_is_frozen_once_alpha_is_one_and_its_selection_is_remembere
 
 
 def test_the_coarse_fill_holds_the_next_blocks_coarse_power_outside_the_refined_ones(scenario) -> None:
-    from rflscm.models.rflscm.renderer import FILL_BLOCKS
-
     runs = {}
     for outside in ("zero", "coarse"):
         torch.manual_seed(0)

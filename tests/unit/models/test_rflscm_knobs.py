@@ -49,7 +49,7 @@ CHANGES = [
     ("hitam", "top_k", 1),
     ("hitam", "warmup_steps", 2),
     ("hitam", "ramp_steps", 4),
-    ("hitam", "outside", "coarse"),
+    ("hitam", "outside", "zero"),
     ("loss", "fidelity", "linear"),
     ("loss", "missing_penalty", 5.0),
     ("train", "steps", 6),

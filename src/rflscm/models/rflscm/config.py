@@ -252,9 +252,9 @@ class HiTAMConfig:
     """Coarse-only steps before α starts rising."""
     ramp_steps: int = 500
     """Steps over which α rises linearly from 0 to 1."""
-    outside: Literal["zero", "coarse"] = "zero"
+    outside: Literal["zero", "coarse"] = "coarse"
     """The model's APS outside the refined blocks Ω′ once the refinement model has trained: ``zero`` (the paper's
-    form) or ``coarse``, the coarse model's power in the :data:`~rflscm.models.rflscm.renderer.FILL_BLOCKS` × K_C
+    form) or ``coarse`` (the default), the coarse model's power in the :data:`~rflscm.models.rflscm.renderer.FILL_BLOCKS` × K_C
     blocks HiTAM ranks next, spread evenly over each block's bins.  Training is the same either way; the pass after
     training and every prediction read the fill (docs/DECISIONS.md, "The coarse fill outside Ω′")."""
 

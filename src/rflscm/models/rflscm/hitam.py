@@ -3,8 +3,8 @@
 A coarse model renders one ray per β×β block of the angle grid (partial blocks at the edges);
 the top-K_C blocks of each (cell, grid) are expanded into their fine bins Ω′, which a separate
 refinement model renders.  L_total = (1 − α) L⁽¹⁾ + α L⁽²⁾, α rising from 0 to 1 after a coarse-only warm-up.
-The fine APS (zeros outside Ω′, or with ``hitam.outside: coarse`` the coarse power of the blocks ranked next) is the
-model's output.
+The fine APS (with ``hitam.outside: coarse``, the default, the coarse power of the blocks ranked next outside Ω′;
+with ``zero``, the paper's form, zeros there) is the model's output.
 
 Coarse columns (A⁽¹⁾): a coarse value x̃⁽¹⁾_J is read as the total power of block J spread over the
 block, so its column is the *mean* of the block's fine columns and its ray goes through the block's
