@@ -6,7 +6,9 @@ Usage (from the repository root, which puts ``pass_model.py`` on the path):
     PYTHONPATH=src python experiments/coarse_fill.py CHECKPOINT SCENARIO
 
 One ``FILL {json}`` line per form with round 2's MAE over the pairs with a round-1 report (``evaluate``'s ``seen``
-rows) and the seconds the pass and the evaluation took.  The option changes no training step, so a checkpoint trained
+rows), the seconds the pass and the evaluation took, and the posterior's held-aside round-1 MAE [dB] of its choice
+(``held_db``, pair-weighted over its report-count groups; ``held_level_db``: the field with its levels and anchors,
+no posterior): the score a choice between the two forms on the training data alone would read.  The option changes no training step, so a checkpoint trained
 with either value answers for both.
 """
 
@@ -39,6 +41,12 @@ def main(checkpoint: str, scenario: str) -> None:
         model.finish_training()
         evaluation = run_evaluation(model, sc, AdjustProtocol(), oracle=None)
         row = {"outside": outside, "s": round(time.perf_counter() - t0, 1)} | seen_rows(evaluation, r1_index)
+        post = model.corrections.posterior
+        if post is not None and post.groups:  # the held-aside round-1 MAE of each group's choice, pair-weighted
+            scored = [g for g in post.groups if g["mae_db"] == g["mae_db"]]  # a group with no held-aside report: NaN
+            pairs = sum(g["pairs"] for g in scored)
+            row["held_db"] = round(sum(g["pairs"] * g["mae_db"] for g in scored) / max(pairs, 1.0), 4)
+            row["held_level_db"] = round(post.scores.get(float("inf"), float("nan")), 4)
         print("FILL", json.dumps(row), flush=True)
 
 
