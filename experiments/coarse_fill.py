@@ -8,8 +8,8 @@ Usage (from the repository root, which puts ``pass_model.py`` on the path):
 One ``FILL {json}`` line per form with round 2's MAE over the pairs with a round-1 report (``evaluate``'s ``seen``
 rows), the seconds the pass and the evaluation took, and the posterior's held-aside round-1 MAE [dB] of its choice
 (``held_db``, pair-weighted over its report-count groups; ``held_level_db``: the field with its levels and anchors,
-no posterior): the score a choice between the two forms on the training data alone would read.  The option changes no training step, so a checkpoint trained
-with either value answers for both.
+no posterior): the score a choice between the two forms on the training data alone would read.  The option changes
+no training step, so a checkpoint trained with either value answers for both.
 """
 
 from __future__ import annotations

@@ -254,9 +254,10 @@ class HiTAMConfig:
     """Steps over which α rises linearly from 0 to 1."""
     outside: Literal["zero", "coarse"] = "coarse"
     """The model's APS outside the refined blocks Ω′ once the refinement model has trained: ``zero`` (the paper's
-    form) or ``coarse`` (the default), the coarse model's power in the :data:`~rflscm.models.rflscm.renderer.FILL_BLOCKS` × K_C
-    blocks HiTAM ranks next, spread evenly over each block's bins.  Training is the same either way; the pass after
-    training and every prediction read the fill (docs/DECISIONS.md, "The coarse fill outside Ω′")."""
+    form) or ``coarse`` (the default), the coarse model's power in the
+    :data:`~rflscm.models.rflscm.renderer.FILL_BLOCKS` × K_C blocks HiTAM ranks next, spread evenly over each block's
+    bins.  Training is the same either way; the pass after training and every prediction read the fill
+    (docs/DECISIONS.md, "The coarse fill outside Ω′" and "The coarse fill becomes the default")."""
 
     def __post_init__(self) -> None:
         if self.beta < 2:
