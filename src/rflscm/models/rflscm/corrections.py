@@ -101,7 +101,7 @@ CHUNK_MARGIN = 1.25
 KEPT_BINS = 1152
 """A corrected pair's render is kept (:attr:`PairCorrections.rendered`) when it holds at most this many bins: HiTAM's
 refined APS (β² K_C: 144 at the quick preset, 288 at the default, 8 bytes a bin; four times that with the coarse fill,
-``hitam.outside: coarse``), not the warm-up's coarse APS spread over every bin of the angle grid."""
+``hitam.outside: coarse``, the default), not the warm-up's coarse APS spread over every bin of the angle grid."""
 
 
 @dataclass
