@@ -133,7 +133,9 @@ def test_the_pair_inputs_are_the_concatenated_encodings_and_the_decoder_still_le
 
 def test_inference_in_decoder_blocks_equals_the_training_path(monkeypatch) -> None:  # type: ignore[no-untyped-def]
     """Without gradients the decoder runs ``DECODER_BLOCK`` (query, sample) pairs at a time (issue 29): the same
-    values, to the bit, as the training path's one pass (block sizes that split rays and queries included)."""
+    values as the training path's one pass (block sizes that split rays and queries included), to the bit where a
+    block holds several pairs; a block of one pair may take the BLAS's matrix-vector kernel, which on some CPUs (an
+    AMD EPYC) rounds one value one float32 ulp apart."""
     import rflscm.models.rflscm.fields as fields_module
 
     phi = (torch.rand(5, 12, generator=torch.Generator().manual_seed(3)) > 0.3) * torch.rand(5, 12)
@@ -150,5 +152,7 @@ def test_inference_in_decoder_blocks_equals_the_training_path(monkeypatch) -> No
             monkeypatch.setattr(fields_module, "DECODER_BLOCK", block)
             with torch.no_grad():
                 inferred = stage(rays_for(5), gather_samples(samples, torch.arange(5)), queries)
-            assert torch.equal(inferred, trained), (inputs, block)
+            if block > 1:
+                assert torch.equal(inferred, trained), (inputs, block)
+            torch.testing.assert_close(inferred, trained, rtol=1e-6, atol=0.0)
         assert bool((trained > 0).all())

@@ -365,9 +365,8 @@ def fit_corrections(
     if time_left is None:
         first = pairs
         rendered = fit.render_pairs(first, top=cfg.pair_posterior, bar=bar)
-        render_s = 0.0
     else:
-        first, rendered, render_s, subset = _first_pairs(fit, subset, time_left, clock, bar, known, pairs.numel())
+        first, rendered, subset = _first_pairs(fit, subset, time_left, clock, bar, known, pairs.numel())
         corrected[0] = first.numel()
         each[0] = fit.render_s
     levels = fit.levels(rendered) if cfg.calibrate_levels else None
@@ -407,7 +406,8 @@ def fit_corrections(
         owing[0] = pairs.numel() - (len(left_over.index) if left_over is not None else 0)
     yielded = 0
     beyond = extra_left if extra_left is not None else time_left  # the pairs past the least: within the budget only
-    for chunk in fit.corrected_chunks(rendered, later, levels, fitting, beyond, clock, bar, PAIR_CHUNK * render_s):
+    render_chunk_s = PAIR_CHUNK * fit.render_s  # a later chunk's render, as the first pairs' chunks measured it
+    for chunk in fit.corrected_chunks(rendered, later, levels, fitting, beyond, clock, bar, render_chunk_s):
         done.append(chunk.pairs)
         kept.append((chunk.aps_bins, chunk.aps_x))
         yielded += chunk.pairs.numel()
@@ -729,9 +729,9 @@ def _first_pairs(
     bar: object,
     known: PassTimes | None = None,
     total: int = 0,
-) -> tuple[torch.Tensor, _Rendered, float, torch.Tensor]:
-    """Within a budget, the pairs rendered before any other: the levels' and λ's, ``(pairs, rendered, seconds per
-    pair, λ's pairs)``.  One pair per cell first (every cell needs its level), timed past its first ``WARM_PAIRS``
+) -> tuple[torch.Tensor, _Rendered, torch.Tensor]:
+    """Within a budget, the pairs rendered before any other: the levels' and λ's, ``(pairs, rendered, λ's pairs)``
+    (:attr:`_Fit.render_s`: their render's seconds per pair, past each cell's first).  One pair per cell first (every cell needs its level), timed past its first ``WARM_PAIRS``
     (a model's first render sets up what every later one reuses: 1.3 s on the shipped scenario, 15 s at 222 cells);
     then the levels' other pairs (up to ``LEVEL_PAIRS_PER_CELL`` per cell) and λ's ``subset`` as far as
     ``FIRST_SHARE`` of the time left allows, once the time of the fallback's WNOMP solve of every other pair (timed on
@@ -839,7 +839,7 @@ def _first_pairs(
     if more.numel():
         render_s = (clock() - begun) / more.numel()
     fit.render_s = render_s
-    return first, _merged(rendered, extra), render_s + prep_s, subset
+    return first, _merged(rendered, extra), subset
 
 
 def _merged(a: _Rendered, b: _Rendered) -> _Rendered:
@@ -1080,18 +1080,24 @@ class _Fit:
         time_left: TimeLeftFn | None,
         clock: Callable[[], float],
         bar: object = None,
-        expected_s: float = 0.0,
+        render_chunk_s: float = 0.0,
     ) -> Iterator[_PairChunk]:
         """Every row of ``rendered``, then the ``later`` pairs rendered ``PAIR_CHUNK`` at a time (sorted within a
-        chunk), as :meth:`chunks`; with ``time_left`` a chunk is started only while ``CHUNK_MARGIN`` times the slowest
-        chunk so far still fits (the rendered rows count their render in their first chunk's time; ``expected_s``, a
-        chunk's render as measured on the rendered pairs, counts as a chunk before any)."""
+        chunk), as :meth:`chunks`; with ``time_left`` a later chunk is started only while ``CHUNK_MARGIN`` times its
+        cost still fits.  That cost is the slowest later chunk so far (render and correction, timed as the caller
+        consumes it); before the first, ``render_chunk_s`` (a chunk's render as measured on the rendered pairs) plus
+        the slowest chunk of the rendered rows (their correction alone).  The first pairs' own cost (one pair per
+        cell, each paying its cell's set-up) priced a later chunk 2.8× what it took, so a pass with the time to
+        correct every pair corrected none past its first (etoile's ideal demo under load, DECISIONS "The pass prices
+        its later chunks by their own cost")."""
         rows = torch.arange(rendered.pairs.numel(), device=rendered.pairs.device)
-        slowest = expected_s
+        correcting = 0.0  # the slowest chunk of the rendered rows: a chunk's correction without its render
         for start in range(0, rows.numel(), PAIR_CHUNK):
             begun = clock()
             yield from self.chunks(rendered, rows[start : start + PAIR_CHUNK], levels, with_columns)
-            slowest = max(slowest, clock() - begun)
+            correcting = max(correcting, clock() - begun)
+        slowest = render_chunk_s + correcting  # until a later chunk is timed
+        timed = False
         for start in range(0, later.numel(), PAIR_CHUNK):
             if time_left is not None and time_left() < CHUNK_MARGIN * slowest:
                 return
@@ -1099,7 +1105,9 @@ class _Fit:
             part = later[start : start + PAIR_CHUNK].sort().values
             more = self.render_pairs(part, top=with_columns, bar=bar)
             yield from self.chunks(more, torch.arange(part.numel(), device=part.device), levels, with_columns)
-            slowest = max(slowest, clock() - begun)
+            took = clock() - begun
+            slowest = max(slowest, took) if timed else took
+            timed = True
 
     def matrix(self, cell: int) -> torch.Tensor:
         """Cell index ``cell``'s normalised stacked sensing matrix ``[M, N]`` over every bin (``visible``'s)."""
