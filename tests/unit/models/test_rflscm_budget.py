@@ -252,15 +252,19 @@ def test_finish_share_must_be_a_fraction() -> None:
 def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
     """``finish_seconds`` times two chunks of the real pass on the clock it is given (1 s between reads here): the
     first pays the per-cell setup, the second gives the per-pair render, preparation and fit; the total adds the
-    λ and atoms choice, and an evaluation's render per pair is the render alone."""
+    λ and atoms choice, the dB mix's choice (a preparation, a fit and WNOMP's solve at each of its atom counts per λ
+    pair) and WNOMP's solve of every pair (a budget's safety net), and an evaluation's render per pair is the render
+    alone."""
     from rflscm.models.rflscm.corrections import (
         LAMBDA_PAIRS,
         LAMBDAS,
         LEVEL_PAIRS_PER_CELL,
+        MIX_ATOMS,
         PAIR_CHUNK,
         WNOMP_ATOMS,
         WNOMP_PRIORS,
         PassTimes,
+        _solve_sample,
     )
 
     model = RFLSCM.build(tiny_config(), GRID)
@@ -276,9 +280,15 @@ def test_the_pass_estimate_is_measured_on_the_final_render(scenario) -> None:
     each = 1 / n_second
     setup = max(0.0, 1 - n_first / n_second) * len(model.scene.cell_ids)  # every cell of the tiny scene is in it
     options = 1 + len(WNOMP_ATOMS) * len(WNOMP_PRIORS)  # no atoms, or each atom count with each prior
-    expected = setup + pairs * 3 * each + options * min(pairs, LAMBDA_PAIRS) * (1 + len(LAMBDAS)) * each
+    solve = 1 / _solve_sample(torch.nonzero(data.observed.any(1)).squeeze(1)).numel()  # one tick over the sample
+    lam_pairs = min(pairs, LAMBDA_PAIRS)
+    expected = setup + pairs * 3 * each + options * lam_pairs * (1 + len(LAMBDAS)) * each
+    expected += lam_pairs * (2 * each + len(MIX_ATOMS) * solve) + pairs * solve  # the dB mix's choice, the safety net
     assert estimate.total_s == pytest.approx(expected)
-    assert PassTimes(setup, each, each, each).total_s(cfg, pairs) == pytest.approx(expected)
+    assert PassTimes(setup, each, each, each, solve).total_s(cfg, pairs) == pytest.approx(expected)
+    off = dataclasses.replace(cfg, wnomp_fallback=False, wnomp_atoms=False)  # neither: the λ choice alone
+    plain = setup + pairs * 3 * each + lam_pairs * (1 + len(LAMBDAS)) * each
+    assert PassTimes(setup, each, each, each, solve).total_s(off, pairs) == pytest.approx(plain)
     # the least pass: the levels' pairs rendered and prepared, and WNOMP's solve of every pair, timed on a spread
     # sample of them all (one clock read before and after)
     levels = min(pairs, LEVEL_PAIRS_PER_CELL * len(model.scene.cell_ids)) * 2 * each

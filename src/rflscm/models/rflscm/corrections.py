@@ -630,14 +630,25 @@ class PassTimes:
     per cell (1.0) it prices how a chunk's cost grows with the cells it spans (:func:`_first_pairs`)."""
 
     def total_s(self, cfg: CorrectionsConfig, pairs: int) -> float:
-        """The whole pass over ``pairs`` pairs with reports: setup, each pair once, and the λ (and atoms) choice:
-        every option's preparation and one fit per candidate λ on up to ``LAMBDA_PAIRS`` pairs."""
+        """The whole pass over ``pairs`` pairs with reports as a budget runs it: setup, each pair once, the λ (and
+        atoms) choice (every option's preparation and one fit per candidate λ on up to ``LAMBDA_PAIRS`` pairs), the dB
+        mix's choice (:meth:`mix_s`) and, with the fallback on, WNOMP's solve of every pair, which a budget's pass
+        makes before it knows how far it will reach (its safety net).  Without the last two a budget kept 19.0 s for
+        a pass that took 21 s on the shipped demo's final weights, and left 300 of its 2 791 pairs uncorrected."""
         each = pairs * (self.render_s + self.prep_s + self.fit_s)
+        net = pairs * self.solve_s if cfg.wnomp_fallback else 0.0
         if not cfg.pair_posterior:
-            return self.setup_s + each
+            return self.setup_s + each + net
         options = 1 + (len(WNOMP_ATOMS) * len(WNOMP_PRIORS) if cfg.wnomp_atoms else 0)
         choice = options * min(pairs, LAMBDA_PAIRS) * (self.prep_s + len(LAMBDAS) * self.fit_s)
-        return self.setup_s + each + choice
+        return self.setup_s + each + choice + self.mix_s(cfg, min(pairs, LAMBDA_PAIRS)) + net
+
+    def mix_s(self, cfg: CorrectionsConfig, lam_pairs: int) -> float:
+        """The dB mix's choice (:func:`_mix_plan`, posterior and WNOMP's atoms on) on ``lam_pairs`` of λ's pairs: each
+        pair's preparation, a posterior fit and WNOMP's solve at each of ``MIX_ATOMS``."""
+        if not (cfg.pair_posterior and cfg.wnomp_atoms):
+            return 0.0
+        return lam_pairs * (self.prep_s + self.fit_s + len(MIX_ATOMS) * self.solve_s)
 
     def least_s(self, cfg: CorrectionsConfig, pairs: int, cells: int) -> float:
         """The least pass over ``pairs`` pairs of ``cells`` cells that a budget must leave: the levels' pairs rendered
@@ -819,7 +830,8 @@ def _first_pairs(
 
     fit_pair = known.fit_s if known is not None and cfg.pair_posterior else 0.0  # a posterior fit per pair
     # the whole pass as the loop takes its pairs (chunks of a block, ``known``'s measure): every pair corrected
-    whole = (total - cells) * (pair_s + fit_pair) + choice(subset.numel(), choice_pair) + safety_net
+    mix = known.mix_s(cfg, subset.numel()) if known is not None else 0.0  # the dB mix's choice on λ's pairs
+    whole = (total - cells) * (pair_s + fit_pair) + choice(subset.numel(), choice_pair) + mix + safety_net
     least = min(PAIR_CHUNK, subset.numel())  # λ's pairs when short of time
     for per_cell in range(LEVEL_PAIRS_PER_CELL, 0, -1):
         fit.level_per_cell = per_cell
