@@ -742,7 +742,8 @@ def _first_pairs(
     total: int = 0,
 ) -> tuple[torch.Tensor, _Rendered, torch.Tensor]:
     """Within a budget, the pairs rendered before any other: the levels' and λ's, ``(pairs, rendered, λ's pairs)``
-    (:attr:`_Fit.render_s`: their render's seconds per pair, past each cell's first).  One pair per cell first (every cell needs its level), timed past its first ``WARM_PAIRS``
+    (:attr:`_Fit.render_s`: their render's seconds per pair, past each cell's first).  One pair per cell first (every
+    cell needs its level), timed past its first ``WARM_PAIRS``
     (a model's first render sets up what every later one reuses: 1.3 s on the shipped scenario, 15 s at 222 cells);
     then the levels' other pairs (up to ``LEVEL_PAIRS_PER_CELL`` per cell) and λ's ``subset`` as far as
     ``FIRST_SHARE`` of the time left allows, once the time of the fallback's WNOMP solve of every other pair (timed on
