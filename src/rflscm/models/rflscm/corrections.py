@@ -41,6 +41,7 @@ import torch
 from rflscm.data.pair_lookup import PairLookup
 from rflscm.errors import CheckpointError
 from rflscm.models.pairs import PairData
+from rflscm.models.rflscm.anchors import deviations, shrunk_anchors
 from rflscm.models.rflscm.borrow import borrowed_reports, nearest_of_cell, own_anchor
 from rflscm.models.rflscm.config import CorrectionsConfig
 from rflscm.models.rflscm.fallback import (
@@ -186,6 +187,9 @@ class PairCorrections:
     level_pairs: int = 0
     """The training pairs per cell the levels were measured on (up to ``LEVEL_PAIRS_PER_CELL``; fewer where a budget's
     pass was short of time); the run's summary reports it, a checkpoint does not keep it (0 once loaded)."""
+    anchor_kappa: float = math.nan
+    """κ = σ²/τ² of the anchors' pull toward their cell's mean (:mod:`.anchors`: a pair with κ reports keeps half its
+    own; ∞ pooled whole; NaN not measured); the run's summary reports it, a checkpoint does not keep it."""
 
     def mix_for(self, beam_type: str) -> PairFallback | None:
         """The dB mix of ``beam_type``'s predictions (:attr:`mix_csi` for CSI-RS where there is one, else :attr:`mix`)."""
@@ -391,6 +395,7 @@ def fit_corrections(
             if bool(wanted.any()):
                 early[solver] = fit.fallback(mine[wanted.to(mine.device)], cell_ids, levels, {}, None, clock, solver)
     done, anchors, gains, bins_of, bases, mixed, kept = [], [], [], [], [], [], []
+    spreads: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # per chunk: reports, noise, anchor alone
     later = _later_pairs(pairs, first, seed)
     left_over, choice = None, "level"
     if time_left is not None and cfg.wnomp_fallback and visible is not None and later.numel():
@@ -413,6 +418,10 @@ def fit_corrections(
         yielded += chunk.pairs.numel()
         corrected[0] = max(corrected[0], yielded)  # the first pairs were counted when they were rendered
         anchors.append(chunk.anchor)
+        alone = torch.ones_like(chunk.anchor, dtype=torch.bool) if chunk.lam is None else ~torch.isfinite(chunk.lam)
+        alone = alone.to(chunk.anchor.device)
+        _, dev = deviations(chunk.resid[alone], chunk.mask[alone])
+        spreads.append((chunk.mask.sum(1).cpu(), dev.cpu(), alone.cpu()))
         if chunk.top_bins is not None:
             assert chunk.lam is not None
             on = torch.isfinite(chunk.lam)  # a group that keeps the field: no reports fitted, gains 0
@@ -452,6 +461,12 @@ def fit_corrections(
             reached = torch.cat([reached, only.pairs])
     bar.close()
     renders = _kept_renders(_pair_index(data, cell_ids, reached), kept)
+    kappa = math.nan
+    if spreads and cfg.pair_anchors:  # the corrected pairs' anchors (the borrowed ones, after them, stay their own)
+        count, pool, alone = (torch.cat(part) for part in zip(*spreads, strict=True))
+        own = torch.cat(anchors[: len(spreads)])
+        pulled, kappa = shrunk_anchors(own.cpu(), count, pool, data.cell_index[torch.cat(done)].cpu(), alone)
+        anchors[: len(spreads)] = [pulled.to(own.device)]
     median = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)
     anchor_series = pd.Series(median, index=index, name="anchor_db") if cfg.pair_anchors else None
     solved = left_over  # WNOMP's APS of every later pair, before the pass's own pairs leave it
@@ -471,6 +486,7 @@ def fit_corrections(
             rendered=renders,
             borrowed=int(borrowed.numel()),
             level_pairs=fit.level_per_cell,
+            anchor_kappa=kappa,
         )
 
     if not cfg.pair_posterior:

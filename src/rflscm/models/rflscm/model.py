@@ -645,6 +645,7 @@ class RFLSCM(LSCMModel):
                 "rendered_pairs": float(len(kept.index) - self.corrections.borrowed) if kept is not None else 0.0,
                 "borrowed_pairs": float(self.corrections.borrowed),
                 "level_pairs_per_cell": float(self.corrections.level_pairs),
+                "anchor_kappa": self.corrections.anchor_kappa,
                 "lambda_pairs": float(sum(g["pairs"] for g in post.groups)) if post is not None else 0.0,
             }
 
