@@ -12,9 +12,8 @@ two are told apart from the data themselves (the method of moments):
 * the true level errors' spread, τ², is what the anchors spread about their cell's mean beyond that noise;
 
 and a pair's anchor becomes ``m̄_c + w (m − m̄_c)`` with ``w = τ² / (τ² + v_k)``: a pair with many reports
-keeps its own anchor, one with a single report leans on its cell.  The ideal regime's 40 reports give
-w ≈ 1 (nothing changes); top-N reports of 4–8 beams give w ≈ 0.3–0.9.  No parameter: τ² and σ² are
-measured on the anchors being shrunk (docs/DECISIONS.md, "Anchors pulled toward their cell").
+keeps its own anchor, one with a single report leans on its cell.  No parameter: v_k and τ² are measured on
+the anchors being pulled (docs/DECISIONS.md, "Anchors pulled toward their cell's mean").
 """
 
 from __future__ import annotations

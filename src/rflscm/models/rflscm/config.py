@@ -347,8 +347,10 @@ class CorrectionsConfig:
     pair_anchors: bool = True
     """Move each training pair's (cell, grid) predictions, in every round, by the median error that remains on
     its own reported round-1 beams (:mod:`~rflscm.models.rflscm.corrections`): the field gives the
-    angular shape and what a changed antenna does, the pair's own reports its level.  Measured after training;
-    pairs without round-1 reports (unseen grids) keep the field's level."""
+    angular shape and what a changed antenna does, the pair's own reports its level.  Where a pair has no
+    posterior, that median is pulled toward its cell's mean anchor by how much its few reports say
+    (:mod:`~rflscm.models.rflscm.anchors`).  Measured after training; pairs without round-1 reports (unseen
+    grids) keep the field's level."""
     pair_posterior: bool = True
     """Refine each training pair's APS on its own reported round-1 beams: per-bin gains on the field's strongest
     bins under a ridge prior centred on the field, the ridge chosen on held-aside reports (off when no choice

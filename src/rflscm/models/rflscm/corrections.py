@@ -8,7 +8,8 @@ After training, predictions carry (each switched in the config's ``corrections``
   reported beams come out too weak; this removes that level error without touching the field;
 * an *anchor* per training pair (``pair_anchors``): the median error left on the pair's own reported round-1
   beams (SSB and CSI-RS pooled, after the level).  An under-trained field gets the angular shape right long
-  before each grid's level; the pair's own reports pin that level;
+  before each grid's level; the pair's own reports pin that level.  Where the pair has no posterior, its median is
+  pulled toward its cell's mean anchor as far as its few reports leave it uncertain (:mod:`.anchors`);
 * a *posterior* per training pair (``pair_posterior``): per-bin gains on the anchored APS fitting the same
   reports under a ridge prior centred on the field, λ chosen on held-aside reports (:mod:`.posterior`).
 
@@ -188,8 +189,8 @@ class PairCorrections:
     """The training pairs per cell the levels were measured on (up to ``LEVEL_PAIRS_PER_CELL``; fewer where a budget's
     pass was short of time); the run's summary reports it, a checkpoint does not keep it (0 once loaded)."""
     anchor_kappa: float = math.nan
-    """κ = σ²/τ² of the anchors' pull toward their cell's mean (:mod:`.anchors`: a pair with κ reports keeps half its
-    own; ∞ pooled whole; NaN not measured); the run's summary reports it, a checkpoint does not keep it."""
+    """κ = σ²/τ² of the anchors' pull toward their cell's mean (:mod:`.anchors`: the reports' noise over the spread of
+    the pairs' level errors; ∞ pooled whole, NaN not measured); the run's summary reports it, a checkpoint does not."""
 
     def mix_for(self, beam_type: str) -> PairFallback | None:
         """The dB mix of ``beam_type``'s predictions (:attr:`mix_csi` for CSI-RS where there is one, else :attr:`mix`)."""
