@@ -44,7 +44,7 @@ def training_losses(self, pairs, position):
     out["total"] = out["total"] + TV_W * tv
     _steps[0] += 1
     if _steps[0] % 200 == 1:
-        print(f"[tv] step {_steps[0]} loss {float(out['total']):.4f} tv {float(tv):.4f}", file=sys.stderr, flush=True)
+        print(f"[tv] step {_steps[0]} loss {float(out['total'].detach()):.4f} tv {float(tv.detach()):.4f}", file=sys.stderr, flush=True)
     return out
 
 

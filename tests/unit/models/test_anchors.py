@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from test_corrections import data
 
-from rflscm.models.pairs import PairData
 from rflscm.models.rflscm.anchors import deviations, median_noise, shrunk_anchors
 from rflscm.models.rflscm.config import CorrectionsConfig
 from rflscm.models.rflscm.corrections import fit_corrections
@@ -113,29 +113,21 @@ def test_the_pass_pools_the_anchors_of_pairs_with_few_reports() -> None:
     level, resid, mask, cell = reports(2, 400, 1.0, 3.0, seed=5, most=4)
     rsrp = torch.where(mask, torch.pow(10.0, resid / 10.0), torch.nan).float()  # the prediction is 1 on every beam
     p, m = rsrp.shape
-    data = PairData(
-        cell_index=cell,
-        grid_ids=np.arange(p, dtype=np.int64),
-        grid_xyz=torch.zeros(p, 3),
-        rsrp=rsrp,
-        beam_mask=torch.ones(p, m, dtype=torch.bool),
-        val_mask=torch.zeros(p, m, dtype=torch.bool),
-        x_scale=torch.ones(p),
-        bound=torch.full((p, m), float("nan")),
-        val_pairs=torch.zeros(0, dtype=torch.long),
-    )
+    pairs = data(rsrp.tolist(), cell.tolist())  # grid ids 100, 101, …
 
-    def render(pairs: torch.Tensor):
-        bins = torch.zeros(len(pairs), 1, dtype=torch.long)
-        return bins, torch.ones(len(pairs), 1), torch.ones(len(pairs), m)
+    def render(at: torch.Tensor):
+        bins = torch.zeros(len(at), 1, dtype=torch.long)
+        return bins, torch.ones(len(at), 1), torch.ones(len(at), m)
 
     def columns(cells: torch.Tensor, bins: torch.Tensor) -> torch.Tensor:
         return torch.ones(len(cells), m, bins.shape[1])
 
     cfg = CorrectionsConfig(pair_posterior=False, calibrate_levels=False)
-    fitted = fit_corrections(cfg, data, m // 2, np.array([7, 8]), render, columns, seed=0)
+    fitted = fit_corrections(cfg, pairs, m // 2, np.array([7, 8]), render, columns, seed=0)
     assert fitted.anchors is not None and math.isfinite(fitted.anchor_kappa)
-    index = pd.MultiIndex.from_arrays([np.array([7, 8])[cell.numpy()], np.arange(p)], names=["cell_id", "grid_id"])
+    index = pd.MultiIndex.from_arrays(
+        [np.array([7, 8])[cell.numpy()], 100 + np.arange(p)], names=["cell_id", "grid_id"]
+    )
     pooled = torch.as_tensor(fitted.anchors.reindex(index).to_numpy().copy())
     own = medians(resid, mask)
     assert float((pooled - level).square().mean()) < 0.8 * float((own - level).square().mean())
