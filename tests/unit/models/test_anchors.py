@@ -41,7 +41,7 @@ def test_pooled_anchors_lie_closer_to_each_pairs_true_level_and_measure_the_nois
 ) -> None:
     level, resid, mask, cell = reports(4, 600, tau, sigma, seed=1)
     own = medians(resid, mask)
-    count, pool = deviations(resid, mask)
+    count, pool = mask.sum(1), deviations(resid, mask)
     pooled, kappa = shrunk_anchors(own, count, pool, cell, torch.ones_like(cell, dtype=torch.bool))
     own_mse, pooled_mse = float((own - level).square().mean()), float((pooled - level).square().mean())
     assert pooled_mse < 0.9 * own_mse if tau < sigma else pooled_mse < own_mse
@@ -59,7 +59,7 @@ def test_a_pair_with_many_reports_keeps_its_anchor_and_ineligible_pairs_are_left
     many_mask = torch.cat([mask, torch.zeros(len(level), 4000, dtype=torch.bool)], 1)
     many_mask[:10, 8:] = True
     own = medians(many, many_mask)
-    count, pool = deviations(many, many_mask)
+    count, pool = many_mask.sum(1), deviations(many, many_mask)
     eligible = torch.ones(len(level), dtype=torch.bool)
     eligible[10:20] = False
     pooled, _ = shrunk_anchors(own, count, pool, cell, eligible)
@@ -71,7 +71,7 @@ def test_a_pair_with_many_reports_keeps_its_anchor_and_ineligible_pairs_are_left
 def test_anchors_of_pure_noise_pool_to_their_cells_mean() -> None:
     level, resid, mask, cell = reports(3, 500, 0.0, 3.0, seed=4)
     own = medians(resid, mask)
-    count, pool = deviations(resid, mask)
+    count, pool = mask.sum(1), deviations(resid, mask)
     pooled, kappa = shrunk_anchors(own, count, pool, cell, torch.ones_like(cell, dtype=torch.bool))
     about_cell = pooled - torch.stack([pooled[cell == c].mean() for c in range(3)])[cell]
     assert kappa > 20 and float(about_cell.std()) < 0.25 * float((own - level).std())
@@ -84,7 +84,7 @@ def test_where_nothing_measures_the_spreads_the_anchors_stay_their_own() -> None
     one = torch.ones(3, dtype=torch.long)
     everyone = torch.ones(3, dtype=torch.bool)
     noise = torch.randn(50, generator=torch.Generator().manual_seed(6))
-    _, none = deviations(torch.zeros(3, 1), torch.ones(3, 1, dtype=torch.bool))
+    none = deviations(torch.zeros(3, 1), torch.ones(3, 1, dtype=torch.bool))
     assert none.numel() == 0  # a report each: no deviation to measure the noise on
     out, kappa = shrunk_anchors(anchor, one, none, torch.zeros(3), everyone)
     assert torch.equal(out, anchor) and math.isnan(kappa)

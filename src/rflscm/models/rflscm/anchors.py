@@ -28,16 +28,16 @@ POOL = 200_000
 """At most this many residuals are pooled for those draws (an even spread of them beyond)."""
 
 
-def deviations(resid: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(count [B], deviations [D])``: per pair the reports ``mask [B, M]`` holds, and the residuals ``resid [B, M]``
-    [dB] of every pair with two or more, each about its pair's mean and scaled by √(k/(k − 1)) so that they spread as
-    the reports' noise does (flattened, float32)."""
+def deviations(resid: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Deviations ``[D]`` [dB]: the residuals ``resid [B, M]`` on the reports ``mask [B, M]`` of every pair with two
+    or more, each about its pair's mean and scaled by √(k/(k − 1)) so that they spread as the reports' noise does
+    (flattened, float32)."""
     count = mask.sum(1)
     r = torch.where(mask, resid.double(), 0.0)
     mean = r.sum(1) / count.clamp_min(1)
     scale = torch.sqrt(count / (count - 1).clamp_min(1)).double()
     dev = (resid.double() - mean[:, None]) * scale[:, None]
-    return count, dev[mask & (count >= 2)[:, None]].float()
+    return dev[mask & (count >= 2)[:, None]].float()
 
 
 def median_noise(pool: torch.Tensor, counts: torch.Tensor) -> dict[int, float]:

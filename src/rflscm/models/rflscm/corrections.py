@@ -419,10 +419,11 @@ def fit_corrections(
         yielded += chunk.pairs.numel()
         corrected[0] = max(corrected[0], yielded)  # the first pairs were counted when they were rendered
         anchors.append(chunk.anchor)
-        alone = torch.ones_like(chunk.anchor, dtype=torch.bool) if chunk.lam is None else ~torch.isfinite(chunk.lam)
-        alone = alone.to(chunk.anchor.device)
-        _, dev = deviations(chunk.resid[alone], chunk.mask[alone])
-        spreads.append((chunk.mask.sum(1).cpu(), dev.cpu(), alone.cpu()))
+        if cfg.pair_anchors:  # what the anchors' pull measures (:mod:`.anchors`), one entry per corrected chunk
+            alone = torch.ones_like(chunk.anchor, dtype=torch.bool) if chunk.lam is None else ~torch.isfinite(chunk.lam)
+            alone = alone.to(chunk.anchor.device)
+            dev = deviations(chunk.resid[alone], chunk.mask[alone])
+            spreads.append((chunk.mask.sum(1).cpu(), dev.cpu(), alone.cpu()))
         if chunk.top_bins is not None:
             assert chunk.lam is not None
             on = torch.isfinite(chunk.lam)  # a group that keeps the field: no reports fitted, gains 0
@@ -463,7 +464,7 @@ def fit_corrections(
     bar.close()
     renders = _kept_renders(_pair_index(data, cell_ids, reached), kept)
     kappa = math.nan
-    if spreads and cfg.pair_anchors:  # the corrected pairs' anchors (the borrowed ones, after them, stay their own)
+    if spreads:  # the corrected pairs' anchors (the borrowed ones, after them, stay their own)
         count, pool, alone = (torch.cat(part) for part in zip(*spreads, strict=True))
         own = torch.cat(anchors[: len(spreads)])
         pulled, kappa = shrunk_anchors(own.cpu(), count, pool, data.cell_index[torch.cat(done)].cpu(), alone)
