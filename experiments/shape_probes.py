@@ -1,10 +1,11 @@
-"""Three probes of a checkpoint's angular shape on round 2 (issue 28, deliverable 2).
+"""Four probes of a checkpoint's angular shape on round 2 (issue 28, deliverable 2).
 
 Usage (from the repository root):
 
     PYTHONPATH=src python experiments/shape_probes.py cells CHECKPOINT SCENARIO
     PYTHONPATH=src python experiments/shape_probes.py roll CHECKPOINT SCENARIO K1,K2,...
     PYTHONPATH=src python experiments/shape_probes.py partner CHECKPOINT SCENARIO SOURCE:W,...
+    PYTHONPATH=src python experiments/shape_probes.py blur CHECKPOINT SCENARIO WE:WA,...
 
 * ``cells``: per cell, round 2's SSB error over the pairs with a round-1 report (raw r = A′x in dBm, no per-beam-type
   offset), the model's and the truth's (the oracle of round 2's UE samples, the model floor's APS), each also with
@@ -16,6 +17,8 @@ Usage (from the repository root):
 * ``partner``: each pair's APS mixed, linearly with weight W, with the APS of its co-located cell on the other
   carrier (same site and azimuth) at the same grid, re-levelled to the pair's own round-1 level; SOURCE ``model`` or
   ``truth`` (the oracle's APS on both sides).
+* ``blur``: every pair's APS blurred by a [W, 1 − 2W, W] kernel over neighbouring elevation bins (WE), then over
+  neighbouring azimuth bins (WA), put back at the model's own round-1 level as ``roll`` does.
 
 Nothing is written.
 """
@@ -154,5 +157,29 @@ def partner(checkpoint: str, scenario: str, specs: str) -> None:
         print("PARTNER", spec, json.dumps(S.seen_rows(evaluation, hybrid.r1_index)), flush=True)
 
 
+class Blurred(S.Hybrid):
+    """The model's APS blurred in elevation (:attr:`we`) and azimuth (:attr:`wa`), at its own round-1 level."""
+
+    we, wa = 0.0, 0.0
+
+    def _elevation_fix(self, cells, truth, x):
+        v = x.view(-1, self.grid.num_el, self.grid.num_az)
+        if self.we:  # the top and bottom rows see themselves beyond the edge
+            up, down = torch.cat([v[:, :1], v[:, :-1]], 1), torch.cat([v[:, 1:], v[:, -1:]], 1)
+            v = (1 - 2 * self.we) * v + self.we * (up + down)
+        if self.wa:  # azimuth wraps around
+            v = (1 - 2 * self.wa) * v + self.wa * (torch.roll(v, 1, 2) + torch.roll(v, -1, 2))
+        return v.reshape(x.shape)
+
+
+def blur(checkpoint: str, scenario: str, specs: str) -> None:
+    sc, model, oracle = load(checkpoint, scenario)
+    for spec in specs.split(","):
+        hybrid = Blurred(model, oracle, sc, "model_shape+truth_elevation")
+        hybrid.we, hybrid.wa = (float(v) for v in spec.split(":"))
+        evaluation = run_evaluation(hybrid, sc, AdjustProtocol(), oracle=None)
+        print("BLUR", spec, json.dumps(S.seen_rows(evaluation, hybrid.r1_index)), flush=True)
+
+
 if __name__ == "__main__":
-    {"cells": cells, "roll": roll, "partner": partner}[sys.argv[1]](*sys.argv[2:])
+    {"cells": cells, "roll": roll, "partner": partner, "blur": blur}[sys.argv[1]](*sys.argv[2:])

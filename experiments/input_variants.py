@@ -1,0 +1,154 @@
+"""The `rflscm` command with a decoder-input or fidelity variant patched in, for 10-minute A/Bs (issue 28).
+
+Usage (from the repository root; every argument after the script goes to `rflscm`; evaluate a checkpoint written
+this way with the same script and the same variables, since the variants change the forward pass):
+
+    NO_GRID_FEATURES=1 PYTHONPATH=src python experiments/input_variants.py --threads 1 train SCENARIO --minutes 10 --out A.ckpt
+    NO_GRID_FEATURES=1 PYTHONPATH=src python experiments/input_variants.py --threads 1 evaluate A.ckpt SCENARIO --json A.json
+    CSI_WEIGHT=2 PYTHONPATH=src python experiments/input_variants.py --threads 1 train SCENARIO --minutes 10 --out B.ckpt
+    SECOND_LEG=SCENARIO PYTHONPATH=src python experiments/input_variants.py --threads 1 train SCENARIO --minutes 10 --out C.ckpt
+
+* ``NO_GRID_FEATURES=1``: the decoder's 𝓜(p_l) (the feature field at the grid) is fed as zeros.
+* ``CSI_WEIGHT=W``: the squared fidelity error of the CSI-RS reports counts W times (the SSB reports once).
+* ``SECOND_LEG=SCENARIO``: a 2.5-D building height map of SCENARIO's point cloud (the highest building point per
+  2 m cell, closed over 3 × 3 cells to fill the scan's gaps) tells, for each (query, sample) pair, which of 6 points
+  on the segment from the sample to the grid (from 3 m off the sample to 95 % of the way) lie more than 0.5 m below
+  a roof; the radiance's log-amplitude drops by w × that fraction, w a learned scalar of each decoder (start 1.15,
+  10 dB of power for a fully blocked second leg). The rendering's transmittance covers only the antenna-to-sample
+  leg; this is a geometric cue for the other one.
+
+DECISIONS, "Decoder inputs and the second leg" (issue 28, deliverable 2).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import torch
+from scipy import ndimage
+from torch import nn
+
+from rflscm.data import load_scenario
+from rflscm.models.rflscm import fields as F
+from rflscm.models.rflscm import model as M
+
+NO_GRID_FEATURES = os.environ.get("NO_GRID_FEATURES") == "1"
+CSI_WEIGHT = float(os.environ.get("CSI_WEIGHT", "1"))
+SECOND_LEG = os.environ.get("SECOND_LEG", "")
+RES_M, POINTS, SKIP_M, MARGIN_M, LEG_W0 = 2.0, 6, 3.0, 0.5, 1.15
+BUILDING = 6  # ASPRS class
+
+# --- NO_GRID_FEATURES ---------------------------------------------------------------------------------------------
+_query_inputs = F.RadianceDecoder._query_inputs
+
+
+def query_inputs_without_grid(self, rays, queries, grid_features):
+    return _query_inputs(self, rays, queries, torch.zeros_like(grid_features))
+
+
+# --- CSI_WEIGHT -----------------------------------------------------------------------------------------------------
+_loss, _lscm_loss, _num_ssb = M.RFLSCM._loss, M.lscm_loss, [0]
+
+
+def loss_noting_ssb(self, a_sel, x, pairs):
+    _num_ssb[0] = int(self._training().num_ssb)
+    return _loss(self, a_sel, x, pairs)
+
+
+def weighted_lscm_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity="log", sparsity_weight=1e-3,
+                       penalty_weight=0.5, floor=1e-12):
+    out = _lscm_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity, sparsity_weight, penalty_weight, floor)
+    observed = beam_mask & ~torch.isnan(rsrp)
+    err = torch.log10(pred + floor) - torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
+    csi = torch.where(observed, err.square(), torch.zeros_like(err))[:, _num_ssb[0]:]
+    extra = (CSI_WEIGHT - 1.0) * csi.sum() / max(pred.shape[0], 1)
+    out["fidelity"] = out["fidelity"] + extra
+    out["total"] = out["total"] + extra
+    return out
+
+
+# --- SECOND_LEG -----------------------------------------------------------------------------------------------------
+HEIGHTS: dict = {}
+
+
+def build_heights(scenario: str) -> None:
+    cloud = load_scenario(scenario).point_cloud
+    building = cloud.xyz[cloud.classification == BUILDING]
+    lo = building[:, :2].min(0) - 4 * RES_M
+    cell = np.floor((building[:, :2] - lo) / RES_M).astype(int)
+    shape = cell.max(0) + 5
+    top = np.full(shape, -1e4)
+    np.maximum.at(top, (cell[:, 0], cell[:, 1]), building[:, 2])
+    top = ndimage.grey_erosion(ndimage.grey_dilation(top, size=(3, 3)), size=(3, 3))
+    HEIGHTS.update(lo=torch.tensor(lo, dtype=torch.float32), top=torch.tensor(top, dtype=torch.float32).reshape(-1),
+                   nx=int(shape[0]), ny=int(shape[1]))
+    print(f"[second leg] height map {tuple(int(n) for n in shape)}, {(top > -1e3).mean():.0%} under roofs", file=sys.stderr)
+
+
+def blocked_fraction(p: torch.Tensor, offset: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
+    """Share ``[J]`` of the segment points from samples ``p [J, 3]`` along ``offset [J, 3]`` below a roof."""
+    lo, top, nx, ny = HEIGHTS["lo"].to(p.device), HEIGHTS["top"].to(p.device), HEIGHTS["nx"], HEIGHTS["ny"]
+    start = (SKIP_M / dist).clamp(max=0.5)
+    out = torch.zeros_like(dist)
+    for k in range(POINTS):  # a handful of points per pair, each vectorised over every pair
+        q = p + (start + (0.95 - start) * (k / (POINTS - 1)))[:, None] * offset
+        ix = ((q[:, 0] - lo[0]) / RES_M).long().clamp(0, nx - 1)
+        iy = ((q[:, 1] - lo[1]) / RES_M).long().clamp(0, ny - 1)
+        out += (top.index_select(0, ix * ny + iy) > q[:, 2] + MARGIN_M).to(out.dtype)
+    return out / POINTS
+
+
+_init = F.RadianceDecoder.__init__
+
+
+def init_with_leg(self, *args, **kwargs):
+    _init(self, *args, **kwargs)
+    self.leg_w = nn.Parameter(torch.tensor(LEG_W0))
+
+
+def pairs_with_leg(self, part, points, along_m, queries, join_query, join_sample, surface):
+    """:meth:`RadianceDecoder._pairs` with the second leg's blockage taken off the log-amplitude."""
+    frame = self.frame
+    along = along_m.index_select(0, join_sample)
+    p = points.index_select(0, join_sample)
+    offset = queries.grid_xyz.index_select(0, join_query) - p
+    dist = offset.norm(dim=-1).clamp_min(1e-3)
+    footprint = (along * part.radius.index_select(0, join_query)).clamp_min(self.step_m)
+    miss = torch.log1p(dist / footprint)
+    hidden = part.sample.index_select(0, join_sample)
+    hidden += part.query.index_select(0, join_query)
+    if self.pair_in is not None:
+        direction = part.direction.index_select(0, join_query)
+        surface_j = None if surface is None else surface.index_select(0, join_sample)
+        pair = self._pair_inputs(offset / dist[:, None], dist, along, miss, direction, surface_j)
+        if torch.is_grad_enabled():
+            hidden += self.pair_in(pair)
+        else:
+            hidden.addmm_(pair, self.pair_in.weight.T)
+    out = self.mlp(hidden.relu_())
+    log_wl = part.log_wl.index_select(0, join_query)
+    log_spread = log_wl + torch.log(frame.reference_distance_m / (along + dist).clamp_min(self.step_m))
+    log_spread = log_spread - self.source_decay * miss
+    with torch.no_grad():
+        blocked = blocked_fraction(p, offset, dist)
+    log_spread = log_spread - self.leg_w * blocked
+    return torch.exp(torch.complex(out[:, 0] + self.log_amp0 + log_spread, out[:, 1]))
+
+
+if NO_GRID_FEATURES:
+    F.RadianceDecoder._query_inputs = query_inputs_without_grid
+if CSI_WEIGHT != 1.0:
+    M.RFLSCM._loss = loss_noting_ssb
+    M.lscm_loss = weighted_lscm_loss
+if SECOND_LEG:
+    build_heights(SECOND_LEG)
+    F.RadianceDecoder.__init__ = init_with_leg
+    F.RadianceDecoder._pairs = pairs_with_leg
+
+if __name__ == "__main__":
+    from rflscm.cli import main
+
+    sys.argv[0] = "rflscm"
+    main()
