@@ -10,6 +10,10 @@ this way with the same script and the same variables, since the variants change 
 
 * ``NO_GRID_FEATURES=1``: the decoder's 𝓜(p_l) (the feature field at the grid) is fed as zeros.
 * ``CSI_WEIGHT=W``: the squared fidelity error of the CSI-RS reports counts W times (the SSB reports once).
+* ``PAIR_LEVEL=K``: in every training loss each pair's predictions are first moved by its shrunk mean error in bels
+  over its reported beams, b = Σ e / (k + K) (k reports; not differentiated), so the field is fitted to each pair's
+  reports after a per-pair level that a prior of weight K holds toward 0: the profile of a MAP fit with a free level
+  per pair. K = σ²/τ², the report noise over the spread of the pairs' level errors (the anchors measure 2–9).
 * ``SECOND_LEG=SCENARIO``: a 2.5-D building height map of SCENARIO's point cloud (the highest building point per
   2 m cell, closed over 3 × 3 cells to fill the scan's gaps) tells, for each (query, sample) pair, which of 6 points
   on the segment from the sample to the grid (from 3 m off the sample to 95 % of the way) lie more than 0.5 m below
@@ -17,7 +21,8 @@ this way with the same script and the same variables, since the variants change 
   10 dB of power for a fully blocked second leg). The rendering's transmittance covers only the antenna-to-sample
   leg; this is a geometric cue for the other one.
 
-DECISIONS, "Decoder inputs and the second leg" (issue 28, deliverable 2).
+DECISIONS, "Decoder inputs, the CSI-RS weight and the second leg" and "Each pair's level profiled out of the training
+loss" (issue 28, deliverable 2).
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ from rflscm.models.rflscm import model as M
 NO_GRID_FEATURES = os.environ.get("NO_GRID_FEATURES") == "1"
 CSI_WEIGHT = float(os.environ.get("CSI_WEIGHT", "1"))
 SECOND_LEG = os.environ.get("SECOND_LEG", "")
+PAIR_LEVEL = float(os.environ.get("PAIR_LEVEL", "0"))
 RES_M, POINTS, SKIP_M, MARGIN_M, LEG_W0 = 2.0, 6, 3.0, 0.5, 1.15
 BUILDING = 6  # ASPRS class
 
@@ -67,6 +73,18 @@ def weighted_lscm_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity="log
     out["fidelity"] = out["fidelity"] + extra
     out["total"] = out["total"] + extra
     return out
+
+
+# --- PAIR_LEVEL -----------------------------------------------------------------------------------------------------
+def level_free_lscm_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity="log", sparsity_weight=1e-3,
+                         penalty_weight=0.5, floor=1e-12):
+    with torch.no_grad():
+        observed = beam_mask & ~torch.isnan(rsrp)
+        err = torch.log10(pred + floor) - torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
+        err = torch.where(observed, err, torch.zeros_like(err))
+        level = err.sum(1) / (observed.sum(1) + PAIR_LEVEL)  # bels
+    return _level_loss(pred * torch.pow(10.0, -level)[:, None], rsrp, beam_mask, aps, x_scale, bound, fidelity,
+                       sparsity_weight, penalty_weight, floor)
 
 
 # --- SECOND_LEG -----------------------------------------------------------------------------------------------------
@@ -142,6 +160,9 @@ if NO_GRID_FEATURES:
 if CSI_WEIGHT != 1.0:
     M.RFLSCM._loss = loss_noting_ssb
     M.lscm_loss = weighted_lscm_loss
+if PAIR_LEVEL > 0:
+    _level_loss = M.lscm_loss  # after CSI_WEIGHT's patch, so the two compose
+    M.lscm_loss = level_free_lscm_loss
 if SECOND_LEG:
     build_heights(SECOND_LEG)
     F.RadianceDecoder.__init__ = init_with_leg
