@@ -14,6 +14,8 @@ this way with the same script and the same variables, since the variants change 
   over its reported beams, b = Σ e / (k + K) (k reports; not differentiated), so the field is fitted to each pair's
   reports after a per-pair level that a prior of weight K holds toward 0: the profile of a MAP fit with a free level
   per pair. K = σ²/τ², the report noise over the spread of the pairs' level errors (the anchors measure 2–9).
+  ``PAIR_LEVEL_PER_REPORT=c`` adds c × k to K: a share c / (1 + c) of each pair's mean error stays in the loss
+  whatever its report count; with ``PAIR_LEVEL_MAX=1``, K = max(PAIR_LEVEL, c × k) instead of the sum.
 * ``SECOND_LEG=SCENARIO``: a 2.5-D building height map of SCENARIO's point cloud (the highest building point per
   2 m cell, closed over 3 × 3 cells to fill the scan's gaps) tells, for each (query, sample) pair, which of 6 points
   on the segment from the sample to the grid (from 3 m off the sample to 95 % of the way) lie more than 0.5 m below
@@ -43,6 +45,8 @@ NO_GRID_FEATURES = os.environ.get("NO_GRID_FEATURES") == "1"
 CSI_WEIGHT = float(os.environ.get("CSI_WEIGHT", "1"))
 SECOND_LEG = os.environ.get("SECOND_LEG", "")
 PAIR_LEVEL = float(os.environ.get("PAIR_LEVEL", "0"))
+PAIR_LEVEL_PER_REPORT = float(os.environ.get("PAIR_LEVEL_PER_REPORT", "0"))
+PAIR_LEVEL_MAX = os.environ.get("PAIR_LEVEL_MAX") == "1"
 RES_M, POINTS, SKIP_M, MARGIN_M, LEG_W0 = 2.0, 6, 3.0, 0.5, 1.15
 BUILDING = 6  # ASPRS class
 
@@ -82,7 +86,10 @@ def level_free_lscm_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity="l
         observed = beam_mask & ~torch.isnan(rsrp)
         err = torch.log10(pred + floor) - torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
         err = torch.where(observed, err, torch.zeros_like(err))
-        level = err.sum(1) / (observed.sum(1) + PAIR_LEVEL)  # bels
+        k = observed.sum(1)
+        prior = PAIR_LEVEL_PER_REPORT * k
+        prior = prior.clamp(min=PAIR_LEVEL) if PAIR_LEVEL_MAX else prior + PAIR_LEVEL
+        level = err.sum(1) / (k + prior)  # bels
     return _level_loss(pred * torch.pow(10.0, -level)[:, None], rsrp, beam_mask, aps, x_scale, bound, fidelity,
                        sparsity_weight, penalty_weight, floor)
 
@@ -160,7 +167,7 @@ if NO_GRID_FEATURES:
 if CSI_WEIGHT != 1.0:
     M.RFLSCM._loss = loss_noting_ssb
     M.lscm_loss = weighted_lscm_loss
-if PAIR_LEVEL > 0:
+if PAIR_LEVEL > 0 or PAIR_LEVEL_PER_REPORT > 0:
     _level_loss = M.lscm_loss  # after CSI_WEIGHT's patch, so the two compose
     M.lscm_loss = level_free_lscm_loss
 if SECOND_LEG:

@@ -97,3 +97,53 @@ def test_top_n_penalty_is_zero_for_a_prediction_that_respects_the_per_report_bou
         assert float(lscm_loss(*args, bound=to_lin(-120.0), fidelity=form)["penalty"]) > 0.0  # r_th would punish it
         over = to_lin(np.where(np.isnan(rsrp_dbm), bound_dbm + 3.0, rsrp_dbm))
         assert float(lscm_loss(over, *args[1:], bound=to_lin(bound_dbm), fidelity=form)["penalty"]) > 0.0
+
+
+def test_shape_form_moves_each_pair_by_its_shrunk_level() -> None:
+    """``shape``: each pair's errors first move by b = (1 − s) ē; its fidelity is Σ (e − b)² and its missing-beam
+    penalty reads the moved predictions."""
+    from rflscm.models.rflscm.losses import LEVEL_KEPT
+
+    pred, rsrp, mask, aps, scale = setup()
+    out = lscm_loss(pred, rsrp, mask, aps, scale, 0.05, "shape", sparsity_weight=0.1, penalty_weight=0.5, floor=0.0)
+    e1, e2 = [0.0, math.log10(0.1)], [math.log10(2.0)]
+    b1, b2 = (1 - LEVEL_KEPT) * sum(e1) / 2, (1 - LEVEL_KEPT) * e2[0]
+    fid = (sum((e - b1) ** 2 for e in e1) + (e2[0] - b2) ** 2) / 2
+    pen = ((math.log10(0.5 / 0.05) - b1) ** 2 + (math.log10(1.0 / 0.05) - b2) ** 2) / 2
+    assert math.isclose(float(out["fidelity"]), fid, rel_tol=1e-5)
+    assert math.isclose(float(out["penalty"]), pen, rel_tol=1e-5)
+    log = lscm_loss(pred, rsrp, mask, aps, scale, 0.05, "log", sparsity_weight=0.1, penalty_weight=0.5, floor=0.0)
+    assert math.isclose(float(out["sparsity"]), float(log["sparsity"]))  # the APS itself is not moved
+
+
+def test_shape_form_keeps_a_share_of_a_common_error_and_all_of_a_difference() -> None:
+    """A pair whose k beams are all c bels off keeps the share s of its error whatever k; the gradient of a
+    difference between its beams is the log form's."""
+    from rflscm.models.rflscm.losses import LEVEL_KEPT
+
+    c = 0.5
+    for k in (1, 4, 40):
+        common = torch.full((1, k), 10.0**c)
+        out = lscm_loss(
+            common,
+            torch.ones(1, k),
+            torch.ones(1, k, dtype=torch.bool),
+            common,
+            torch.ones(1),
+            0.05,
+            "shape",
+            0.0,
+            0.0,
+            floor=0.0,
+        )
+        assert math.isclose(float(out["fidelity"]), k * (c * LEVEL_KEPT) ** 2, rel_tol=1e-5)
+    k = 4
+    rsrp = torch.ones(1, k)
+    mask = torch.ones(1, k, dtype=torch.bool)
+    spread = torch.tensor([[10.0**c, 10.0**-c, 1.0, 1.0]], requires_grad=True)  # no common error: b = 0
+    grads = []
+    for form in ("shape", "log"):
+        lscm_loss(spread, rsrp, mask, spread, torch.ones(1), 0.05, form, 0.0, 0.0, floor=0.0)["total"].backward()
+        grads.append(spread.grad.clone())
+        spread.grad = None
+    torch.testing.assert_close(grads[0], grads[1])

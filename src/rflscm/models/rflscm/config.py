@@ -278,8 +278,11 @@ class LossConfig:
     }
     """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
 
-    fidelity: Literal["linear", "log"] = "log"
-    """‖r − A x̃‖² in normalised linear power (paper) or in bels (dB/10)."""
+    fidelity: Literal["linear", "log", "shape"] = "shape"
+    """‖r − A x̃‖² in normalised linear power (paper), in bels (dB/10), or in bels after each pair's own level
+    (``shape``, the default: the predictions of each pair first move by all but the share
+    :data:`~rflscm.models.rflscm.losses.LEVEL_KEPT` of its mean error on its reports, so the field learns the
+    pairs' relative beam levels and the anchors after training their levels)."""
     missing_penalty: float = 0.5
     """α_P (one-sided penalty on missing beams predicted above r_th)."""
 

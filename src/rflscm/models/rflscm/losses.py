@@ -11,6 +11,14 @@ decades, and the linear form lets the strongest pairs dominate; its missing-beam
 compares bels too, and its L1 term is measured relative to each pair's own power scale
 (``x_scale``, the least APS power that explains the strongest observed beam), so that weak and
 strong pairs are regularised alike.
+
+``fidelity="shape"`` is the log form after each pair's own level: every pair's predictions first move by
+b = (1 − s) ē bels, ē its mean log error over its reported beams and s = :data:`LEVEL_KEPT` (not differentiated),
+so the gradient keeps the share s of a pair's common error and all of the differences between its beams.  The field
+then learns each pair's relative beam levels rather than bending its angular shape to the pairs' level errors
+(shadowing, UE positions, a report's bias shared by its beams); the pair anchors after training set each pair's
+level from its reports.  It is the profile of a fit with a free level per pair under a prior that weighs as much as
+a quarter of the pair's reports (docs/DECISIONS.md, "Each pair's level profiled out of the training loss").
 """
 
 from __future__ import annotations
@@ -18,6 +26,10 @@ from __future__ import annotations
 from typing import Literal
 
 import torch
+
+LEVEL_KEPT = 0.2
+"""The share of each pair's mean log error that ``fidelity="shape"`` keeps (a prior on the pair's level worth a
+quarter of its reports; a prior of one report lost 0.17 dB on SSB in the ideal regime: DECISIONS)."""
 
 
 def lscm_loss(
@@ -27,7 +39,7 @@ def lscm_loss(
     aps: torch.Tensor,
     x_scale: torch.Tensor,
     bound: torch.Tensor,
-    fidelity: Literal["linear", "log"] = "log",
+    fidelity: Literal["linear", "log", "shape"] = "log",
     sparsity_weight: float = 1e-3,
     penalty_weight: float = 0.5,
     floor: float = 1e-12,
@@ -54,6 +66,9 @@ def lscm_loss(
     missing = beam_mask & torch.isnan(rsrp) & ~torch.isnan(bound)
     bound = torch.where(missing, bound, torch.ones_like(bound))
     num_pairs = max(pred.shape[0], 1)
+    if fidelity == "shape":
+        pred = pred * torch.pow(10.0, -pair_level(pred, rsrp, observed, floor))[:, None]
+        fidelity = "log"
     if fidelity == "log":
         pred_b = torch.log10(pred + floor)
         rsrp_b = torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
@@ -71,6 +86,15 @@ def lscm_loss(
     sparsity = sparsity_weight * l1 / num_pairs
     total = fid + sparsity + penalty_weight * pen
     return {"total": total, "fidelity": fid, "sparsity": sparsity, "penalty": pen}
+
+
+@torch.no_grad()
+def pair_level(pred: torch.Tensor, rsrp: torch.Tensor, observed: torch.Tensor, floor: float = 1e-12) -> torch.Tensor:
+    """Each pair's shrunk mean log error b = (1 − :data:`LEVEL_KEPT`) ē ``[num_pairs]`` [bels] over its
+    ``observed [num_pairs, num_beams]`` beams (0 for a pair without any)."""
+    err = torch.log10(pred + floor) - torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
+    err = torch.where(observed, err, torch.zeros_like(err))
+    return (1.0 - LEVEL_KEPT) * err.sum(1) / observed.sum(1).clamp(min=1)
 
 
 def mae_db(pred: torch.Tensor, rsrp: torch.Tensor, mask: torch.Tensor, floor: float = 1e-12) -> torch.Tensor:
