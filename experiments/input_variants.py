@@ -8,6 +8,13 @@ this way with the same script and the same variables, since the variants change 
     CSI_WEIGHT=2 PYTHONPATH=src python experiments/input_variants.py --threads 1 train SCENARIO --minutes 10 --out B.ckpt
     SECOND_LEG=SCENARIO PYTHONPATH=src python experiments/input_variants.py --threads 1 train SCENARIO --minutes 10 --out C.ckpt
 
+The model's ``loss.fidelity: shape`` is ``PAIR_LEVEL_PER_REPORT=0.25`` made an option (`d521757` made it the
+default for one commit, at which the runs of ``LEVEL_KEPT`` and ``LEVEL_NOISE_K`` in DECISIONS were made); either of
+those two variables switches a log fidelity to ``shape`` and changes its level.
+
+* ``LEVEL_KEPT=s``: the model's shape fidelity keeps the share s of each pair's mean error (1: the log form).
+* ``LEVEL_NOISE_K=K``: the shape fidelity removes the share K / (k + K) of a pair's mean error instead (the part of
+  it that k reports with independent errors leave uncertain: few reports, mostly removed; many, mostly kept).
 * ``NO_GRID_FEATURES=1``: the decoder's 𝓜(p_l) (the feature field at the grid) is fed as zeros.
 * ``CSI_WEIGHT=W``: the squared fidelity error of the CSI-RS reports counts W times (the SSB reports once).
 * ``PAIR_LEVEL=K``: in every training loss each pair's predictions are first moved by its shrunk mean error in bels
@@ -39,6 +46,7 @@ from torch import nn
 
 from rflscm.data import load_scenario
 from rflscm.models.rflscm import fields as F
+from rflscm.models.rflscm import losses as L
 from rflscm.models.rflscm import model as M
 
 NO_GRID_FEATURES = os.environ.get("NO_GRID_FEATURES") == "1"
@@ -47,6 +55,8 @@ SECOND_LEG = os.environ.get("SECOND_LEG", "")
 PAIR_LEVEL = float(os.environ.get("PAIR_LEVEL", "0"))
 PAIR_LEVEL_PER_REPORT = float(os.environ.get("PAIR_LEVEL_PER_REPORT", "0"))
 PAIR_LEVEL_MAX = os.environ.get("PAIR_LEVEL_MAX") == "1"
+LEVEL_KEPT = os.environ.get("LEVEL_KEPT", "")
+LEVEL_NOISE_K = float(os.environ.get("LEVEL_NOISE_K", "0"))
 RES_M, POINTS, SKIP_M, MARGIN_M, LEG_W0 = 2.0, 6, 3.0, 0.5, 1.15
 BUILDING = 6  # ASPRS class
 
@@ -92,6 +102,20 @@ def level_free_lscm_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity="l
         level = err.sum(1) / (k + prior)  # bels
     return _level_loss(pred * torch.pow(10.0, -level)[:, None], rsrp, beam_mask, aps, x_scale, bound, fidelity,
                        sparsity_weight, penalty_weight, floor)
+
+
+# --- LEVEL_KEPT, LEVEL_NOISE_K (the model's shape fidelity) ---------------------------------------------------------
+def shape_lscm_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity="log", *args, **kwargs):
+    return _shape_loss(pred, rsrp, beam_mask, aps, x_scale, bound, "shape" if fidelity == "log" else fidelity, *args,
+                       **kwargs)
+
+
+@torch.no_grad()
+def noise_pair_level(pred, rsrp, observed, floor=1e-12):
+    err = torch.log10(pred + floor) - torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
+    err = torch.where(observed, err, torch.zeros_like(err))
+    k = observed.sum(1)
+    return err.sum(1) / k.clamp(min=1) * LEVEL_NOISE_K / (k + LEVEL_NOISE_K)
 
 
 # --- SECOND_LEG -----------------------------------------------------------------------------------------------------
@@ -170,6 +194,13 @@ if CSI_WEIGHT != 1.0:
 if PAIR_LEVEL > 0 or PAIR_LEVEL_PER_REPORT > 0:
     _level_loss = M.lscm_loss  # after CSI_WEIGHT's patch, so the two compose
     M.lscm_loss = level_free_lscm_loss
+if LEVEL_KEPT:
+    L.LEVEL_KEPT = float(LEVEL_KEPT)
+if LEVEL_NOISE_K > 0:
+    L.pair_level = noise_pair_level
+if LEVEL_KEPT or LEVEL_NOISE_K > 0:
+    _shape_loss = M.lscm_loss
+    M.lscm_loss = shape_lscm_loss
 if SECOND_LEG:
     build_heights(SECOND_LEG)
     F.RadianceDecoder.__init__ = init_with_leg

@@ -121,6 +121,11 @@ def test_option_changes_the_run(scenario, reference, section: str, key: str, val
     assert run(scenario, section, key, value) != reference
 
 
+def test_the_shape_fidelity_changes_the_run_too(scenario, reference) -> None:
+    """``loss.fidelity`` has a third value (CHANGES lists one per option): each pair's level mostly profiled out."""
+    assert run(scenario, "loss", "fidelity", "shape") not in (reference, run(scenario, "loss", "fidelity", "linear"))
+
+
 @pytest.mark.parametrize(("section", "key", "value"), NEUTRAL, ids=[f"{s}.{k}" for s, k, _ in NEUTRAL])
 def test_memory_and_io_options_leave_the_results_alone(scenario, reference, section: str, key: str, value) -> None:
     assert run(scenario, section, key, value) == reference
