@@ -15,6 +15,11 @@ those two variables switches a log fidelity to ``shape`` and changes its level.
 * ``LEVEL_KEPT=s``: the model's shape fidelity keeps the share s of each pair's mean error (1: the log form).
 * ``LEVEL_NOISE_K=K``: the shape fidelity removes the share K / (k + K) of a pair's mean error instead (the part of
   it that k reports with independent errors leave uncertain: few reports, mostly removed; many, mostly kept).
+* ``GRID_LEVEL=s``: the level is each *grid's* instead of each pair's: a running mean of the log errors of every
+  pair of the grid (all cells, both beam types) that the last batches saw, decayed by ``GRID_DECAY`` a step and kept
+  per HiTAM stage; a pair's predictions move by (1 − s) times its grid's. The cells' levels relative to each other at
+  a grid stay in the loss (they carry the directions from each cell toward the grid); what UE positions and the
+  grid's own shadowing add to every cell alike is mostly profiled out.
 * ``NO_GRID_FEATURES=1``: the decoder's 𝓜(p_l) (the feature field at the grid) is fed as zeros.
 * ``CSI_WEIGHT=W``: the squared fidelity error of the CSI-RS reports counts W times (the SSB reports once).
 * ``PAIR_LEVEL=K``: in every training loss each pair's predictions are first moved by its shrunk mean error in bels
@@ -57,6 +62,8 @@ PAIR_LEVEL_PER_REPORT = float(os.environ.get("PAIR_LEVEL_PER_REPORT", "0"))
 PAIR_LEVEL_MAX = os.environ.get("PAIR_LEVEL_MAX") == "1"
 LEVEL_KEPT = os.environ.get("LEVEL_KEPT", "")
 LEVEL_NOISE_K = float(os.environ.get("LEVEL_NOISE_K", "0"))
+GRID_LEVEL = os.environ.get("GRID_LEVEL", "")
+GRID_DECAY = 0.95  # per step: a grid's ~3.5 pairs come back about every 11 steps in the shipped scenario
 RES_M, POINTS, SKIP_M, MARGIN_M, LEG_W0 = 2.0, 6, 3.0, 0.5, 1.15
 BUILDING = 6  # ASPRS class
 
@@ -116,6 +123,34 @@ def noise_pair_level(pred, rsrp, observed, floor=1e-12):
     err = torch.where(observed, err, torch.zeros_like(err))
     k = observed.sum(1)
     return err.sum(1) / k.clamp(min=1) * LEVEL_NOISE_K / (k + LEVEL_NOISE_K)
+
+
+# --- GRID_LEVEL ------------------------------------------------------------------------------------------------------
+_GRID_STATE: dict = {}
+
+
+def grid_level_loss(self, a_sel, x, pairs):
+    d, c = self._training().data, self.config.loss
+    pred = torch.einsum("bmk,bk->bm", a_sel, x)
+    rsrp, mask = d.rsrp[pairs], d.beam_mask[pairs]
+    floor = 10.0 ** (M.FLOOR_DB / 10.0)
+    with torch.no_grad():
+        state = _GRID_STATE.setdefault(id(d), {})
+        if "grid" not in state:
+            state["grid"] = torch.as_tensor(np.unique(d.grid_ids, return_inverse=True)[1], device=pred.device)
+        grid = state["grid"][pairs]
+        observed = mask & ~torch.isnan(rsrp)
+        err = torch.log10(pred + floor) - torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
+        err = torch.where(observed, err, torch.zeros_like(err))
+        size = int(state["grid"].max()) + 1
+        sums, counts = state.setdefault(a_sel.shape[-1], (torch.zeros(size, device=pred.device),
+                                                          torch.zeros(size, device=pred.device)))  # per stage
+        sums.mul_(GRID_DECAY).index_add_(0, grid, err.sum(1))
+        counts.mul_(GRID_DECAY).index_add_(0, grid, observed.sum(1).to(sums.dtype))
+        level = (1.0 - float(GRID_LEVEL)) * sums[grid] / counts[grid].clamp(min=1e-6)
+    pred = pred * torch.pow(10.0, -level)[:, None]
+    return M.lscm_loss(pred, rsrp, mask, x, d.x_scale[pairs], d.bound[pairs], c.fidelity, M.SPARSITY,
+                       c.missing_penalty, floor=floor)
 
 
 # --- SECOND_LEG -----------------------------------------------------------------------------------------------------
@@ -201,6 +236,8 @@ if LEVEL_NOISE_K > 0:
 if LEVEL_KEPT or LEVEL_NOISE_K > 0:
     _shape_loss = M.lscm_loss
     M.lscm_loss = shape_lscm_loss
+if GRID_LEVEL:
+    M.RFLSCM._loss = grid_level_loss
 if SECOND_LEG:
     build_heights(SECOND_LEG)
     F.RadianceDecoder.__init__ = init_with_leg
