@@ -6,6 +6,7 @@ import math
 
 import torch
 
+from rflscm.models.rflscm.losses import LEVEL_KEPT
 from rflscm.train import lscm_loss, mae_db
 
 NAN = float("nan")
@@ -102,8 +103,6 @@ def test_top_n_penalty_is_zero_for_a_prediction_that_respects_the_per_report_bou
 def test_shape_form_moves_each_pair_by_its_shrunk_level() -> None:
     """``shape``: each pair's errors first move by b = (1 − s) ē; its fidelity is Σ (e − b)² and its missing-beam
     penalty reads the moved predictions."""
-    from rflscm.models.rflscm.losses import LEVEL_KEPT
-
     pred, rsrp, mask, aps, scale = setup()
     out = lscm_loss(pred, rsrp, mask, aps, scale, 0.05, "shape", sparsity_weight=0.1, penalty_weight=0.5, floor=0.0)
     e1, e2 = [0.0, math.log10(0.1)], [math.log10(2.0)]
@@ -119,8 +118,6 @@ def test_shape_form_moves_each_pair_by_its_shrunk_level() -> None:
 def test_shape_form_keeps_a_share_of_a_common_error_and_all_of_a_difference() -> None:
     """A pair whose k beams are all c bels off keeps the share s of its error whatever k; the gradient of a
     difference between its beams is the log form's."""
-    from rflscm.models.rflscm.losses import LEVEL_KEPT
-
     c = 0.5
     for k in (1, 4, 40):
         common = torch.full((1, k), 10.0**c)
