@@ -101,8 +101,7 @@ def level_free_lscm_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity="l
                          penalty_weight=0.5, floor=1e-12):
     with torch.no_grad():
         observed = beam_mask & ~torch.isnan(rsrp)
-        err = torch.log10(pred + floor) - torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
-        err = torch.where(observed, err, torch.zeros_like(err))
+        err = L.log_errors(pred, rsrp, observed, floor)
         k = observed.sum(1)
         prior = PAIR_LEVEL_PER_REPORT * k
         prior = prior.clamp(min=PAIR_LEVEL) if PAIR_LEVEL_MAX else prior + PAIR_LEVEL
@@ -119,8 +118,7 @@ def shape_lscm_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity="log", 
 
 @torch.no_grad()
 def noise_pair_level(pred, rsrp, observed, floor=1e-12):
-    err = torch.log10(pred + floor) - torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
-    err = torch.where(observed, err, torch.zeros_like(err))
+    err = L.log_errors(pred, rsrp, observed, floor)
     k = observed.sum(1)
     return err.sum(1) / k.clamp(min=1) * LEVEL_NOISE_K / (k + LEVEL_NOISE_K)
 
@@ -140,8 +138,7 @@ def grid_level_loss(self, a_sel, x, pairs):
             state["grid"] = torch.as_tensor(np.unique(d.grid_ids, return_inverse=True)[1], device=pred.device)
         grid = state["grid"][pairs]
         observed = mask & ~torch.isnan(rsrp)
-        err = torch.log10(pred + floor) - torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
-        err = torch.where(observed, err, torch.zeros_like(err))
+        err = L.log_errors(pred, rsrp, observed, floor)
         size = int(state["grid"].max()) + 1
         sums, counts = state.setdefault(a_sel.shape[-1], (torch.zeros(size, device=pred.device),
                                                           torch.zeros(size, device=pred.device)))  # per stage

@@ -89,12 +89,17 @@ def lscm_loss(
     return {"total": total, "fidelity": fid, "sparsity": sparsity, "penalty": pen}
 
 
+def log_errors(pred: torch.Tensor, rsrp: torch.Tensor, observed: torch.Tensor, floor: float = 1e-12) -> torch.Tensor:
+    """log10(pred + floor) − log10(r) ``[num_pairs, num_beams]`` [bels] on the ``observed`` beams, 0 elsewhere."""
+    err = torch.log10(pred + floor) - torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
+    return torch.where(observed, err, torch.zeros_like(err))
+
+
 @torch.no_grad()
 def pair_level(pred: torch.Tensor, rsrp: torch.Tensor, observed: torch.Tensor, floor: float = 1e-12) -> torch.Tensor:
     """Each pair's shrunk mean log error b = (1 − :data:`LEVEL_KEPT`) ē ``[num_pairs]`` [bels] over its
     ``observed [num_pairs, num_beams]`` beams (0 for a pair without any)."""
-    err = torch.log10(pred + floor) - torch.log10(torch.where(observed, rsrp, torch.ones_like(rsrp)))
-    err = torch.where(observed, err, torch.zeros_like(err))
+    err = log_errors(pred, rsrp, observed, floor)
     return (1.0 - LEVEL_KEPT) * err.sum(1) / observed.sum(1).clamp(min=1)
 
 
