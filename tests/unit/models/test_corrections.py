@@ -129,7 +129,7 @@ def test_within_a_deadline_the_pass_corrects_the_pairs_that_fit_and_the_rest_kee
 ) -> None:
     """Every rendered pair costs 10 ms of a fake clock. The level's pairs come first, then chunks of the others while the
     slowest chunk so far (× CHUNK_MARGIN) still fits; pairs left over have no anchor; with time enough, every pair
-    gets the anchor a pass without a deadline gives it (its own median: the pull toward the cell's mean, measured on
+    gets the anchor a pass without a deadline gives it (its own mean: the pull toward the cell's mean, measured on
     the pairs a pass corrects, is left out here; its own tests are in test_anchors.py)."""
     from rflscm.models.rflscm.corrections import LEVEL_PAIRS_PER_CELL, PAIR_CHUNK
 

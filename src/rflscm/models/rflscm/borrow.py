@@ -3,7 +3,7 @@
 Within a budget the pass after training (:mod:`~rflscm.models.rflscm.corrections`) renders and corrects as many
 training pairs as fit; the others are answered without a render of their own: by WNOMP's APS of their reports
 (:mod:`.fallback`), or, here, by the field's APS at the nearest grid of the same cell that the pass rendered, shifted
-by the pair's own anchor (the median error left on its own round-1 reports after the cell's level).  Grids a few
+by the pair's own anchor (the mean error left on its own round-1 reports after the cell's level).  Grids a few
 metres apart see their cell through the same streets, so the neighbour's angular shape is close to the pair's own,
 and the pair's reports pin its level, which a field trained briefly gets wrong first (the anchor's reason).  It costs
 a nearest-neighbour query and the borrowed APS's predicted reports, no render; the pass chooses it for the pairs it
@@ -19,6 +19,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from rflscm.models.pairs import PairData
+from rflscm.models.rflscm.anchors import report_mean
 from rflscm.models.rflscm.fallback import predicted_reports
 
 
@@ -61,11 +62,7 @@ def borrowed_reports(
 def own_anchor(
     measured: torch.Tensor, predicted: torch.Tensor, mask: torch.Tensor, level_db: torch.Tensor
 ) -> torch.Tensor:
-    """``[T]`` [dB] each pair's anchor: the median of (measured − predicted) [dB] less its ``level_db [T, M]`` over its
-    ``mask``-ed reports (0 where it has none)."""
+    """``[T]`` [dB] each pair's anchor: the mean of (measured − predicted) [dB] less its ``level_db [T, M]`` over its
+    ``mask``-ed reports (0 where it has none; :func:`~rflscm.models.rflscm.anchors.report_mean`)."""
     resid = 10.0 * torch.log10(measured / predicted.clamp_min(1e-30)) - level_db
-    values = torch.where(mask, resid, torch.nan).cpu().double().numpy()
-    anchor = np.zeros(len(values))
-    some = mask.any(1).cpu().numpy()
-    anchor[some] = np.nanmedian(values[some], axis=1)
-    return torch.as_tensor(anchor, dtype=resid.dtype, device=resid.device)
+    return report_mean(torch.where(mask, resid, torch.zeros_like(resid)), mask)

@@ -349,10 +349,10 @@ class CorrectionsConfig:
     """Correct each cell's SSB and CSI-RS predictions by the median error on its reported round-1 beams, measured
     after training (:mod:`~rflscm.models.rflscm.corrections`); the training itself is unchanged."""
     pair_anchors: bool = True
-    """Move each training pair's (cell, grid) predictions, in every round, by the median error that remains on
+    """Move each training pair's (cell, grid) predictions, in every round, by the mean error [dB] that remains on
     its own reported round-1 beams (:mod:`~rflscm.models.rflscm.corrections`): the field gives the
     angular shape and what a changed antenna does, the pair's own reports its level.  Where a pair has no
-    posterior, that median is pulled toward its cell's mean anchor by how much its few reports say
+    posterior, that mean is pulled toward its cell's mean anchor by how much its few reports say
     (:mod:`~rflscm.models.rflscm.anchors`).  Measured after training; pairs without round-1 reports (unseen
     grids) keep the field's level."""
     pair_posterior: bool = True

@@ -6,9 +6,9 @@ After training, predictions carry (each switched in the config's ``corrections``
   reported round-1 training beams of a few spread pairs per cell.  Under top-N or SINR reporting a model that
   cannot yet resolve the beams keeps every beam low to respect the bounds of the unreported ones, so its
   reported beams come out too weak; this removes that level error without touching the field;
-* an *anchor* per training pair (``pair_anchors``): the median error left on the pair's own reported round-1
+* an *anchor* per training pair (``pair_anchors``): the mean error [dB] left on the pair's own reported round-1
   beams (SSB and CSI-RS pooled, after the level).  An under-trained field gets the angular shape right long
-  before each grid's level; the pair's own reports pin that level.  Where the pair has no posterior, its median is
+  before each grid's level; the pair's own reports pin that level.  Where the pair has no posterior, its mean is
   pulled toward its cell's mean anchor as far as its few reports leave it uncertain (:mod:`.anchors`);
 * a *posterior* per training pair (``pair_posterior``): per-bin gains on the anchored APS fitting the same
   reports under a ridge prior centred on the field, λ chosen on held-aside reports (:mod:`.posterior`).
@@ -42,7 +42,7 @@ import torch
 from rflscm.data.pair_lookup import PairLookup
 from rflscm.errors import CheckpointError
 from rflscm.models.pairs import PairData
-from rflscm.models.rflscm.anchors import deviations, shrunk_anchors
+from rflscm.models.rflscm.anchors import deviations, report_mean, shrunk_anchors
 from rflscm.models.rflscm.borrow import borrowed_reports, nearest_of_cell, own_anchor
 from rflscm.models.rflscm.config import CorrectionsConfig
 from rflscm.models.rflscm.fallback import (
@@ -469,8 +469,8 @@ def fit_corrections(
         own = torch.cat(anchors[: len(spreads)])
         pulled, kappa = shrunk_anchors(own.cpu(), count, pool, data.cell_index[torch.cat(done)].cpu(), alone)
         anchors[: len(spreads)] = [pulled.to(own.device)]
-    median = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)
-    anchor_series = pd.Series(median, index=index, name="anchor_db") if cfg.pair_anchors else None
+    anchor_db = torch.cat(anchors).cpu().double().numpy() if anchors else np.zeros(0)
+    anchor_series = pd.Series(anchor_db, index=index, name="anchor_db") if cfg.pair_anchors else None
     solved = left_over  # WNOMP's APS of every later pair, before the pass's own pairs leave it
     if left_over is not None:
         left_over = left_over.without(index)
@@ -1084,8 +1084,7 @@ class _Fit:
             if levels is not None:
                 resid = resid - levels[cells][:, beam_type]
             mask = d.observed[batch]
-            median = np.nanmedian(torch.where(mask, resid, torch.nan).cpu().double().numpy(), axis=1)
-            anchor = torch.as_tensor(median, dtype=resid.dtype, device=resid.device)
+            anchor = report_mean(resid, mask)
             if self.cfg.pair_anchors:
                 resid = resid - anchor[:, None]
             chunk = _PairChunk(batch, anchor, resid, mask)
