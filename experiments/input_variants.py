@@ -20,6 +20,11 @@ those two variables switches a log fidelity to ``shape`` and changes its level.
   per HiTAM stage; a pair's predictions move by (1 − s) times its grid's. The cells' levels relative to each other at
   a grid stay in the loss (they carry the directions from each cell toward the grid); what UE positions and the
   grid's own shadowing add to every cell alike is mostly profiled out.
+* ``TYPE_LEVEL=1`` (with ``--set loss.fidelity=shape``): the shape fidelity's level per pair *and beam type*, so the
+  CSI-RS reports' level relative to the SSB ones at a pair is profiled out too.
+* ``CSI_OFFSET=d``: each cell's CSI-RS predictions in the training loss move by a running mean (decayed by d a step)
+  of its pairs' CSI-RS mean log error less their SSB one, not differentiated: a CSI-RS level per cell that the field
+  need not learn (after training the cell's CSI-RS level correction is fitted anyway).
 * ``NO_GRID_FEATURES=1``: the decoder's 𝓜(p_l) (the feature field at the grid) is fed as zeros.
 * ``CSI_WEIGHT=W``: the squared fidelity error of the CSI-RS reports counts W times (the SSB reports once).
 * ``PAIR_LEVEL=K``: in every training loss each pair's predictions are first moved by its shrunk mean error in bels
@@ -63,6 +68,8 @@ PAIR_LEVEL_MAX = os.environ.get("PAIR_LEVEL_MAX") == "1"
 LEVEL_KEPT = os.environ.get("LEVEL_KEPT", "")
 LEVEL_NOISE_K = float(os.environ.get("LEVEL_NOISE_K", "0"))
 GRID_LEVEL = os.environ.get("GRID_LEVEL", "")
+TYPE_LEVEL = os.environ.get("TYPE_LEVEL") == "1"
+CSI_OFFSET = os.environ.get("CSI_OFFSET", "")
 GRID_DECAY = 0.95  # per step: a grid's ~3.5 pairs come back about every 11 steps in the shipped scenario
 RES_M, POINTS, SKIP_M, MARGIN_M, LEG_W0 = 2.0, 6, 3.0, 0.5, 1.15
 BUILDING = 6  # ASPRS class
@@ -147,6 +154,59 @@ def grid_level_loss(self, a_sel, x, pairs):
         level = (1.0 - float(GRID_LEVEL)) * sums[grid] / counts[grid].clamp(min=1e-6)
     pred = pred * torch.pow(10.0, -level)[:, None]
     return M.lscm_loss(pred, rsrp, mask, x, d.x_scale[pairs], d.bound[pairs], c.fidelity, M.SPARSITY,
+                       c.missing_penalty, floor=floor)
+
+
+# --- TYPE_LEVEL (with loss.fidelity=shape) ---------------------------------------------------------------------------
+def type_level_lscm_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity="log", *args, **kwargs):
+    """The shape fidelity with a level per (pair, beam type): SSB and CSI-RS reports each after their own mean."""
+    if fidelity == "shape":
+        with torch.no_grad():
+            observed = beam_mask & ~torch.isnan(rsrp)
+            err = L.log_errors(pred, rsrp, observed, kwargs.get("floor", 1e-12))
+            ssb = torch.arange(pred.shape[1], device=pred.device) < _num_ssb[0]
+            level = torch.zeros_like(pred)
+            for part in (ssb, ~ssb):
+                on = observed & part[None, :]
+                mean = (err * on).sum(1) / on.sum(1).clamp(min=1)
+                level = torch.where(part[None, :], (1.0 - L.LEVEL_KEPT) * mean[:, None], level)
+        pred = pred * torch.pow(10.0, -level)
+        fidelity = "log"
+    return _type_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity, *args, **kwargs)
+
+
+# --- CSI_OFFSET (a running CSI-RS level per cell, not differentiated) -------------------------------------------------
+_CSI_STATE: dict = {}
+
+
+def csi_offset_loss(self, a_sel, x, pairs):
+    """Each cell's CSI-RS predictions moved by a running mean (decayed by CSI_OFFSET a step, per HiTAM stage) of its
+    pairs' CSI-RS mean log error less their SSB mean log error: the cell's CSI-RS level relative to its SSB one (the
+    top-4 selection of noisy CSI-RS reports biases them up) is profiled out of the field's training."""
+    train, c = self._training(), self.config.loss
+    d, num_ssb = train.data, int(train.num_ssb)
+    pred = torch.einsum("bmk,bk->bm", a_sel, x)
+    rsrp, mask = d.rsrp[pairs], d.beam_mask[pairs]
+    floor = 10.0 ** (M.FLOOR_DB / 10.0)
+    cells = d.cell_index[pairs]
+    with torch.no_grad():
+        observed = mask & ~torch.isnan(rsrp)
+        err = L.log_errors(pred, rsrp, observed, floor)
+        s_on, c_on = observed[:, :num_ssb], observed[:, num_ssb:]
+        both = s_on.any(1) & c_on.any(1)
+        diff = err[:, num_ssb:].sum(1) / c_on.sum(1).clamp(min=1) - err[:, :num_ssb].sum(1) / s_on.sum(1).clamp(min=1)
+        size = int(d.cell_index.max()) + 1
+        sums, counts = _CSI_STATE.setdefault(a_sel.shape[-1], (torch.zeros(size, device=pred.device),
+                                                               torch.zeros(size, device=pred.device)))
+        sums.mul_(float(CSI_OFFSET)).index_add_(0, cells[both], diff[both])
+        counts.mul_(float(CSI_OFFSET)).index_add_(0, cells[both], torch.ones_like(diff[both]))
+        offset = sums[cells] / counts[cells].clamp(min=1e-6)
+        _CSI_STATE["calls"] = _CSI_STATE.get("calls", 0) + 1
+        if _CSI_STATE["calls"] % 500 == 1:
+            print(f"[csi offset] call {_CSI_STATE['calls']}: mean {10 * float(offset.mean()):+.2f} dB", file=sys.stderr)
+    scale = torch.ones_like(pred)
+    scale[:, num_ssb:] = torch.pow(10.0, -offset)[:, None]
+    return M.lscm_loss(pred * scale, rsrp, mask, x, d.x_scale[pairs], d.bound[pairs], c.fidelity, M.SPARSITY,
                        c.missing_penalty, floor=floor)
 
 
@@ -235,6 +295,12 @@ if LEVEL_KEPT or LEVEL_NOISE_K > 0:
     M.lscm_loss = shape_lscm_loss
 if GRID_LEVEL:
     M.RFLSCM._loss = grid_level_loss
+if TYPE_LEVEL:
+    M.RFLSCM._loss = loss_noting_ssb
+    _type_loss = M.lscm_loss
+    M.lscm_loss = type_level_lscm_loss
+if CSI_OFFSET:
+    M.RFLSCM._loss = csi_offset_loss
 if SECOND_LEG:
     build_heights(SECOND_LEG)
     F.RadianceDecoder.__init__ = init_with_leg

@@ -278,12 +278,12 @@ class LossConfig:
     }
     """Keys removed from this section → (the value now hard-wired, a note for the error message)."""
 
-    fidelity: Literal["linear", "log", "shape"] = "log"
+    fidelity: Literal["linear", "log", "shape"] = "shape"
     """‖r − A x̃‖² in normalised linear power (paper), in bels (dB/10), or in bels after each pair's own level
-    (``shape``: the predictions of each pair first move by all but the share
+    (``shape``, the default: the predictions of each pair first move by all but the share
     :data:`~rflscm.models.rflscm.losses.LEVEL_KEPT` of its mean error on its reports, so the field learns the pairs'
-    relative beam levels and the anchors after training their levels; at 10 CPU-minutes better or level on the
-    shipped field scene and a 7-site city in both regimes, worse in B1 quick's one-site fits: docs/DECISIONS.md)."""
+    relative beam levels and the anchors after training their levels; at 10 CPU-minutes and in the demo's budget
+    better or level on three scenes in both regimes, worse in B1 quick's one-site fits: docs/DECISIONS.md)."""
     missing_penalty: float = 0.5
     """α_P (one-sided penalty on missing beams predicted above r_th)."""
 
