@@ -29,7 +29,7 @@ import torch
 
 LEVEL_KEPT = 0.2
 """The share of each pair's mean log error that ``fidelity="shape"`` keeps (a prior on the pair's level worth a
-quarter of its reports; a prior of one report lost 0.17 dB on SSB in the ideal regime, a share of 0.5 lost more on
+quarter of its reports; a prior of one report lost 0.18–0.19 dB on SSB in the ideal regime, a share of 0.5 lost more on
 etoile's: DECISIONS)."""
 
 
