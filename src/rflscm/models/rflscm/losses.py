@@ -12,8 +12,8 @@ compares bels too, and its L1 term is measured relative to each pair's own power
 (``x_scale``, the least APS power that explains the strongest observed beam), so that weak and
 strong pairs are regularised alike.
 
-``fidelity="shape"`` (the model's default) is the log form after each pair's own level: every pair's predictions
-first move by b = (1 − s) ē bels, ē its mean log error over its reported beams and s = :data:`LEVEL_KEPT` (not differentiated),
+``fidelity="shape"`` is the log form after each pair's own level: every pair's predictions first move by
+b = (1 − s) ē bels, ē its mean log error over its reported beams and s = :data:`LEVEL_KEPT` (not differentiated),
 so the gradient keeps the share s of a pair's common error and all of the differences between its beams.  The field
 then learns each pair's relative beam levels rather than bending its angular shape to the pairs' level errors
 (shadowing, UE positions, a report's bias shared by its beams); the pair anchors after training set each pair's
