@@ -1,5 +1,5 @@
 """How much of a checkpoint's round-2 error on the changed cells is a bias per (cell, beam) or a level per pair
-(issue 28; DECISIONS, "The shape fidelity is the default").
+(issue 28; DECISIONS, "The shape fidelity in the demos, B1 and B6").
 
 Usage (from the repository root; ``ORACLE=1`` scores the model floor's oracle, the truth of round 2's UE samples,
 instead of the checkpoint):
