@@ -65,4 +65,4 @@ def own_anchor(
     """``[T]`` [dB] each pair's anchor: the mean of (measured − predicted) [dB] less its ``level_db [T, M]`` over its
     ``mask``-ed reports (0 where it has none; :func:`~rflscm.models.rflscm.anchors.report_mean`)."""
     resid = 10.0 * torch.log10(measured / predicted.clamp_min(1e-30)) - level_db
-    return report_mean(torch.where(mask, resid, torch.zeros_like(resid)), mask)
+    return report_mean(resid, mask)
