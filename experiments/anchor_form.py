@@ -5,8 +5,11 @@ Usage (from the repository root, which puts ``pass_model.py`` on the path):
 
     PYTHONPATH=src python experiments/anchor_form.py CHECKPOINT SCENARIO [mean,median,huber1.5]
 
-``median`` is the form before the mean (its noise v_k drawn from the pooled residuals, as it was); ``huberC`` a Huber
-estimate with its corner at C × 2.5 dB (its noise drawn the same way).  One ``FORM {json}`` line per form: κ and
+    PYTHONPATH=src python experiments/anchor_form.py cli median --threads 1 bench b6 --size quick --out OUT
+
+(the second form: any ``rflscm`` command with the anchors' form patched in).  ``median`` is the form before the mean
+(its noise v_k drawn from the pooled residuals, as it was); ``huberC`` a Huber estimate with its corner at
+C × 2.5 dB (its noise drawn the same way).  One ``FORM {json}`` line per form: κ and
 round 2's MAE over the pairs with round-1 reports (``evaluate``'s ``seen`` rows).
 """
 
@@ -88,5 +91,17 @@ def main(checkpoint: str, scenario: str, forms: list[str]) -> None:
         print("FORM", json.dumps(row | seen_rows(evaluation, r1_index)), flush=True)
 
 
+def cli(form: str, args: list[str]) -> None:
+    """The ``rflscm`` command with the anchors' ``form`` patched in (training and benches alike)."""
+    from rflscm.cli import main as rflscm_main
+
+    corrections.report_mean, anchors.mean_noise = patched(form)
+    sys.argv = ["rflscm", *args]
+    rflscm_main()
+
+
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2], sys.argv[3].split(",") if len(sys.argv) > 3 else ["mean", "median", "huber1.5"])
+    if sys.argv[1] == "cli":
+        cli(sys.argv[2], sys.argv[3:])
+    else:
+        main(sys.argv[1], sys.argv[2], sys.argv[3].split(",") if len(sys.argv) > 3 else ["mean", "median", "huber1.5"])
