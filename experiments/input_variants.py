@@ -20,6 +20,15 @@ those two variables switches a log fidelity to ``shape`` and changes its level.
   per HiTAM stage; a pair's predictions move by (1 − s) times its grid's. The cells' levels relative to each other at
   a grid stay in the loss (they carry the directions from each cell toward the grid); what UE positions and the
   grid's own shadowing add to every cell alike is mostly profiled out.
+* ``LEVEL_RAMP=a,b``: the shape fidelity whose kept share of each pair's mean error starts at 1 (the log form) until
+  the share a of the schedule and falls linearly to the shape fidelity's (0.2) at b: the field learns its level (what
+  a grid without reports needs) early, and its shape after the pairs' levels late.
+* ``SMOOTH_LEVEL=K``: the shape fidelity's level is each pair's mean log error less the report-weighted mean of it
+  over the pair and its K nearest training pairs of the same cell (their last visit's, per HiTAM stage): the field
+  keeps the spatially smooth part of the levels (what a grid without reports needs) in full and the share
+  ``LEVEL_KEPT`` of each pair's own departure from it.
+* ``PENALTY_ABS=1`` (with ``--set loss.fidelity=shape``): the shape fidelity's missing-beam penalty on the predictions
+  before the pair's level moves them, so the bounds of the beams a pair did not report hold the field's own level.
 * ``TYPE_LEVEL=1`` (with ``--set loss.fidelity=shape``): the shape fidelity's level per pair *and beam type*, so the
   CSI-RS reports' level relative to the SSB ones at a pair is profiled out too.
 * ``CSI_OFFSET=d``: each cell's CSI-RS predictions in the training loss move by a running mean (decayed by d a step)
@@ -70,6 +79,9 @@ LEVEL_NOISE_K = float(os.environ.get("LEVEL_NOISE_K", "0"))
 GRID_LEVEL = os.environ.get("GRID_LEVEL", "")
 TYPE_LEVEL = os.environ.get("TYPE_LEVEL") == "1"
 CSI_OFFSET = os.environ.get("CSI_OFFSET", "")
+LEVEL_RAMP = os.environ.get("LEVEL_RAMP", "")
+SMOOTH_LEVEL = int(os.environ.get("SMOOTH_LEVEL", "0"))
+PENALTY_ABS = os.environ.get("PENALTY_ABS") == "1"
 GRID_DECAY = 0.95  # per step: a grid's ~3.5 pairs come back about every 11 steps in the shipped scenario
 RES_M, POINTS, SKIP_M, MARGIN_M, LEG_W0 = 2.0, 6, 3.0, 0.5, 1.15
 BUILDING = 6  # ASPRS class
@@ -128,6 +140,77 @@ def noise_pair_level(pred, rsrp, observed, floor=1e-12):
     err = L.log_errors(pred, rsrp, observed, floor)
     k = observed.sum(1)
     return err.sum(1) / k.clamp(min=1) * LEVEL_NOISE_K / (k + LEVEL_NOISE_K)
+
+
+# --- LEVEL_RAMP (the shape fidelity after a log-form start) ---------------------------------------------------------
+_training_losses = M.RFLSCM.training_losses
+_FINAL_KEPT = float(os.environ.get("LEVEL_KEPT") or L.LEVEL_KEPT)
+
+
+def ramped_training_losses(self, pairs, position):
+    """The share of each pair's mean error kept: 1 (the log form) until the schedule's share a, then straight down to
+    the shape fidelity's share at b."""
+    a, b = (float(v) for v in LEVEL_RAMP.split(","))
+    p = position / max(float(self.config.train.steps), 1.0)
+    t = min(max((p - a) / max(b - a, 1e-9), 0.0), 1.0)
+    L.LEVEL_KEPT = 1.0 + t * (_FINAL_KEPT - 1.0)
+    return _training_losses(self, pairs, position)
+
+
+# --- PENALTY_ABS (with loss.fidelity=shape) -------------------------------------------------------------------------
+def absolute_penalty_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity="log", sparsity_weight=1e-3,
+                          penalty_weight=0.5, floor=1e-12):
+    """The shape fidelity with its missing-beam penalty on the predictions as they are, not moved by the pair's level:
+    the reporting rule's bounds then hold the field's own level from above at every pair."""
+    out = _pen_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity, sparsity_weight, penalty_weight, floor=floor)
+    if fidelity != "shape":
+        return out
+    pen = _pen_loss(pred, rsrp, beam_mask, aps, x_scale, bound, "log", sparsity_weight, penalty_weight,
+                    floor=floor)["penalty"]
+    out["total"] = out["total"] + penalty_weight * (pen - out["penalty"])
+    out["penalty"] = pen
+    return out
+
+
+# --- SMOOTH_LEVEL (the shape fidelity after each pair's level less its neighbourhood's) ---------------------------
+_SMOOTH_STATE: dict = {}
+
+
+def smooth_level_loss(self, a_sel, x, pairs):
+    """The shape fidelity whose profiled level is each pair's mean log error *less* the mean of it over the pair and
+    its SMOOTH_LEVEL nearest same-cell training pairs (their last visit's, report-weighted): the field keeps the
+    spatially smooth part of the pairs' levels in full and a share LEVEL_KEPT of what is each pair's own."""
+    from scipy.spatial import cKDTree
+
+    d, c = self._training().data, self.config.loss
+    pred = torch.einsum("bmk,bk->bm", a_sel, x)
+    rsrp, mask = d.rsrp[pairs], d.beam_mask[pairs]
+    floor = 10.0 ** (M.FLOOR_DB / 10.0)
+    with torch.no_grad():
+        state = _SMOOTH_STATE.setdefault(id(d), {})
+        if "nb" not in state:
+            cells = d.cell_index.cpu().numpy()
+            xyz = d.grid_xyz.cpu().double().numpy()
+            nb = np.zeros((len(cells), SMOOTH_LEVEL + 1), np.int64)
+            for cell in np.unique(cells):
+                rows = np.flatnonzero(cells == cell)
+                k = min(SMOOTH_LEVEL + 1, len(rows))
+                j = cKDTree(xyz[rows]).query(xyz[rows], k=k)[1].reshape(len(rows), k)
+                nb[rows] = rows[np.pad(j, ((0, 0), (0, SMOOTH_LEVEL + 1 - k)), mode="edge")]
+            state["nb"] = torch.as_tensor(nb, device=pred.device)
+        observed = mask & ~torch.isnan(rsrp)
+        err = L.log_errors(pred, rsrp, observed, floor)
+        k = observed.sum(1).to(err.dtype)
+        mean = err.sum(1) / k.clamp(min=1)
+        sums, counts = state.setdefault(a_sel.shape[-1], (torch.zeros(d.cell_index.numel(), device=pred.device),
+                                                          torch.zeros(d.cell_index.numel(), device=pred.device)))
+        sums[pairs], counts[pairs] = err.sum(1), k  # each pair's last visit
+        nb = state["nb"][pairs]
+        local = sums[nb].sum(1) / counts[nb].sum(1).clamp(min=1)
+        level = torch.where(k > 0, (1.0 - L.LEVEL_KEPT) * (mean - local), 0.0)  # no reports: no level, as `shape`
+    pred = pred * torch.pow(10.0, -level)[:, None]
+    return M.lscm_loss(pred, rsrp, mask, x, d.x_scale[pairs], d.bound[pairs], "log", M.SPARSITY,
+                       c.missing_penalty, floor=floor)
 
 
 # --- GRID_LEVEL ------------------------------------------------------------------------------------------------------
@@ -290,11 +373,18 @@ if LEVEL_KEPT:
     L.LEVEL_KEPT = float(LEVEL_KEPT)
 if LEVEL_NOISE_K > 0:
     L.pair_level = noise_pair_level
-if LEVEL_KEPT or LEVEL_NOISE_K > 0:
+if PENALTY_ABS:
+    _pen_loss = M.lscm_loss
+    M.lscm_loss = absolute_penalty_loss
+if LEVEL_RAMP:
+    M.RFLSCM.training_losses = ramped_training_losses
+if LEVEL_KEPT or LEVEL_NOISE_K > 0 or LEVEL_RAMP:
     _shape_loss = M.lscm_loss
     M.lscm_loss = shape_lscm_loss
 if GRID_LEVEL:
     M.RFLSCM._loss = grid_level_loss
+if SMOOTH_LEVEL:
+    M.RFLSCM._loss = smooth_level_loss
 if TYPE_LEVEL:
     M.RFLSCM._loss = loss_noting_ssb
     _type_loss = M.lscm_loss
