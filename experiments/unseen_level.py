@@ -4,7 +4,7 @@ level at grids without reports").
 
 Usage (from the repository root, one thread):
 
-    [LEVEL_RAMP=a,b | SMOOTH_LEVEL=K] PYTHONPATH=src python experiments/unseen_level.py train SCENARIO OUT.pt SEED [CONFIG_JSON]
+    [LEVEL_RAMP=a,b | SMOOTH_LEVEL=K | PENALTY_ABS=1] PYTHONPATH=src python experiments/unseen_level.py train SCENARIO OUT.pt SEED [CONFIG_JSON]
 
 trains one B6 quick RF-LSCM (20 % of the grids held out, as ``rflscm bench b6 --size quick``) with the variants of
 ``input_variants.py`` that the environment names patched in, saves it and prints its B6 unseen MAE (``TRAINED``
@@ -64,6 +64,16 @@ def _neighbours(xyz: np.ndarray, points: np.ndarray, k: int, skip_self: bool) ->
     return (d[:, 1:], i[:, 1:]) if skip_self else (d, i)
 
 
+def _own_aps(model, cell_ids: np.ndarray, grid_ids: np.ndarray, grid_xyz=None) -> torch.Tensor:
+    """The model's APS with its unseen-grid blend off (each pair's own APS)."""
+    weight = model.corrections.unseen_weight
+    model.corrections.unseen_weight = 0.0
+    try:
+        return model.aps(cell_ids, grid_ids, grid_xyz)
+    finally:
+        model.corrections.unseen_weight = weight
+
+
 def _idw(d: np.ndarray) -> np.ndarray:
     w = 1.0 / np.maximum(d, 1.0) ** 2
     return w / w.sum(1, keepdims=True)
@@ -83,11 +93,7 @@ class _OwnTimes(APSCache):
     def aps(self, cell_ids, grid_ids, grid_xyz=None):
         m, w = self.m, self.m.corrections.unseen_weight
         cell_ids, grid_ids = np.asarray(cell_ids).reshape(-1), np.asarray(grid_ids).reshape(-1)
-        m.corrections.unseen_weight = 0.0
-        try:
-            own = m.aps(cell_ids, grid_ids, grid_xyz)
-        finally:
-            m.corrections.unseen_weight = w
+        own = _own_aps(m, cell_ids, grid_ids, grid_xyz)
         out = m.aps(cell_ids, grid_ids, grid_xyz).clone()
         rows = np.array([i for i, key in enumerate(zip(cell_ids.tolist(), grid_ids.tolist())) if key not in self.keys])
         if not rows.size or self.beta == 0.0:
@@ -151,13 +157,9 @@ class _KNearest(APSCache):
         self.keys = set(zip(self.cells.tolist(), self.grids.tolist(), strict=True))
 
     def aps(self, cell_ids, grid_ids, grid_xyz=None):
-        m, fw = self.m, self.m.corrections.unseen_weight
+        m = self.m
         cell_ids, grid_ids = np.asarray(cell_ids).reshape(-1), np.asarray(grid_ids).reshape(-1)
-        m.corrections.unseen_weight = 0.0
-        try:
-            out = m.aps(cell_ids, grid_ids, grid_xyz).clone()
-        finally:
-            m.corrections.unseen_weight = fw
+        out = _own_aps(m, cell_ids, grid_ids, grid_xyz).clone()
         rows = np.array([i for i, key in enumerate(zip(cell_ids.tolist(), grid_ids.tolist())) if key not in self.keys])
         for cell in np.unique(cell_ids[rows]) if rows.size else []:
             mine = self.cells == cell
