@@ -176,16 +176,20 @@ def absolute_penalty_loss(pred, rsrp, beam_mask, aps, x_scale, bound, fidelity="
 _SMOOTH_STATE: dict = {}
 
 
+def _batch(self, a_sel, x, pairs):
+    """A batch's training data, loss config, predictions A x̃, reports, beam mask and log floor (the model's ``_loss``)."""
+    d = self._training().data
+    return (d, self.config.loss, torch.einsum("bmk,bk->bm", a_sel, x), d.rsrp[pairs], d.beam_mask[pairs],
+            10.0 ** (M.FLOOR_DB / 10.0))
+
+
 def smooth_level_loss(self, a_sel, x, pairs):
     """The shape fidelity whose profiled level is each pair's mean log error *less* the mean of it over the pair and
     its SMOOTH_LEVEL nearest same-cell training pairs (their last visit's, report-weighted): the field keeps the
     spatially smooth part of the pairs' levels in full and a share LEVEL_KEPT of what is each pair's own."""
     from scipy.spatial import cKDTree
 
-    d, c = self._training().data, self.config.loss
-    pred = torch.einsum("bmk,bk->bm", a_sel, x)
-    rsrp, mask = d.rsrp[pairs], d.beam_mask[pairs]
-    floor = 10.0 ** (M.FLOOR_DB / 10.0)
+    d, c, pred, rsrp, mask, floor = _batch(self, a_sel, x, pairs)
     with torch.no_grad():
         state = _SMOOTH_STATE.setdefault(id(d), {})
         if "nb" not in state:
@@ -218,10 +222,7 @@ _GRID_STATE: dict = {}
 
 
 def grid_level_loss(self, a_sel, x, pairs):
-    d, c = self._training().data, self.config.loss
-    pred = torch.einsum("bmk,bk->bm", a_sel, x)
-    rsrp, mask = d.rsrp[pairs], d.beam_mask[pairs]
-    floor = 10.0 ** (M.FLOOR_DB / 10.0)
+    d, c, pred, rsrp, mask, floor = _batch(self, a_sel, x, pairs)
     with torch.no_grad():
         state = _GRID_STATE.setdefault(id(d), {})
         if "grid" not in state:
