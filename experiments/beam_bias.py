@@ -8,7 +8,9 @@ instead of the checkpoint):
 
 For each beam type, over the changed cells' pairs with a round-1 report: the MAE [dB], the MAE once each (cell, beam)'s
 mean error is removed (what a per-beam correction learnt from round 2 itself would reach), once each pair's median
-error is removed, and the mean signed error.
+error is removed, and the mean signed error.  Then (``BEAM`` lines) each beam's mean signed error over the changed
+cells that use one round-2 codebook, with the number of errors behind it, so a beam that lights directions round 1's
+beams barely saw shows as a bias of its own.
 """
 
 from __future__ import annotations
@@ -60,6 +62,14 @@ def main(checkpoint: str, scenario: str) -> None:
             "mean_signed": round(float(np.nanmean(err)), 3),
         }
         print("BIAS", json.dumps(row), flush=True)
+        codebooks = sc.cells[2].set_index("cell_id")[f"{bt}_codebook"]
+        for book in sorted(set(codebooks.loc[np.unique(cells)])):
+            mine = np.isin(cells, codebooks.index[codebooks == book])
+            count = np.isfinite(err[mine]).sum(0)
+            mean = np.nansum(err[mine], 0) / np.maximum(count, 1)
+            beams = {"beam_type": bt, "codebook": book, "cells": int(np.unique(cells[mine]).size)}
+            beams |= {"mean_signed": [round(float(v), 2) for v in mean], "errors": count.tolist()}
+            print("BEAM", json.dumps(beams), flush=True)
 
 
 if __name__ == "__main__":

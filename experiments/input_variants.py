@@ -29,6 +29,11 @@ those two variables switches a log fidelity to ``shape`` and changes its level.
   ``LEVEL_KEPT`` of each pair's own departure from it.
 * ``PENALTY_ABS=1`` (with ``--set loss.fidelity=shape``): the shape fidelity's missing-beam penalty on the predictions
   before the pair's level moves them, so the bounds of the beams a pair did not report hold the field's own level.
+* ``LEVEL_HEAD=w`` (with ``--set loss.fidelity=shape``): a level head of the field's own, g(cell, grid) in bels, a
+  small MLP on the fine stage's feature field at the grid (not differentiated), the grid's position, its distance and
+  direction from the cell and a cell embedding; every stage's APS is multiplied by 10^g, and g is regressed (weight
+  w) on each training pair's mean log error of the whole prediction, so the level that the shape fidelity keeps out
+  of the field's loss is learnt apart from the field's angular shape (what a grid without reports needs).
 * ``TYPE_LEVEL=1`` (with ``--set loss.fidelity=shape``): the shape fidelity's level per pair *and beam type*, so the
   CSI-RS reports' level relative to the SSB ones at a pair is profiled out too.
 * ``CSI_OFFSET=d``: each cell's CSI-RS predictions in the training loss move by a running mean (decayed by d a step)
@@ -82,6 +87,8 @@ CSI_OFFSET = os.environ.get("CSI_OFFSET", "")
 LEVEL_RAMP = os.environ.get("LEVEL_RAMP", "")
 SMOOTH_LEVEL = int(os.environ.get("SMOOTH_LEVEL", "0"))
 PENALTY_ABS = os.environ.get("PENALTY_ABS") == "1"
+LEVEL_HEAD = float(os.environ.get("LEVEL_HEAD", "0"))
+LEVEL_HEAD_MAX = 2.0  # bels: the head's level lies within ±20 dB
 GRID_DECAY = 0.95  # per step: a grid's ~3.5 pairs come back about every 11 steps in the shipped scenario
 RES_M, POINTS, SKIP_M, MARGIN_M, LEG_W0 = 2.0, 6, 3.0, 0.5, 1.15
 BUILDING = 6  # ASPRS class
@@ -294,6 +301,83 @@ def csi_offset_loss(self, a_sel, x, pairs):
                        c.missing_penalty, floor=floor)
 
 
+# --- LEVEL_HEAD (a level of the field's own, learnt apart from its angular shape) -----------------------------------
+class LevelHead(nn.Module):
+    """g(cell, grid) [bels] ``[B]``: a scalar level per pair from the fine stage's feature field at the grid (detached),
+    the grid's position, its distance and direction from the cell, and a cell embedding; multiplies the whole APS."""
+
+    def __init__(self, feature_dim: int, cell_xyz: np.ndarray, frame) -> None:
+        super().__init__()
+        self.register_buffer("cell_xyz", torch.as_tensor(cell_xyz, dtype=torch.float32))
+        self.register_buffer("lo", torch.tensor(frame.box_lo, dtype=torch.float32))
+        self.register_buffer("hi", torch.tensor(frame.box_hi, dtype=torch.float32))
+        self.ref_m = float(frame.reference_distance_m)
+        self.embed = nn.Embedding(len(cell_xyz), 8)
+        width = feature_dim + F.encoded_dim(3, 3) + 4 + 8
+        self.net = nn.Sequential(nn.Linear(width, 64), nn.ReLU(), nn.Linear(64, 64), nn.ReLU(), nn.Linear(64, 1))
+        nn.init.zeros_(self.net[-1].weight)
+        nn.init.zeros_(self.net[-1].bias)
+
+    def forward(self, fields, cells: torch.Tensor, xyz: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            feat = fields.features(fields.encode(xyz))
+        rel = xyz - self.cell_xyz[cells]
+        dist = rel.norm(dim=-1, keepdim=True).clamp_min(1.0)
+        unit = 2.0 * (xyz - self.lo) / (self.hi - self.lo) - 1.0
+        parts = [feat, F.positional_encoding(unit, 3), torch.log(dist / self.ref_m), rel / dist, self.embed(cells)]
+        return LEVEL_HEAD_MAX * torch.tanh(self.net(torch.cat(parts, -1)).squeeze(-1) / LEVEL_HEAD_MAX)
+
+
+def _head_level(stages, cells: torch.Tensor, xyz: torch.Tensor) -> torch.Tensor:
+    fine = stages["fine"]
+    return fine.level_head(fine.fields, cells, xyz.to(torch.float32))
+
+
+def build_with_head(self, frame):
+    """The stages with a level head each (so that HiTAM's copy of the coarse stage into the fine one matches keys);
+    only the fine stage's is used and trained."""
+    _build_stages(self, frame)
+    for stage in self.stages.values():
+        stage.level_head = LevelHead(stage.fields.feature_dim, self.scene.cell_xyz, frame).to(self.device)
+
+
+def step_keeping_head(self, step, position):
+    """HiTAM's warm-up end copies the coarse stage into the fine one; the fine stage's level head is kept."""
+    kept = {k: v.clone() for k, v in self.stages["fine"].level_head.state_dict().items()}
+    out = _on_step_begin(self, step, position)
+    self.stages["fine"].level_head.load_state_dict(kept)
+    return out
+
+
+def power_on_with_level(self, stage, kind, cells, grid_xyz, bins, valid):
+    """Every stage's APS times 10^g (g not differentiated here: its own loss trains it)."""
+    x = _power_on(self, stage, kind, cells, grid_xyz, bins, valid)
+    with torch.no_grad():
+        g = _head_level(self.stages, cells, grid_xyz)
+    return x * torch.pow(10.0, g)[:, None]
+
+
+def level_head_loss(self, a_sel, x, pairs):
+    """The model's loss, plus the head's: g regressed on each pair's mean log error of the whole prediction (the
+    field's APS times 10^g, not differentiated), so the head learns the level the shape fidelity leaves out."""
+    out = _head_loss(self, a_sel, x, pairs)
+    d = self._training().data
+    floor = 10.0 ** (M.FLOOR_DB / 10.0)
+    rsrp, mask = d.rsrp[pairs], d.beam_mask[pairs]
+    with torch.no_grad():
+        pred = torch.einsum("bmk,bk->bm", a_sel, x)
+        observed = mask & ~torch.isnan(rsrp)
+        err = L.log_errors(pred, rsrp, observed, floor)
+        k = observed.sum(1)
+    has = k > 0
+    g = _head_level(self.stages, d.cell_index[pairs], d.grid_xyz[pairs])
+    target = g.detach() - err.sum(1) / k.clamp(min=1)
+    level = (g - target).square()[has].mean() if bool(has.any()) else g.sum() * 0.0
+    out["total"] = out["total"] + LEVEL_HEAD * level
+    out["level_head"] = level.detach()
+    return out
+
+
 # --- SECOND_LEG -----------------------------------------------------------------------------------------------------
 HEIGHTS: dict = {}
 
@@ -392,6 +476,15 @@ if TYPE_LEVEL:
     M.lscm_loss = type_level_lscm_loss
 if CSI_OFFSET:
     M.RFLSCM._loss = csi_offset_loss
+if LEVEL_HEAD > 0:
+    from rflscm.models.rflscm import renderer as R
+
+    _build_stages, _power_on, _head_loss = M.RFLSCM._build_stages, R.APSRenderer.power_on, M.RFLSCM._loss
+    M.RFLSCM._build_stages = build_with_head
+    _on_step_begin = M.RFLSCM.on_step_begin
+    M.RFLSCM.on_step_begin = step_keeping_head
+    R.APSRenderer.power_on = power_on_with_level
+    M.RFLSCM._loss = level_head_loss
 if SECOND_LEG:
     build_heights(SECOND_LEG)
     F.RadianceDecoder.__init__ = init_with_leg
