@@ -33,13 +33,16 @@ import torch
 
 from rflscm.antenna import sensing_matrix
 from rflscm.data import load_scenario
+from rflscm.data import scenario as scenario_module
 from rflscm.data.scenario import Scenario
 from rflscm.sim.field import FieldConfig, array_errors, draw_samples
 
 
 def true_gains(scenario: Scenario) -> dict[int, torch.Tensor | None]:
     """Each cell's complex element gains ``[num_h, num_v]`` as the field regime drew them (None: no errors)."""
-    sim = scenario.meta.simulation
+    sim = scenario.meta.simulation or {}
+    if "field" not in sim or "config" not in sim:
+        raise SystemExit("the scenario was not simulated in the field regime: its arrays are the nominal ones")
     config, setup = FieldConfig(**sim["field"]), sim["config"]
     rng = np.random.default_rng([int(setup["seed"]), 12])
     samples = draw_samples(
@@ -56,19 +59,22 @@ def true_gains(scenario: Scenario) -> dict[int, torch.Tensor | None]:
 
 
 def use_true_arrays(gains: dict[int, torch.Tensor | None]) -> None:
-    """Every :meth:`Scenario.sensing` from now on passes the cell's true element gains."""
+    """Every :meth:`Scenario.sensing` from now on passes the cell's true element gains (the method notes which cell
+    it is building for; the sensing function it calls adds that cell's gains)."""
+    cells: list[int] = []
+    nominal = Scenario.sensing
 
-    def sensing(self, cell_id, beam_type, directions, round=1, dtype=torch.float32, device=None):
-        return sensing_matrix(
-            self.antenna(cell_id, round),
-            self.codebook(cell_id, beam_type, round),
-            directions,
-            self.wavelength_m(cell_id),
-            dtype=dtype,
-            device=device,
-            element_gains=gains[int(cell_id)],
-        )
+    def sensing(self, cell_id, *args, **kwargs):
+        cells.append(int(cell_id))
+        try:
+            return nominal(self, cell_id, *args, **kwargs)
+        finally:
+            cells.pop()
 
+    def with_gains(*args, **kwargs):
+        return sensing_matrix(*args, element_gains=gains[cells[-1]], **kwargs)
+
+    scenario_module.sensing_matrix = with_gains
     Scenario.sensing = sensing
 
 
