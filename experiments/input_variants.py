@@ -361,11 +361,8 @@ def level_head_loss(self, a_sel, x, pairs):
     """The model's loss, plus the head's: g regressed on each pair's mean log error of the whole prediction (the
     field's APS times 10^g, not differentiated), so the head learns the level the shape fidelity leaves out."""
     out = _head_loss(self, a_sel, x, pairs)
-    d = self._training().data
-    floor = 10.0 ** (M.FLOOR_DB / 10.0)
-    rsrp, mask = d.rsrp[pairs], d.beam_mask[pairs]
     with torch.no_grad():
-        pred = torch.einsum("bmk,bk->bm", a_sel, x)
+        d, _, pred, rsrp, mask, floor = _batch(self, a_sel, x, pairs)
         observed = mask & ~torch.isnan(rsrp)
         err = L.log_errors(pred, rsrp, observed, floor)
         k = observed.sum(1)
