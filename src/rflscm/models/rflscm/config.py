@@ -284,7 +284,7 @@ class LossConfig:
     :data:`~rflscm.models.rflscm.losses.LEVEL_KEPT` of its mean error on its reports, so the field learns the pairs'
     relative beam levels and the anchors after training their levels; better at 10 CPU-minutes and level or better
     in the demos of three scenes, but the field's own level then predicts grids without reports worse, B6 field's
-    SSB / CSI-RS by 0.26 / 0.32 dB over several training seeds: docs/DECISIONS.md)."""
+    SSB / CSI-RS by 0.29 / 0.08 dB over four training seeds, SSB then under half of B6's distance closed: docs/DECISIONS.md)."""
     missing_penalty: float = 0.5
     """α_P (one-sided penalty on missing beams predicted above r_th)."""
 
